@@ -1,0 +1,96 @@
+"""Grid cost-to-go (a navigation function) for B scenes at once.
+
+A plain potential field has local minima in front of obstacle clusters (SPEC: "a purely local field
+also stalls"). PAC's path check uses this cost-to-go to pick the detour side that actually leads to
+the goal. It is a wavefront (8-connected, diagonal cost sqrt 2) on a ``resolution`` grid where
+cells within r + ``inflate`` of an obstacle cost ``wall_cost`` times more, so it is finite
+everywhere, even inside the inflated zone, and has no local minima.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_SHIFTS = [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)]
+
+
+@dataclass
+class CostToGo:
+    """Cost-to-go fields of B scenes on a common grid.
+
+    Attributes:
+        value: (B, n, n) cost-to-go [m-equivalent].
+        origin: lower-left corner of the grid [m].
+        resolution: cell size [m].
+    """
+
+    value: np.ndarray
+    origin: float
+    resolution: float
+
+    def __getitem__(self, idx) -> CostToGo:
+        return CostToGo(self.value[idx], self.origin, self.resolution)
+
+    def cell(self, xy: np.ndarray) -> np.ndarray:
+        n = self.value.shape[-1]
+        return np.clip(np.round((xy - self.origin) / self.resolution).astype(np.int64), 0, n - 1)
+
+    def carrot(self, xy: np.ndarray, n_cells: int) -> np.ndarray:
+        """Follow steepest descent ``n_cells`` cells from each point xy (B, 2) -> target points (B, 2)."""
+        B, n = len(xy), self.value.shape[-1]
+        ij = self.cell(xy)
+        bi = np.arange(B)
+        sh = np.asarray(_SHIFTS)
+        for _ in range(n_cells):
+            nb = np.clip(ij[:, None, :] + sh[None], 0, n - 1)  # (B, 8, 2)
+            vals = self.value[bi[:, None], nb[..., 0], nb[..., 1]]
+            here = self.value[bi, ij[:, 0], ij[:, 1]]
+            best = np.argmin(vals, axis=1)
+            better = vals[bi, best] < here
+            ij = np.where(better[:, None], nb[bi, best], ij)
+        return self.origin + self.resolution * ij.astype(np.float64)
+
+    def at(self, xy: np.ndarray) -> np.ndarray:
+        ij = self.cell(xy)
+        return self.value[np.arange(len(xy)), ij[:, 0], ij[:, 1]]
+
+
+def cost_to_go(
+    obstacles: np.ndarray,
+    goal: np.ndarray,
+    inflate: float = 0.7,
+    resolution: float = 0.2,
+    wall_cost: float = 30.0,
+    bounds: tuple[float, float] = (-3.0, 9.0),
+) -> CostToGo:
+    """Wavefront cost-to-go to ``goal`` (B, 2) around ``obstacles`` (B, M, 3)."""
+    lo, hi = bounds
+    lo = min(lo, float(goal.min()) - 2.0)
+    hi = max(hi, float(goal.max()) + 2.0)
+    n = int(np.ceil((hi - lo) / resolution)) + 1
+    axis = lo + resolution * np.arange(n)
+    X, Y = np.meshgrid(axis, axis, indexing="ij")
+    B = len(goal)
+    cost = np.ones((B, n, n))
+    for m in range(obstacles.shape[1]):  # few obstacle slots; padded ones have r = 0 and sit far away
+        ox, oy, r = (obstacles[:, m, k][:, None, None] for k in range(3))
+        inside = ((X - ox) ** 2 + (Y - oy) ** 2 < (r + inflate) ** 2) & (r > 0)
+        cost = np.where(inside, wall_cost, cost)
+    value = np.full((B, n, n), np.inf)
+    gi = np.clip(np.round((goal - lo) / resolution).astype(np.int64), 0, n - 1)
+    value[np.arange(B), gi[:, 0], gi[:, 1]] = 0.0
+    step_len = [resolution * (np.sqrt(2.0) if dx and dy else 1.0) for dx, dy in _SHIFTS]
+    for it in range(8 * n):
+        prev = value if it % 10 == 0 else None
+        if prev is not None:
+            prev = value.copy()
+        for (dx, dy), L in zip(_SHIFTS, step_len, strict=True):
+            src = value[:, max(dx, 0) : n + min(dx, 0), max(dy, 0) : n + min(dy, 0)]
+            c = cost[:, max(-dx, 0) : n + min(-dx, 0), max(-dy, 0) : n + min(-dy, 0)]
+            dst = value[:, max(-dx, 0) : n + min(-dx, 0), max(-dy, 0) : n + min(-dy, 0)]
+            np.minimum(dst, src + L * c, out=dst)
+        if prev is not None and np.array_equal(prev, value):
+            break
+    return CostToGo(value, lo, resolution)

@@ -1,0 +1,155 @@
+"""Path-Aware Controller (PAC): the demonstrator (paper Sec. V-A, SPEC "The demonstrator").
+
+An artificial potential field for the leaders' midpoint, batched over B scenes:
+
+1. attraction: unit vector toward the goal;
+2. repulsion: for every obstacle within ``influence`` of the midpoint's inflated clearance rho,
+   k_rep (1/rho - 1/influence) / rho^2 along the outward normal (Khatib's field);
+3. path check: the segment from the midpoint toward the goal (up to ``lookahead`` metres) is blocked
+   when it passes within r + ``inflate`` of an obstacle centre. Then a sideways force along the
+   tangent of that inflated circle replaces the attraction, so the team detours instead of backing
+   off. The side is kept while the same obstacle blocks (hysteresis against dithering);
+4. the force becomes [v, omega]: omega = k_omega * wrap(theta_F - phi), v = v_cruise cos^2 of the
+   heading error, slowed near the goal;
+5. footprint governor: the whole formation, not just the midpoint, must stay clear. A small grid of
+   (v, omega) candidates around the field's command is rolled out ``horizon`` steps with the rigid
+   formation template (the followers' rear corners swing out to 1.12 m when the team turns); the
+   candidate closest to the field's command whose footprint keeps ``safety_margin`` wins. If none
+   does, the one with the largest predicted clearance wins.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_formation.core.dynamics import FormationParams, rotate_body
+from lerobot_formation.core.geometry import point_clearance
+from lerobot_formation.core.navigation import cost_to_go
+
+
+@dataclass(frozen=True)
+class PACConfig:
+    v_cruise: float = 0.5  # [m/s]
+    k_omega: float = 2.0  # [1/s] heading gain
+    k_rep: float = 0.05  # repulsion gain
+    influence: float = 0.5  # [m] repulsion range beyond the inflated radius
+    inflate: float = 0.75  # [m] obstacle inflation: bar half-width + agent radius + margin
+    lookahead: float = 3.0  # [m] path-blocked check length
+    path_inflate: float = 0.9  # [m] obstacle inflation of the cost-to-go: avoids gaps the square can't turn in
+    carrot_cells: int = 5  # detour target: this many cost-to-go cells (0.2 m) down the gradient
+    goal_slow_radius: float = 1.0  # [m] slow down inside this distance to the goal
+    horizon: int = 8  # footprint prediction steps (x dt)
+    safety_margin: float = 0.08  # [m] predicted agent clearance to keep
+    v_scales: tuple[float, ...] = (1.0, 0.5, 0.0)  # x the field's v, plus x v_cruise
+    omega_offsets: tuple[float, ...] = (0.0, -0.5, 0.5)  # + the field's omega
+    omega_fixed: tuple[float, ...] = (-1.5, -0.75, 0.0, 0.75, 1.5)  # absolute candidates [rad/s]
+
+
+def wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+class PathAwareController:
+    """Batched PAC. ``reset(obstacles, goal)`` once per batch of episodes, then
+    ``command(pose) -> (B, 2)`` every control step."""
+
+    def __init__(self, config: PACConfig | None = None, params: FormationParams | None = None):
+        self.config = config or PACConfig()
+        self.params = params or FormationParams()
+        self.template = np.asarray(self.params.graph.template)  # (N, 2)
+        c = self.config
+        n_w = len(c.omega_offsets) + len(c.omega_fixed)
+        n_v = 2 * len(c.v_scales)
+        # Candidate k: v = v_field * vs_rel[k] + v_cruise * vs_abs[k]; omega = omega_field * ws_rel[k] + ws_abs[k].
+        vs_rel = np.concatenate([np.asarray(c.v_scales), np.zeros(len(c.v_scales))])
+        vs_abs = np.concatenate([np.zeros(len(c.v_scales)), np.asarray(c.v_scales)])
+        ws_rel = np.concatenate([np.ones(len(c.omega_offsets)), np.zeros(len(c.omega_fixed))])
+        ws_abs = np.concatenate([np.asarray(c.omega_offsets), np.asarray(c.omega_fixed)])
+        self._vs_rel, self._vs_abs = np.repeat(vs_rel, n_w), np.repeat(vs_abs, n_w)  # (C,)
+        self._ws_rel, self._ws_abs = np.tile(ws_rel, n_v), np.tile(ws_abs, n_v)
+
+    def reset(self, obstacles: np.ndarray, goal: np.ndarray) -> None:
+        self.obstacles = np.asarray(obstacles, dtype=np.float64)
+        self.goal = np.asarray(goal, dtype=np.float64)
+        self.ctg = cost_to_go(self.obstacles, self.goal, inflate=self.config.path_inflate)
+
+    def select(self, idx: np.ndarray) -> PathAwareController:
+        """A view of this controller restricted to the episodes ``idx``."""
+        sub = PathAwareController.__new__(PathAwareController)
+        sub.__dict__.update(self.__dict__)
+        sub.obstacles, sub.goal, sub.ctg = self.obstacles[idx], self.goal[idx], self.ctg[idx]
+        return sub
+
+    def field_command(self, pose: np.ndarray) -> np.ndarray:
+        """Potential-field command (B, 2) before the footprint governor."""
+        c = self.config
+        p, phi = pose[:, :2], pose[:, 2]
+        obs = self.obstacles
+        to_goal = self.goal - p
+        dist_goal = np.linalg.norm(to_goal, axis=-1)
+        u = to_goal / np.maximum(dist_goal, 1e-9)[:, None]  # (B, 2)
+        # Path check: closest approach of the goal segment to each inflated obstacle.
+        rel = obs[..., :2] - p[:, None, :]  # (B, M, 2)
+        t = np.einsum("bmk,bk->bm", rel, u)
+        seg = np.minimum(dist_goal, c.lookahead)[:, None]
+        closest = np.sqrt(np.maximum(np.sum(rel * rel, -1) - t * t, 0.0))
+        R = obs[..., 2] + c.inflate
+        blocking = (t > 0) & (t < seg + R) & (closest < R) & (obs[..., 2] > 0)
+        blocked = blocking.any(axis=1)
+        # Blocked: detour sideways toward the cost-to-go carrot, which picks the side that leads on.
+        self.blocked = blocked
+        attract = u
+        if blocked.any():
+            carrot = self.ctg.carrot(p, self.config.carrot_cells) - p
+            carrot /= np.maximum(np.linalg.norm(carrot, axis=-1), 1e-9)[:, None]
+            attract = np.where(blocked[:, None], carrot, u)
+        # Repulsion (Khatib) from the inflated obstacles near the midpoint.
+        dist_c = np.linalg.norm(rel, axis=-1)
+        rho = np.maximum(dist_c - R, 0.05)
+        mag = np.where(rho < c.influence, c.k_rep * (1 / rho - 1 / c.influence) / rho**2, 0.0)
+        normal = -rel / np.maximum(dist_c, 1e-9)[..., None]
+        repel = np.sum(mag[..., None] * normal, axis=1)
+        force = attract + repel
+        theta = np.arctan2(force[:, 1], force[:, 0])
+        err = wrap(theta - phi)
+        omega = np.clip(c.k_omega * err, -self.params.omega_max, self.params.omega_max)
+        v = c.v_cruise * np.maximum(np.cos(err), 0.0) ** 2
+        v = v * np.clip(dist_goal / c.goal_slow_radius, 0.3, 1.0)
+        return np.stack([v, omega], axis=-1)
+
+    def footprint_clearance(self, pose: np.ndarray, cand: np.ndarray) -> np.ndarray:
+        """Minimum predicted agent clearance over the horizon for candidates cand (B, C, 2) -> (B, C)."""
+        dt = self.params.dt
+        B, C, _ = cand.shape
+        T = self.config.horizon
+        v, w = cand[..., 0], cand[..., 1]
+        k = np.arange(1, T + 1)[None, None, :]
+        phi0 = pose[:, 2][:, None, None]
+        phi = phi0 + w[..., None] * dt * k  # (B, C, T): heading after k steps
+        # Euler positions: x_k = x_0 + v dt sum_{j<k} cos(phi_j)
+        phis = np.concatenate([np.broadcast_to(phi0, (B, C, 1)), phi[..., :-1]], axis=-1)
+        x = pose[:, 0][:, None, None] + v[..., None] * dt * np.cumsum(np.cos(phis), axis=-1)
+        y = pose[:, 1][:, None, None] + v[..., None] * dt * np.cumsum(np.sin(phis), axis=-1)
+        N = len(self.template)
+        offs = np.broadcast_to(self.template, (B, C, T, N, 2))
+        agents = rotate_body(offs, np.broadcast_to(phi[..., None], (B, C, T, N)))
+        agents = agents + np.stack([x, y], axis=-1)[..., None, :]
+        clear = point_clearance(agents.reshape(B, -1, 2), self.obstacles) - self.params.agent_radius
+        return clear.reshape(B, C, T * N).min(axis=-1)
+
+    def command(self, pose: np.ndarray) -> np.ndarray:
+        """[v, omega] for B midpoint poses (B, 3) -> (B, 2)."""
+        desired = self.field_command(pose)
+        v = desired[:, None, 0] * self._vs_rel + self.config.v_cruise * self._vs_abs
+        w = desired[:, None, 1] * self._ws_rel + self._ws_abs
+        cand = np.stack([v, np.clip(w, -self.params.omega_max, self.params.omega_max)], axis=-1)  # (B, C, 2)
+        clear = self.footprint_clearance(pose, cand)
+        safe = clear >= self.config.safety_margin
+        dev = (cand[..., 0] - desired[:, None, 0]) ** 2 + 0.1 * (cand[..., 1] - desired[:, None, 1]) ** 2
+        score = np.where(safe, dev, np.inf)
+        best = np.argmin(score, axis=1)
+        fallback = np.argmax(clear, axis=1)
+        pick = np.where(safe.any(axis=1), best, fallback)
+        return cand[np.arange(len(pose)), pick]

@@ -1,0 +1,182 @@
+"""Closed-loop rollouts of B episodes at once: the batched engine under the env, the bench and the
+dataset generator.
+
+An episode ends on success (midpoint within ``goal_tolerance`` of the goal, no collision), on
+collision (any agent disc touching any obstacle; collision wins if both happen in one step), or on
+timeout after ``max_steps`` control steps. Only live episodes are stepped.
+
+Controllers follow one interface (``Controller``): ``reset(scenes)`` once, then
+``act(state, idx) -> (len(idx), 2)`` for the live episodes ``idx`` (global indices into the batch).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from lerobot_formation.core.dynamics import (
+    FormationParams,
+    FormationState,
+    agent_positions,
+    check_action,
+    clip_action,
+    desired_follower_positions,
+    formation_error,
+    initial_state,
+    step,
+)
+from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance
+from lerobot_formation.core.pac import PACConfig, PathAwareController
+from lerobot_formation.core.scene import Scenes
+
+RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
+OUTCOME_NAMES = {RUNNING: "running", SUCCESS: "success", COLLISION: "collision", TIMEOUT: "timeout"}
+
+
+class Controller(Protocol):
+    name: str
+
+    def reset(self, scenes: Scenes) -> None: ...
+
+    def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray: ...
+
+
+class PACController:
+    """PAC behind the common controller interface."""
+
+    name = "pac"
+
+    def __init__(self, config: PACConfig | None = None, params: FormationParams | None = None):
+        self.pac = PathAwareController(config, params)
+
+    def reset(self, scenes: Scenes) -> None:
+        self.pac.reset(scenes.obstacles, scenes.goal)
+
+    def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
+        return self.pac.select(idx).command(state.pose)
+
+
+def step_outcome(
+    state: FormationState, obstacles: np.ndarray, goal: np.ndarray, params: FormationParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(outcome (B,), agent clearances (B, N), midpoint clearance (B,)) after a step."""
+    clear = agent_clearances(agent_positions(state), obstacles, params.agent_radius)
+    mid = midpoint_clearance(state.pose, obstacles)
+    outcome = np.zeros(len(goal), dtype=np.int64)
+    reached = np.linalg.norm(state.pose[:, :2] - goal, axis=-1) <= params.goal_tolerance
+    outcome[reached] = SUCCESS
+    outcome[(clear < 0).any(axis=1)] = COLLISION
+    return outcome, clear, mid
+
+
+@dataclass
+class EpisodeRecords:
+    """Trajectories of B episodes, padded with NaN after each episode's end.
+
+    Attributes:
+        poses: (B, T+1, 3) midpoint poses, T = max_steps.
+        actions: (B, T, 2) applied (clipped) actions.
+        positions: (B, T+1, N, 2) all agents.
+        formation_error: (B, T+1) e_d.
+        follower_velocity_error: (B, T) mean over followers of ||v_i - v_i*||, v_i* the velocity of
+            the follower's template slot.
+        agent_clearance: (B, T+1) smallest agent-disc gap to any obstacle.
+        midpoint_clearance: (B, T+1) midpoint to nearest obstacle surface.
+        outcome: (B,) SUCCESS, COLLISION or TIMEOUT.
+        steps: (B,) control steps taken.
+    """
+
+    poses: np.ndarray
+    actions: np.ndarray
+    positions: np.ndarray
+    formation_error: np.ndarray
+    follower_velocity_error: np.ndarray
+    agent_clearance: np.ndarray
+    midpoint_clearance: np.ndarray
+    outcome: np.ndarray
+    steps: np.ndarray
+    dt: float = 0.1
+
+    def __len__(self) -> int:
+        return len(self.outcome)
+
+    def episode(self, b: int) -> dict[str, np.ndarray]:
+        n = int(self.steps[b])
+        return {
+            "poses": self.poses[b, : n + 1],
+            "actions": self.actions[b, :n],
+            "positions": self.positions[b, : n + 1],
+            "formation_error": self.formation_error[b, : n + 1],
+            "follower_velocity_error": self.follower_velocity_error[b, :n],
+            "agent_clearance": self.agent_clearance[b, : n + 1],
+            "midpoint_clearance": self.midpoint_clearance[b, : n + 1],
+        }
+
+
+def rollout(
+    scenes: Scenes,
+    controller: Controller,
+    params: FormationParams | None = None,
+    max_steps: int | None = None,
+    progress=None,
+) -> EpisodeRecords:
+    """Run ``controller`` on every scene until each episode ends. ``progress(n_done)`` is called
+    after each step if given."""
+    params = params or FormationParams()
+    T = max_steps or params.max_steps
+    B = len(scenes)
+    N = params.graph.n_agents
+    nan = np.nan
+    rec = EpisodeRecords(
+        poses=np.full((B, T + 1, 3), nan),
+        actions=np.full((B, T, 2), nan),
+        positions=np.full((B, T + 1, N, 2), nan),
+        formation_error=np.full((B, T + 1), nan),
+        follower_velocity_error=np.full((B, T), nan),
+        agent_clearance=np.full((B, T + 1), nan),
+        midpoint_clearance=np.full((B, T + 1), nan),
+        outcome=np.full(B, TIMEOUT, dtype=np.int64),
+        steps=np.full(B, T, dtype=np.int64),
+        dt=params.dt,
+    )
+    state = initial_state(scenes.start, params)
+    controller.reset(scenes)
+    _record(rec, slice(None), 0, state, scenes.obstacles, params)
+    live = np.arange(B)
+    for t in range(T):
+        obs, goal = scenes.obstacles[live], scenes.goal[live]
+        a = check_action(controller.act(state, live), len(live))
+        prev = state
+        state = step(state, a, params)
+        rec.actions[live, t] = clip_action(a, params)
+        _record(rec, live, t + 1, state, obs, params)
+        v_des = (
+            desired_follower_positions(state.pose, params.graph) - desired_follower_positions(prev.pose, params.graph)
+        ) / params.dt
+        rec.follower_velocity_error[live, t] = np.linalg.norm(state.follower_vel - v_des, axis=-1).mean(-1)
+        outcome, _, _ = step_outcome(state, obs, goal, params)
+        ended = outcome != RUNNING
+        rec.outcome[live[ended]] = outcome[ended]
+        rec.steps[live[ended]] = t + 1
+        if progress is not None:
+            progress(int(ended.sum()))
+        if ended.any():
+            keep = ~ended
+            live = live[keep]
+            state = state[keep]
+        if len(live) == 0:
+            break
+    if progress is not None and len(live):
+        progress(len(live))
+    return rec
+
+
+def _record(rec: EpisodeRecords, idx, t: int, state: FormationState, obstacles: np.ndarray, params) -> None:
+    pos = agent_positions(state)
+    rec.poses[idx, t] = state.pose
+    rec.positions[idx, t] = pos
+    rec.formation_error[idx, t] = formation_error(pos, params.graph)
+    rec.agent_clearance[idx, t] = agent_clearances(pos, obstacles, params.agent_radius).min(axis=1)
+    rec.midpoint_clearance[idx, t] = midpoint_clearance(state.pose, obstacles)
