@@ -185,7 +185,10 @@ def check_action(action, batch_size: int) -> np.ndarray:
 def clip_action(action: np.ndarray, params: FormationParams) -> np.ndarray:
     """Clip [v, omega] to v in [0, v_max], |omega| <= omega_max."""
     return np.stack(
-        [np.clip(action[..., 0], 0.0, params.v_max), np.clip(action[..., 1], -params.omega_max, params.omega_max)],
+        [
+            np.clip(action[..., 0], 0.0, params.v_max),
+            np.clip(action[..., 1], -params.omega_max, params.omega_max),
+        ],
         axis=-1,
     )
 
@@ -194,7 +197,9 @@ def step_midpoint(pose: np.ndarray, action: np.ndarray, dt: float) -> np.ndarray
     """Midpoint unicycle, explicit Euler (paper's discrete dynamics). (..., 3), (..., 2) -> (..., 3)."""
     v, w = action[..., 0], action[..., 1]
     phi = pose[..., 2]
-    return np.stack([pose[..., 0] + v * np.cos(phi) * dt, pose[..., 1] + v * np.sin(phi) * dt, phi + w * dt], axis=-1)
+    return np.stack(
+        [pose[..., 0] + v * np.cos(phi) * dt, pose[..., 1] + v * np.sin(phi) * dt, phi + w * dt], axis=-1
+    )
 
 
 class _FollowerLaw:
@@ -266,12 +271,20 @@ def step(state: FormationState, action: np.ndarray, params: FormationParams | No
     fp = state.follower_pos.copy()
     th = state.follower_theta.copy()
     p = np.empty((B, params.graph.n_agents, 2))
-    for k in range(n):  # loop over time only
-        p[:, :2] = leaders_start[k]
-        p[:, 2:] = fp
-        u, om = law(p, th)
-        fp += (h * u)[..., None] * np.stack([np.cos(th), np.sin(th)], axis=-1)
-        th += h * om
+    with np.errstate(over="ignore", invalid="ignore"):  # divergence is reported below
+        for k in range(n):  # loop over time only
+            p[:, :2] = leaders_start[k]
+            p[:, 2:] = fp
+            u, om = law(p, th)
+            fp += (h * u)[..., None] * np.stack([np.cos(th), np.sin(th)], axis=-1)
+            th += h * om
+    if not (np.isfinite(fp).all() and np.isfinite(th).all()):
+        bad = np.flatnonzero(~np.isfinite(fp).all(axis=(1, 2)) | ~np.isfinite(th).all(axis=1))
+        raise FloatingPointError(
+            f"follower state diverged to non-finite values in teams {bad[:5].tolist()} "
+            f"(inner_dt={params.inner_dt}, literal_paper_sign={params.literal_paper_sign}); "
+            "explicit Euler needs inner_dt <= 1e-3 with the paper's gains (erratum 2)"
+        )
     new_pose = poses[-1]
     vel = np.stack([v * np.cos(phi0), v * np.sin(phi0), w], axis=-1)
     return FormationState(

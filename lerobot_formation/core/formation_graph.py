@@ -58,14 +58,18 @@ class FormationGraph:
         for a, b in self.edges:
             for name in (a, b):
                 if name not in index:
-                    raise ValueError(f"edge ({a}, {b}) names unknown agent {name!r}; agents are {self.agents}")
+                    raise ValueError(
+                        f"edge ({a}, {b}) names unknown agent {name!r}; agents are {self.agents}"
+                    )
             if a == b:
                 raise ValueError(f"edge ({a}, {b}) joins an agent to itself")
         for d in self.distances:
             if not np.isfinite(d) or d <= 0:
                 raise ValueError(f"desired distances must be positive and finite, got {d}")
         if np.asarray(self.template).shape != (len(self.agents), 2):
-            raise ValueError(f"template must have shape ({len(self.agents)}, 2), got {np.asarray(self.template).shape}")
+            raise ValueError(
+                f"template must have shape ({len(self.agents)}, 2), got {np.asarray(self.template).shape}"
+            )
         if not self.is_rigid():
             raise ValueError(
                 f"formation graph is not rigid: rigidity matrix rank {self.rigidity_rank()} < 2N-3 = "

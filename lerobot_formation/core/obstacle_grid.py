@@ -47,7 +47,9 @@ def environment_state(
     if encoding == "grid+list":
         B, M, _ = obstacles.shape
         if int(mask.sum(axis=1).max(initial=0)) > max_obstacles:
-            raise ValueError(f"a scene has {int(mask.sum(axis=1).max())} obstacles, more than {max_obstacles=}")
+            raise ValueError(
+                f"a scene has {int(mask.sum(axis=1).max())} obstacles, more than {max_obstacles=}"
+            )
         key = np.where(mask, obstacles[..., 0] * 1e3 + obstacles[..., 1], np.inf)
         order = np.argsort(key, axis=1, kind="stable")
         sorted_obs = np.take_along_axis(np.where(mask[..., None], obstacles, 0.0), order[..., None], axis=1)

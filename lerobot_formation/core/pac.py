@@ -37,7 +37,9 @@ class PACConfig:
     influence: float = 0.5  # [m] repulsion range beyond the inflated radius
     inflate: float = 0.75  # [m] obstacle inflation: bar half-width + agent radius + margin
     lookahead: float = 3.0  # [m] path-blocked check length
-    path_inflate: float = 0.9  # [m] obstacle inflation of the cost-to-go: avoids gaps the square can't turn in
+    path_inflate: float = (
+        0.9  # [m] obstacle inflation of the cost-to-go: avoids gaps the square can't turn in
+    )
     carrot_cells: int = 5  # detour target: this many cost-to-go cells (0.2 m) down the gradient
     goal_slow_radius: float = 1.0  # [m] slow down inside this distance to the goal
     horizon: int = 8  # footprint prediction steps (x dt)

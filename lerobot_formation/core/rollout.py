@@ -153,7 +153,8 @@ def rollout(
         rec.actions[live, t] = clip_action(a, params)
         _record(rec, live, t + 1, state, obs, params)
         v_des = (
-            desired_follower_positions(state.pose, params.graph) - desired_follower_positions(prev.pose, params.graph)
+            desired_follower_positions(state.pose, params.graph)
+            - desired_follower_positions(prev.pose, params.graph)
         ) / params.dt
         rec.follower_velocity_error[live, t] = np.linalg.norm(state.follower_vel - v_des, axis=-1).mean(-1)
         outcome, _, _ = step_outcome(state, obs, goal, params)

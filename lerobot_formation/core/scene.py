@@ -55,7 +55,9 @@ class SceneConfig:
         if not 0 < self.radius[0] <= self.radius[1]:
             raise ValueError(f"radius range must satisfy 0 < lo <= hi, got {self.radius}")
         if not self.centre_low < self.centre_high:
-            raise ValueError(f"centre range must satisfy low < high, got {self.centre_low}, {self.centre_high}")
+            raise ValueError(
+                f"centre range must satisfy low < high, got {self.centre_low}, {self.centre_high}"
+            )
 
 
 @dataclass(frozen=True)
@@ -139,9 +141,12 @@ def scenes_from_list(items: list[dict], config: SceneConfig | None = None, check
     for b, s in enumerate(items):
         if not isinstance(s, dict) or "obstacles" not in s or "goal" not in s:
             raise ValueError(f"scene {b} must be a dict with keys 'obstacles' and 'goal', got {s!r:.120}")
-        obs = np.asarray(s["obstacles"], dtype=np.float64).reshape(-1, 3) if len(s["obstacles"]) else None
-        if obs is not None:
-            if np.asarray(s["obstacles"]).ndim != 2 or np.asarray(s["obstacles"]).shape[1] != 3:
+        try:
+            obs = np.asarray(s["obstacles"], dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}") from e
+        if obs.size:
+            if obs.ndim != 2 or obs.shape[1] != 3:
                 raise ValueError(f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}")
             obstacles[b, : len(obs)] = obs
             mask[b, : len(obs)] = True
@@ -323,9 +328,7 @@ def _draw_candidates(rng: np.random.Generator, config: SceneConfig) -> tuple[np.
     return obstacles, mask
 
 
-def sample_scenes(
-    seeds, config: SceneConfig | None = None, report: SamplingReport | None = None
-) -> Scenes:
+def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingReport | None = None) -> Scenes:
     """The valid scene of each seed, (B,) seeds -> Scenes of size B.
 
     Candidates of all seeds are checked together; only the random draws are per seed (each seed has
@@ -374,7 +377,9 @@ def sample_scenes(
         if len(pending) == 0:
             break
     else:
-        raise RuntimeError(f"no valid scene found for seeds {seeds[pending][:5].tolist()}: impossible SceneConfig?")
+        raise RuntimeError(
+            f"no valid scene found for seeds {seeds[pending][:5].tolist()}: impossible SceneConfig?"
+        )
     return Scenes(
         out_obs,
         out_mask,

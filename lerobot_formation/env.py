@@ -1,0 +1,200 @@
+"""FormationNav-v0: a team of four robots crosses a field of circular obstacles to a goal.
+
+## Description
+Two leaders move as a rigid bar; the action plans the velocity of the point midway between them.
+Two followers keep a rigid square with the distance-based law of the paper (eq. fol1, with SPEC
+erratum 1's sign), integrated with 1 ms sub-steps inside each 0.1 s step (erratum 2). This env is
+the follower-controller wrapper: it turns a midpoint plan into four moving robots.
+
+## Action Space
+``Box([0, -1.5], [0.6, 1.5], (2,), float32)``: the midpoint's [v (m/s), omega (rad/s)]. Actions
+outside the box are clipped; a wrong shape or a NaN/inf raises ``ValueError``.
+
+## Observation Space
+A ``Dict`` (LeRobot maps ``agent_pos`` to ``observation.state`` and ``environment_state`` to
+``observation.environment_state``):
+
+| key | shape | content |
+|---|---|---|
+| agent_pos | (7,) | midpoint [x, y, cos phi, sin phi, x', y', omega] |
+| environment_state | (51,) "grid" / (66,) "grid+list" | 7x7 obstacle-radius grid (49), goal [x, y] (2), optionally the 5 obstacles [x, y, r] |
+
+## Rewards
+Progress toward the goal in metres per step, +1 on success, -1 on collision. (LeRobot reports the
+sum; success is what the benchmark counts.)
+
+## Starting State
+The paper's start: leaders at (-0.5, 0) and (0.5, 0) facing +y, followers at (-0.2, -0.9) heading
+180 deg and (0.4, -1.0) heading 90 deg, or the scene's own start pose.
+
+## Episode End
+Terminated on success (midpoint within 0.3 m of the goal) or collision (any agent disc touching any
+obstacle). Truncated after 600 steps (60 s) by the ``TimeLimit`` of the registration.
+
+## Scenes
+``reset(seed=s)`` gives the scene of seed s (``sample_scenes``); ``reset(options={"scene": {...}})``
+uses a given scene (scenes-file format); with ``scenes_file=...`` seeds index into that file.
+
+## Info
+``is_success``, ``is_collision``, ``formation_error``, ``clearance`` (smallest agent gap),
+``midpoint_clearance``, ``scene_seed``.
+
+## Arguments
+``gym.make("gym_formation/FormationNav-v0", render_mode="rgb_array", scenes_file=None,
+obstacle_encoding="grid")``
+
+## Version History
+- v0: initial version.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from lerobot_formation.core import dynamics
+from lerobot_formation.core.dynamics import FormationParams, FormationState
+from lerobot_formation.core.obstacle_grid import environment_state, environment_state_dim
+from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome
+from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes, scenes_from_list
+from lerobot_formation.render import Renderer
+
+TASK = "Navigate the four-robot formation to the goal without collisions."
+STATE_DIM = 7
+
+
+def midpoint_state(state: FormationState) -> np.ndarray:
+    """``agent_pos`` observation (B, 7): [x, y, cos phi, sin phi, x', y', omega]."""
+    p = state.pose
+    return np.concatenate([p[:, :2], np.cos(p[:, 2:3]), np.sin(p[:, 2:3]), state.velocity], axis=1).astype(
+        np.float32
+    )
+
+
+def observation_spaces(obstacle_encoding: str, max_obstacles: int = 5) -> spaces.Dict:
+    d = environment_state_dim(obstacle_encoding, max_obstacles)
+    return spaces.Dict(
+        {
+            "agent_pos": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
+            "environment_state": spaces.Box(-np.inf, np.inf, (d,), np.float32),
+        }
+    )
+
+
+def scene_from_option(scene: Any, config: SceneConfig) -> Scenes:
+    if isinstance(scene, Scenes):
+        if len(scene) != 1:
+            raise ValueError(f"options['scene'] must hold one scene, got {len(scene)}")
+        return scene
+    if isinstance(scene, dict):
+        return scenes_from_list([scene], config)
+    raise ValueError(f"options['scene'] must be a dict or Scenes, got {type(scene).__name__}")
+
+
+class FormationEnv(gym.Env):
+    """Single-team formation navigation; see the module docstring for the full specification."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        scenes_file: str | None = None,
+        obstacle_encoding: str = "grid",
+        params: FormationParams | None = None,
+        scene_config: SceneConfig | None = None,
+        max_obstacles: int = 5,
+        render_size: int = 256,
+    ):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
+            )
+        self.render_mode = render_mode
+        self.params = params or FormationParams()
+        self.scene_config = scene_config or SceneConfig()
+        self.obstacle_encoding = obstacle_encoding
+        self.max_obstacles = max_obstacles
+        self.scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
+        self.observation_space = observation_spaces(obstacle_encoding, max_obstacles)
+        self.action_space = spaces.Box(
+            np.array([0.0, -self.params.omega_max], np.float32),
+            np.array([self.params.v_max, self.params.omega_max], np.float32),
+            dtype=np.float32,
+        )
+        self.task = TASK
+        self.task_description = TASK
+        self._renderer = Renderer(render_size) if render_mode == "rgb_array" else None
+        self.scene: Scenes | None = None
+        self.state: FormationState | None = None
+
+    # -- gym API ---------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = options or {}
+        if options.get("scene") is not None:
+            self.scene = scene_from_option(options["scene"], self.scene_config)
+        elif self.scenes is not None:
+            idx = seed if seed is not None else int(self.np_random.integers(len(self.scenes)))
+            self.scene = self.scenes[idx % len(self.scenes)]
+        else:
+            s = seed if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
+            self.scene = sample_scenes([s], self.scene_config)
+        self.state = dynamics.initial_state(self.scene.start, self.params)
+        self._env_state = environment_state(
+            self.scene.obstacles, self.scene.mask, self.scene.goal, self.obstacle_encoding, self.max_obstacles
+        )
+        self._path = [dynamics.agent_positions(self.state)[0]]
+        self._steps = 0
+        outcome, clear, mid = step_outcome(self.state, self.scene.obstacles, self.scene.goal, self.params)
+        return self._obs(), self._info(outcome, clear, mid)
+
+    def step(self, action):
+        if self.state is None:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(action)
+        if a.shape != (2,):
+            raise ValueError(f"action must have shape (2,) [v, omega], got {a.shape}")
+        a = dynamics.check_action(a[None], 1)
+        prev_dist = np.linalg.norm(self.state.pose[0, :2] - self.scene.goal[0])
+        self.state = dynamics.step(self.state, a, self.params)
+        self._steps += 1
+        self._path.append(dynamics.agent_positions(self.state)[0])
+        outcome, clear, mid = step_outcome(self.state, self.scene.obstacles, self.scene.goal, self.params)
+        dist = np.linalg.norm(self.state.pose[0, :2] - self.scene.goal[0])
+        o = int(outcome[0])
+        reward = float(prev_dist - dist) + (1.0 if o == SUCCESS else 0.0) - (1.0 if o == COLLISION else 0.0)
+        terminated = o in (SUCCESS, COLLISION)
+        return self._obs(), reward, terminated, False, self._info(outcome, clear, mid)
+
+    def render(self):
+        if self.render_mode != "rgb_array" or self.scene is None:
+            return None
+        g = self.params.graph
+        return self._renderer.draw(
+            self.scene.obstacles[0],
+            self.scene.goal[0],
+            self._path[-1],
+            (g.edge_i, g.edge_j),
+            np.asarray(self._path),
+            goal_radius=self.params.goal_tolerance,
+            agent_radius=self.params.agent_radius,
+        )
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _obs(self) -> dict[str, np.ndarray]:
+        return {"agent_pos": midpoint_state(self.state)[0], "environment_state": self._env_state[0].copy()}
+
+    def _info(self, outcome, clear, mid) -> dict[str, Any]:
+        pos = dynamics.agent_positions(self.state)
+        return {
+            "is_success": bool(outcome[0] == SUCCESS),
+            "is_collision": bool(outcome[0] == COLLISION),
+            "formation_error": float(dynamics.formation_error(pos, self.params.graph)[0]),
+            "clearance": float(clear[0].min()),
+            "midpoint_clearance": float(mid[0]),
+            "scene_seed": int(self.scene.seeds[0]),
+        }

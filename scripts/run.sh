@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# One entry point for a fresh machine: creates .venv (Python >= 3.12, found by itself), installs the
+# project, then runs a job.
+#   scripts/run.sh demo   - the main job on the built-in default (no dataset, GPU or network)
+#   scripts/run.sh test   - lint + the test suite
+#   scripts/run.sh setup  - only create/refresh the environment
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
+
+find_python() {
+  local c v
+  for c in python3.13 python3.12 python3 python; do
+    if command -v "$c" >/dev/null 2>&1 && "$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then
+      command -v "$c"; return 0
+    fi
+  done
+  # pyenv keeps other versions out of PATH unless selected: look in its versions folder.
+  local root="${PYENV_ROOT:-$HOME/.pyenv}"
+  if command -v pyenv >/dev/null 2>&1; then root="$(pyenv root)"; fi
+  for v in $(ls -d "$root"/versions/3.1[2-9]* 2>/dev/null | sort -V -r); do
+    if [ -x "$v/bin/python3" ] && "$v/bin/python3" -c 'import sys; sys.exit(sys.version_info < (3, 12))'; then
+      echo "$v/bin/python3"; return 0
+    fi
+  done
+  for c in /usr/bin/python3.1[2-9] /usr/local/bin/python3.1[2-9]; do
+    [ -x "$c" ] && { echo "$c"; return 0; }
+  done
+  return 1
+}
+
+setup() {
+  local stamp=.venv/.installed
+  local want
+  want="$(cat pyproject.toml plugin_shim/pyproject.toml 2>/dev/null | sha256sum | cut -c1-16)"
+  if [ -x .venv/bin/python ] && [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
+    return 0
+  fi
+  if [ ! -x .venv/bin/python ]; then
+    local py
+    py="$(find_python)" || { echo "error: no Python >= 3.12 found (PATH, pyenv, /usr/bin)" >&2; exit 1; }
+    echo "creating .venv with $py ($("$py" --version))"
+    "$py" -m venv .venv
+  fi
+  .venv/bin/python -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
+  .venv/bin/python -m pip install -q -e '.[dev]' 2>&1 | grep -v "^WARNING: Location" || true
+  if [ -d plugin_shim ]; then
+    .venv/bin/python -m pip install -q --no-deps ./plugin_shim 2>&1 | grep -v "^WARNING: Location" || true
+  fi
+  .venv/bin/python -c 'import lerobot_formation, lerobot, torch' || { echo "error: install failed" >&2; exit 1; }
+  echo "$want" > "$stamp"
+}
+
+cmd="${1:-}"
+shift || true
+case "$cmd" in
+  setup) setup ;;
+  demo)
+    setup
+    .venv/bin/python -m lerobot_formation.demo "$@"
+    ;;
+  test)
+    setup
+    .venv/bin/ruff check .
+    .venv/bin/ruff format --check .
+    .venv/bin/python -m pytest "$@"
+    ;;
+  *) echo "usage: scripts/run.sh {demo|test|setup} [args]" >&2; exit 2 ;;
+esac
