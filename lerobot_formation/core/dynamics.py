@@ -203,36 +203,61 @@ def step_midpoint(pose: np.ndarray, action: np.ndarray, dt: float) -> np.ndarray
 
 
 class _FollowerLaw:
-    """Precomputed edge bookkeeping for the follower law; ``__call__`` is the hot path."""
+    """Precomputed edge bookkeeping for the follower law; ``__call__`` is the hot path.
+
+    Works on x and y coordinates apart and sums chi_i edge by edge (no BLAS, no reductions), so a
+    team's result does not depend on the batch it is in: batched and per-scene stepping agree bit
+    for bit, which matters because sign() amplifies the last bit.
+    """
 
     def __init__(self, params: FormationParams):
         g = params.graph
         self.ei, self.ej = g.edge_i, g.edge_j
         self.d2 = g.desired_sq
-        # S[f, e] = +1 if follower f is edge e's first end, -1 if its second, else 0.
-        self.S = g.incidence[2:][None, :, :, None]  # (1, F, E, 1)
+        H = g.incidence[2:]  # (F, E): +1 first end, -1 second end
+        self.terms = [[(e, float(H[f, e])) for e in range(H.shape[1]) if H[f, e] != 0] for f in range(len(H))]
         self.k1, self.k2, self.beta = params.k1, params.k2, params.beta
         self.eps = params.sign_epsilon
         self.sgn = 1.0 if params.literal_paper_sign else -1.0
 
-    def __call__(self, p: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """p: (B, N, 2) all agents; theta: (B, F) -> u (B, F) [m/s], omega (B, F) [rad/s]."""
-        z = p[:, self.ei] - p[:, self.ej]  # (B, E, 2)
-        err = np.sum(z * z, axis=-1) - self.d2  # (B, E): d_ij^2 - d*^2
-        w = (err[..., None] * z)[:, None]  # (B, 1, E, 2)
-        chi = np.sum(self.S * w, axis=2)  # (B, F, 2)
-        sg = np.clip(chi / self.eps, -1.0, 1.0) if self.eps > 0 else np.sign(chi)
-        g1 = self.k1 * chi + self.beta * sg
-        g2 = self.k2 * chi + self.beta * sg
-        hx, hy = np.cos(theta), np.sin(theta)
-        u = self.sgn * (hx * g1[..., 0] + hy * g1[..., 1])  # -h^T g1
-        om = self.sgn * (hx * g2[..., 1] - hy * g2[..., 0])  # -h x g2
+    def chi(self, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """chi_i = sum_j (d_ij^2 - d*^2)(p_i - p_j) for the followers; px, py (B, N) -> (B, F) each."""
+        zx = px[:, self.ei] - px[:, self.ej]  # (B, E)
+        zy = py[:, self.ei] - py[:, self.ej]
+        err = zx * zx + zy * zy - self.d2
+        wx, wy = err * zx, err * zy
+        B, F = len(px), len(self.terms)
+        cx, cy = np.zeros((B, F)), np.zeros((B, F))
+        for f, terms in enumerate(self.terms):
+            for e, sgn in terms:
+                if sgn > 0:
+                    cx[:, f] += wx[:, e]
+                    cy[:, f] += wy[:, e]
+                else:
+                    cx[:, f] -= wx[:, e]
+                    cy[:, f] -= wy[:, e]
+        return cx, cy
+
+    def __call__(self, px, py, hx, hy) -> tuple[np.ndarray, np.ndarray]:
+        """Agents px, py (B, N), follower headings hx, hy (B, F) -> u, omega (B, F)."""
+        cx, cy = self.chi(px, py)
+        if self.eps > 0:
+            sx, sy = np.clip(cx / self.eps, -1.0, 1.0), np.clip(cy / self.eps, -1.0, 1.0)
+        else:
+            sx, sy = np.sign(cx), np.sign(cy)
+        u = self.sgn * (
+            hx * (self.k1 * cx + self.beta * sx) + hy * (self.k1 * cy + self.beta * sy)
+        )  # -h^T g1
+        om = self.sgn * (
+            hx * (self.k2 * cy + self.beta * sy) - hy * (self.k2 * cx + self.beta * sx)
+        )  # -h x g2
         return u, om
 
 
 def follower_law(p: np.ndarray, theta: np.ndarray, params: FormationParams) -> tuple[np.ndarray, np.ndarray]:
-    """Follower law (paper eq. fol1 with erratum 1's minus sign). p (B, N, 2), theta (B, F)."""
-    return _law(params)(p, theta)
+    """Follower law (paper eq. fol1 with erratum 1's minus sign). p (B, N, 2), theta (B, F) ->
+    u (B, F) [m/s], omega (B, F) [rad/s]."""
+    return _law(params)(p[..., 0], p[..., 1], np.cos(theta), np.sin(theta))
 
 
 @functools.lru_cache(maxsize=64)
@@ -268,16 +293,23 @@ def step(state: FormationState, action: np.ndarray, params: FormationParams | No
     # The law at sub-step k uses the leader positions at its start: tau_{k-1}.
     leaders_start = np.concatenate([leader_positions(pose0)[None], leaders[:-1]], axis=0)
     law = _law(params)
-    fp = state.follower_pos.copy()
+    fx = state.follower_pos[..., 0].copy()
+    fy = state.follower_pos[..., 1].copy()
     th = state.follower_theta.copy()
-    p = np.empty((B, params.graph.n_agents, 2))
+    lx, ly = leaders_start[..., 0], leaders_start[..., 1]  # (n, B, 2)
+    px = np.empty((B, params.graph.n_agents))
+    py = np.empty((B, params.graph.n_agents))
     with np.errstate(over="ignore", invalid="ignore"):  # divergence is reported below
         for k in range(n):  # loop over time only
-            p[:, :2] = leaders_start[k]
-            p[:, 2:] = fp
-            u, om = law(p, th)
-            fp += (h * u)[..., None] * np.stack([np.cos(th), np.sin(th)], axis=-1)
+            px[:, :2], py[:, :2] = lx[k], ly[k]
+            px[:, 2:], py[:, 2:] = fx, fy
+            hx, hy = np.cos(th), np.sin(th)
+            u, om = law(px, py, hx, hy)
+            hu = h * u
+            fx += hu * hx
+            fy += hu * hy
             th += h * om
+    fp = np.stack([fx, fy], axis=-1)
     if not (np.isfinite(fp).all() and np.isfinite(th).all()):
         bad = np.flatnonzero(~np.isfinite(fp).all(axis=(1, 2)) | ~np.isfinite(th).all(axis=1))
         raise FloatingPointError(

@@ -11,10 +11,23 @@ def point_clearance(points: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
     Padded obstacle rows sit far away with radius 0, so they never win the minimum.
     """
     B = points.shape[0]
-    pts = points.reshape(B, -1, 1, 2)
-    d = pts - obstacles[:, None, :, :2]
-    gap = np.sqrt(np.sum(d * d, axis=-1)) - obstacles[:, None, :, 2]  # (B, P, M)
-    return np.min(gap, axis=-1).reshape(points.shape[:-1])
+    return xy_clearance(points[..., 0].reshape(B, -1), points[..., 1].reshape(B, -1), obstacles).reshape(
+        points.shape[:-1]
+    )
+
+
+def xy_clearance(x: np.ndarray, y: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+    """Like ``point_clearance`` for coordinates given apart, x and y (B, P) -> (B, P). The hot path of
+    PAC's and MPPI's footprint checks: one obstacle slot at a time avoids (B, P, M, 2) temporaries."""
+    out = None
+    for m in range(obstacles.shape[1]):
+        dx = x - obstacles[:, m, 0][:, None]
+        dy = y - obstacles[:, m, 1][:, None]
+        gap = np.sqrt(dx * dx + dy * dy) - obstacles[:, m, 2][:, None]
+        out = gap if out is None else np.minimum(out, gap, out=out)
+    if out is None:
+        return np.full(x.shape, np.inf)
+    return out
 
 
 def agent_clearances(positions: np.ndarray, obstacles: np.ndarray, agent_radius: float = 0.1) -> np.ndarray:

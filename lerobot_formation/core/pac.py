@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import FormationParams, rotate_body
-from lerobot_formation.core.geometry import point_clearance
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.geometry import xy_clearance
 from lerobot_formation.core.navigation import cost_to_go
 
 
@@ -134,12 +134,13 @@ class PathAwareController:
         phis = np.concatenate([np.broadcast_to(phi0, (B, C, 1)), phi[..., :-1]], axis=-1)
         x = pose[:, 0][:, None, None] + v[..., None] * dt * np.cumsum(np.cos(phis), axis=-1)
         y = pose[:, 1][:, None, None] + v[..., None] * dt * np.cumsum(np.sin(phis), axis=-1)
-        N = len(self.template)
-        offs = np.broadcast_to(self.template, (B, C, T, N, 2))
-        agents = rotate_body(offs, np.broadcast_to(phi[..., None], (B, C, T, N)))
-        agents = agents + np.stack([x, y], axis=-1)[..., None, :]
-        clear = point_clearance(agents.reshape(B, -1, 2), self.obstacles) - self.params.agent_radius
-        return clear.reshape(B, C, T * N).min(axis=-1)
+        # Template agents in the world: body (bx, by) -> rotate by phi - pi/2 (x right, y forward).
+        c, s = np.sin(phi)[..., None], -np.cos(phi)[..., None]  # cos(phi - pi/2), sin(phi - pi/2)
+        bx, by = self.template[:, 0], self.template[:, 1]
+        ax = x[..., None] + bx * c - by * s  # (B, C, T, N)
+        ay = y[..., None] + bx * s + by * c
+        clear = xy_clearance(ax.reshape(B, -1), ay.reshape(B, -1), self.obstacles) - self.params.agent_radius
+        return clear.reshape(B, C, -1).min(axis=-1)
 
     def command(self, pose: np.ndarray) -> np.ndarray:
         """[v, omega] for B midpoint poses (B, 3) -> (B, 2)."""

@@ -1,0 +1,499 @@
+"""PAC demonstrations as a LeRobot dataset (format v3.0), optionally laid out as a hub dataset repo.
+
+Runs the Path-Aware Controller on seeded valid scenes (all episodes of a batch at once, on the NumPy
+core), keeps the successful episodes and writes them with LeRobot's own writer
+(``LeRobotDataset.create`` -> ``save_episode`` -> ``finalize``).
+
+Usage::
+
+    lerobot-formation-generate --episodes 1878 --root data/formation_pac          # the paper's size
+    lerobot-formation-generate --episodes 10 --root /tmp/tiny --push-to /tmp/hub  # + hub-style folder
+    # sharded: each shard is a valid dataset; merge them with LeRobot's own tool
+    lerobot-formation-generate --num-shards 2 --shard-index 0 --root data/shard0 &
+    lerobot-formation-generate --num-shards 2 --shard-index 1 --root data/shard1 &
+    wait
+    lerobot-edit-dataset --new_repo_id local/formation_pac --new_root data/merged --operation.type merge \
+        --operation.repo_ids "['local/shard0', 'local/shard1']" --operation.roots "['data/shard0', 'data/shard1']"
+
+Features (all float32 with names, fps 10, task string ``TASK``):
+- ``observation.state`` (7,): midpoint [x, y, cos phi, sin phi, x', y', omega];
+- ``observation.environment_state`` (51,) or (66,): obstacle grid, goal (and obstacle list);
+- ``action`` (2,): [v, omega] actually applied (clipped);
+- ``scene.seed`` (int64), ``scene.obstacles`` (15,), ``scene.goal`` (2,), ``scene.start`` (3,):
+  per-frame scene metadata from which evaluation rebuilds the exact scene of every episode. They are
+  not ``observation.*`` keys, so policies ignore them, and as ordinary columns they survive LeRobot's
+  split and merge.
+
+Reliability: the dataset is written to a temporary sibling folder and renamed into place at the
+end, so an interrupted run leaves nothing at the destination. The same arguments give byte-identical
+data files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state
+from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACController, rollout
+from lerobot_formation.core.scene import Scenes, load_scenes, sample_scenes
+from lerobot_formation.env import TASK
+
+FPS = 10
+MAX_OBSTACLES = 5
+PAPER_EPISODES = 1878
+STATE_NAMES = ["x", "y", "cos_phi", "sin_phi", "x_dot", "y_dot", "omega"]
+
+
+def dataset_features(obstacle_encoding: str = "grid") -> dict:
+    grid_names = [f"grid_{i}_{j}" for i in range(7) for j in range(7)] + ["goal_x", "goal_y"]
+    if obstacle_encoding == "grid+list":
+        grid_names += [f"obstacle_{k}_{c}" for k in range(MAX_OBSTACLES) for c in ("x", "y", "r")]
+    return {
+        "observation.state": {"dtype": "float32", "shape": (7,), "names": STATE_NAMES},
+        "observation.environment_state": {
+            "dtype": "float32",
+            "shape": (len(grid_names),),
+            "names": grid_names,
+        },
+        "action": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
+        "scene.seed": {"dtype": "int64", "shape": (1,), "names": None},
+        "scene.obstacles": {
+            "dtype": "float32",
+            "shape": (3 * MAX_OBSTACLES,),
+            "names": [f"obstacle_{k}_{c}" for k in range(MAX_OBSTACLES) for c in ("x", "y", "r")],
+        },
+        "scene.goal": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+        "scene.start": {"dtype": "float32", "shape": (3,), "names": ["x", "y", "phi"]},
+    }
+
+
+def episode_frames(
+    rec: EpisodeRecords, scenes: Scenes, b: int, obstacle_encoding: str
+) -> dict[str, np.ndarray]:
+    """The frames of episode b as arrays (n, ...): observation before action t, and action t."""
+    n = int(rec.steps[b])
+    poses = rec.poses[b, :n]
+    actions = rec.actions[b, :n]
+    # Velocity observed at t is the one applied over step t-1 (zero at the start), as in the env.
+    prev_phi = np.concatenate([poses[:1, 2], poses[:-1, 2]])
+    prev_a = np.concatenate([np.zeros((1, 2)), actions[:-1]])
+    vel = np.stack([prev_a[:, 0] * np.cos(prev_phi), prev_a[:, 0] * np.sin(prev_phi), prev_a[:, 1]], axis=-1)
+    vel[0] = 0.0
+    state = np.concatenate([poses[:, :2], np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3]), vel], axis=1)
+    env = environment_state(
+        scenes.obstacles[b : b + 1], scenes.mask[b : b + 1], scenes.goal[b : b + 1], obstacle_encoding
+    )
+    obs_list = np.zeros((MAX_OBSTACLES, 3), np.float32)
+    real = scenes.obstacles[b][scenes.mask[b]][:MAX_OBSTACLES]
+    obs_list[: len(real)] = real
+    return {
+        "observation.state": state.astype(np.float32),
+        "observation.environment_state": np.repeat(env, n, axis=0),
+        "action": actions.astype(np.float32),
+        "scene.seed": np.full((n, 1), scenes.seeds[b], dtype=np.int64),
+        "scene.obstacles": np.repeat(obs_list.reshape(1, -1), n, axis=0),
+        "scene.goal": np.repeat(scenes.goal[b : b + 1].astype(np.float32), n, axis=0),
+        "scene.start": np.repeat(scenes.start[b : b + 1].astype(np.float32), n, axis=0),
+    }
+
+
+def scenes_from_frames(
+    obstacles: np.ndarray, goal: np.ndarray, start: np.ndarray, seeds: np.ndarray
+) -> Scenes:
+    """Rebuild Scenes from the per-episode ``scene.*`` values, (B, 15), (B, 2), (B, 3), (B,)."""
+    from lerobot_formation.core.scene import FAR
+
+    obs = np.asarray(obstacles, dtype=np.float64).reshape(len(goal), MAX_OBSTACLES, 3)
+    mask = obs[..., 2] > 0
+    obs[~mask] = (FAR, FAR, 0.0)
+    return Scenes(obs, mask, np.asarray(goal, np.float64), np.asarray(start, np.float64), np.asarray(seeds))
+
+
+def write_episode(ds, frames: dict[str, np.ndarray], fast: bool = True) -> None:
+    """Write one episode through LeRobot's writer. ``fast`` hands ``save_episode`` a pre-built episode
+    buffer (its public ``episode_data`` argument) instead of a per-frame ``add_frame`` loop; the
+    frames are identical either way."""
+    n = len(frames["action"])
+    if not fast:
+        for t in range(n):
+            frame = {k: (v[t] if k != "scene.seed" else v[t]) for k, v in frames.items()}
+            frame["task"] = TASK
+            ds.add_frame(frame)
+        ds.save_episode()
+        return
+    buf = {
+        "size": n,
+        "task": [TASK] * n,
+        "episode_index": ds.meta.total_episodes,
+        "frame_index": np.arange(n),
+        "timestamp": np.arange(n) / ds.meta.fps,  # float64 like add_frame; cast on write
+        "index": [],
+        "task_index": [],
+    }
+    buf.update(frames)
+    ds.save_episode(episode_data=buf)
+
+
+@contextlib.contextmanager
+def skip_noop_image_embedding(features: dict):
+    """LeRobot's writer runs ``embed_images`` (a row-by-row ``datasets.map``, ~1 ms per frame) on every
+    episode; for a dataset with no image or video feature it changes nothing but costs most of the
+    write time. Skip it only in that case; the parquet bytes are the same (tested)."""
+    from lerobot.datasets import dataset_writer
+
+    if any(ft["dtype"] in ("image", "video") for ft in features.values()):
+        yield
+        return
+    original = dataset_writer.embed_images
+    dataset_writer.embed_images = lambda ds: ds
+    try:
+        yield
+    finally:
+        dataset_writer.embed_images = original
+
+
+class Generator:
+    """Collects successful PAC episodes in seed order, batch by batch."""
+
+    def __init__(self, params: FormationParams, batch_size: int = 256):
+        self.params = params
+        self.batch_size = batch_size
+        self.attempted = 0
+        self.succeeded = 0
+
+    def episodes(self, seeds_iter, n: int, scenes_file: Scenes | None = None, progress=None):
+        """Yield (records, scenes, b) for successful episodes until n are produced."""
+        produced = 0
+        while produced < n:
+            seeds = np.asarray([next(seeds_iter) for _ in range(self.batch_size)])
+            if scenes_file is not None:
+                seeds = seeds[seeds < len(scenes_file)]
+                if len(seeds) == 0:
+                    return
+                scenes = scenes_file[seeds]
+            else:
+                scenes = sample_scenes(seeds)
+            rec = rollout(scenes, PACController(params=self.params), self.params)
+            self.attempted += len(seeds)
+            ok = np.flatnonzero(rec.outcome == SUCCESS)
+            self.succeeded += len(ok)
+            for b in ok:
+                if produced >= n:
+                    return
+                produced += 1
+                if progress is not None:
+                    progress(1)
+                yield rec, scenes, b
+
+
+def seed_stream(start: int, num_shards: int, shard_index: int):
+    s = start + shard_index
+    while True:
+        yield s
+        s += num_shards
+
+
+def shard_episodes(total: int, num_shards: int, shard_index: int) -> int:
+    return total // num_shards + (1 if shard_index < total % num_shards else 0)
+
+
+def generate(
+    root: Path,
+    repo_id: str,
+    episodes: int,
+    seed: int = 0,
+    obstacle_encoding: str = "grid",
+    scenes_path: str | None = None,
+    num_shards: int = 1,
+    shard_index: int = 0,
+    overwrite: bool = False,
+    fast_write: bool = True,
+    batch_size: int = 256,
+    progress: bool = True,
+) -> dict:
+    """Generate the dataset at ``root`` (atomically) and return a summary dict."""
+    import datasets as hf_datasets
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    hf_datasets.disable_progress_bars()  # one bar per episode otherwise
+
+    root = Path(root)
+    if root.exists() and not overwrite:
+        raise FileExistsError(f"destination {root} already exists; pass --overwrite to replace it")
+    n = shard_episodes(episodes, num_shards, shard_index)
+    tmp = root.parent / f".{root.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    root.parent.mkdir(parents=True, exist_ok=True)
+    params = FormationParams()
+    scenes_file = load_scenes(scenes_path) if scenes_path else None
+    t0 = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, desc=f"PAC episodes (shard {shard_index + 1}/{num_shards})", unit="ep")
+    # Simulate a little more than needed (PAC keeps ~98 %), but never more than batch_size at once.
+    gen = Generator(params, min(batch_size, int(np.ceil(n * 1.05)) + 2))
+    frames_total = 0
+    ds = None
+    try:
+        ds = LeRobotDataset.create(
+            repo_id=repo_id, fps=FPS, features=dataset_features(obstacle_encoding), root=tmp, use_videos=False
+        )
+        start = 0 if scenes_file is not None else seed
+        skip = skip_noop_image_embedding(ds.meta.features) if fast_write else contextlib.nullcontext()
+        with skip:
+            for rec, scenes, b in gen.episodes(
+                seed_stream(start, num_shards, shard_index), n, scenes_file, bar.update if bar else None
+            ):
+                frames = episode_frames(rec, scenes, b, obstacle_encoding)
+                frames_total += len(frames["action"])
+                write_episode(ds, frames, fast=fast_write)
+            ds.finalize()
+        if ds.meta.total_episodes == 0:
+            raise RuntimeError("PAC produced no successful episode: nothing to write")
+    except BaseException:
+        if ds is not None:  # close LeRobot's parquet writers first, or they write into tmp on exit
+            with contextlib.suppress(Exception):
+                ds.finalize()
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    summary = {
+        "repo_id": repo_id,
+        "episodes": int(ds.meta.total_episodes),
+        "frames": int(ds.meta.total_frames),
+        "pac_attempted": gen.attempted,
+        "pac_succeeded": gen.succeeded,
+        "pac_success_rate": gen.succeeded / max(gen.attempted, 1),
+        "seconds": time.perf_counter() - t0,
+        "obstacle_encoding": obstacle_encoding,
+        "seed": seed,
+        "num_shards": num_shards,
+        "shard_index": shard_index,
+        "fast_write": fast_write,
+    }
+    # LeRobot writes stats.json keys in set order, which varies between runs: sort them.
+    stats_path = tmp / "meta" / "stats.json"
+    stats_path.write_text(json.dumps(json.loads(stats_path.read_text()), indent=4, sort_keys=True))
+    (tmp / "meta" / "generation.json").write_text(json.dumps(summary, indent=1))
+    if root.exists():  # --overwrite: swap, then delete the old one
+        trash = root.parent / f".{root.name}.old-{os.getpid()}"
+        os.rename(root, trash)
+        os.rename(tmp, root)
+        shutil.rmtree(trash, ignore_errors=True)
+    else:
+        os.rename(tmp, root)
+    summary["mb"] = sum(f.stat().st_size for f in root.rglob("*") if f.is_file()) / 1e6
+    summary["seconds"] = time.perf_counter() - t0
+    return summary
+
+
+# -- hub-style folder --------------------------------------------------------------------------------
+def dataset_card(summary: dict, features: dict, command: str) -> str:
+    feats = "\n".join(
+        f"- `{k}`: {v['dtype']} {list(v['shape'])}"
+        + (f" ({', '.join(v['names'][:7])}...)" if v["names"] else "")
+        for k, v in features.items()
+    )
+    return f"""---
+license: apache-2.0
+task_categories:
+- robotics
+tags:
+- LeRobot
+- lerobot_formation
+- formation-control
+- multi-agent
+- simulation
+configs:
+- config_name: default
+  data_files: data/*/*.parquet
+pretty_name: Formation navigation PAC demonstrations
+---
+
+# Formation navigation: PAC demonstrations
+
+This dataset was created with [LeRobot](https://github.com/huggingface/lerobot) (format v3.0) by
+`lerobot_formation`. A team of four robots (two leaders as a rigid bar, two followers keeping a
+square with a distance-based law) crosses a field of 3-5 circular obstacles to the goal (5, 5).
+The demonstrator is the Path-Aware Controller (PAC), a potential-field controller with a path
+check, a cost-to-go detour and a whole-formation footprint governor. Only successful episodes are
+kept.
+
+- Episodes: {summary["episodes"]}, frames: {summary["frames"]}, fps: {FPS}
+- PAC success rate while generating: {summary["pac_success_rate"]:.1%} ({summary["pac_succeeded"]} of {summary["pac_attempted"]} scenes)
+- Scene seeds: from {summary["seed"]} (shard {summary["shard_index"] + 1} of {summary["num_shards"]}); every
+  episode's scene is stored in its `scene.*` columns.
+- Observation encoding: `{summary["obstacle_encoding"]}`
+
+## Features
+{feats}
+
+## How it was generated
+```
+{command}
+```
+
+## Load it offline
+```python
+import os
+os.environ["HF_LEROBOT_HOME"] = "<the folder that holds {summary["repo_id"]}>"
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+ds = LeRobotDataset("{summary["repo_id"]}")
+```
+"""
+
+
+def _git_blob_sha(data: bytes) -> str:
+    return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
+
+
+def push_to_folder(
+    root: Path, hub_dir: Path, repo_id: str, summary: dict, command: str, overwrite: bool
+) -> Path:
+    """Lay the dataset out as a hub dataset repository under ``hub_dir``.
+
+    - ``hub_dir/<repo_id>/``: ``meta/``, ``data/`` and a ``README.md`` dataset card; this is what
+      ``HF_LEROBOT_HOME=hub_dir`` + ``LeRobotDataset(repo_id)`` loads offline.
+    - ``hub_dir/hub/datasets--<owner>--<name>/``: the same files as ``huggingface_hub`` caches a hub
+      revision (``blobs/``, ``snapshots/<revision>/``, ``refs/main`` and the LeRobot codebase tag
+      ``refs/v3.0``), so ``snapshot_download(..., revision="v3.0", local_files_only=True)`` resolves it.
+      The revision is a deterministic hash of the files (only the hub can assign a real commit id).
+    """
+    dest = Path(hub_dir) / repo_id
+    owner, name = repo_id.split("/")
+    cache = Path(hub_dir) / "hub" / f"datasets--{owner}--{name}"
+    if (dest.exists() or cache.exists()) and not overwrite:
+        raise FileExistsError(f"hub folder {dest} already exists; pass --overwrite to replace it")
+    tmp = dest.parent / f".{dest.name}.tmp-{os.getpid()}"
+    tmp_cache = cache.parent / f".{cache.name}.tmp-{os.getpid()}"
+    for t in (tmp, tmp_cache):
+        shutil.rmtree(t, ignore_errors=True)
+        t.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        shutil.copytree(root, tmp)
+        info = json.loads((tmp / "meta" / "info.json").read_text())
+        (tmp / "README.md").write_text(dataset_card(summary, info["features"], command))
+        files = sorted(p for p in tmp.rglob("*") if p.is_file())
+        blobs = {p.relative_to(tmp).as_posix(): _git_blob_sha(p.read_bytes()) for p in files}
+        revision = hashlib.sha1("\n".join(f"{k} {v}" for k, v in blobs.items()).encode()).hexdigest()
+        for rel, blob in blobs.items():
+            target = tmp_cache / "blobs" / blob
+            target.parent.mkdir(parents=True, exist_ok=True)
+            if not target.exists():
+                shutil.copyfile(tmp / rel, target)
+            link = tmp_cache / "snapshots" / revision / rel
+            link.parent.mkdir(parents=True, exist_ok=True)
+            link.symlink_to(os.path.relpath(target, link.parent))
+        (tmp_cache / "refs").mkdir()
+        (tmp_cache / "refs" / "main").write_text(revision)
+        (tmp_cache / "refs" / info["codebase_version"]).write_text(revision)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp_cache, ignore_errors=True)
+        raise
+    for final, staged in ((dest, tmp), (cache, tmp_cache)):
+        if final.exists():
+            shutil.rmtree(final)
+        os.rename(staged, final)
+    return dest
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog="lerobot-formation-generate", description="PAC demonstrations as a LeRobot dataset (v3.0)."
+    )
+    ap.add_argument(
+        "--episodes", type=int, default=PAPER_EPISODES, help="successful episodes to keep (all shards)"
+    )
+    ap.add_argument("--seed", type=int, default=0, help="first scene seed")
+    ap.add_argument("--repo-id", default="local/formation_pac")
+    ap.add_argument("--root", default=None, help="dataset folder (default: $HF_LEROBOT_HOME/<repo-id>)")
+    ap.add_argument("--scenes", default=None, help="scenes JSON file to use instead of random seeds")
+    ap.add_argument("--obstacle-encoding", default="grid", choices=ENCODINGS)
+    ap.add_argument(
+        "--push-to", default=None, help="also lay the dataset out as a hub repo under this folder"
+    )
+    ap.add_argument("--num-shards", type=int, default=1)
+    ap.add_argument("--shard-index", type=int, default=0)
+    ap.add_argument("--batch-size", type=int, default=256, help="episodes simulated at once")
+    ap.add_argument(
+        "--slow-write", action="store_true", help="per-frame add_frame instead of episode buffers"
+    )
+    ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    if args.episodes < 1:
+        ap.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        ap.error(f"--seed must be >= 0, got {args.seed}")
+    if args.num_shards < 1 or not 0 <= args.shard_index < args.num_shards:
+        ap.error(f"need 0 <= --shard-index < --num-shards, got {args.shard_index} and {args.num_shards}")
+    if args.batch_size < 1:
+        ap.error(f"--batch-size must be >= 1, got {args.batch_size}")
+    if "/" not in args.repo_id or args.repo_id.count("/") != 1:
+        ap.error(f"--repo-id must look like 'owner/name', got {args.repo_id!r}")
+    if args.scenes and not Path(args.scenes).is_file():
+        ap.error(f"--scenes file {args.scenes} does not exist")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.root is None:
+        from lerobot.utils.constants import HF_LEROBOT_HOME
+
+        args.root = str(Path(HF_LEROBOT_HOME) / args.repo_id)
+    try:
+        summary = generate(
+            Path(args.root),
+            args.repo_id,
+            args.episodes,
+            seed=args.seed,
+            obstacle_encoding=args.obstacle_encoding,
+            scenes_path=args.scenes,
+            num_shards=args.num_shards,
+            shard_index=args.shard_index,
+            overwrite=args.overwrite,
+            fast_write=not args.slow_write,
+            batch_size=args.batch_size,
+            progress=not args.no_progress,
+        )
+    except (FileExistsError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if args.push_to:
+        command = "lerobot-formation-generate " + " ".join(sys.argv[1:] if argv is None else argv)
+        try:
+            dest = push_to_folder(
+                Path(args.root), Path(args.push_to), args.repo_id, summary, command, args.overwrite
+            )
+        except FileExistsError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        summary["pushed_to"] = str(dest)
+    print(
+        f"episodes {summary['episodes']}, frames {summary['frames']}, {summary['mb']:.1f} MB, "
+        f"PAC success while generating {summary['pac_success_rate']:.1%} "
+        f"({summary['pac_succeeded']}/{summary['pac_attempted']}), {summary['seconds']:.1f} s -> {args.root}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
