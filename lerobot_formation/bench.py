@@ -1,12 +1,19 @@
-"""``lerobot-formation-bench``: run controllers on a scene set and write results and figures.
+"""``lerobot-formation-bench``: the paper's experiments in one command.
+
+Runs controllers on a scene set with the batched evaluation engine, computes every SPEC metric
+(Wilson 95 % intervals on success), and writes ``results.json``, ``tables.md`` (the paper's two
+tables with its own numbers beside ours) and PNG figures.
 
 Example::
 
-    lerobot-formation-bench --controllers pac --scenes random:50 --seed 1000000 --out outputs/bench
+    lerobot-formation-bench --controllers pac,mppi,diffusion,diffusion-adaptive \\
+        --policy.path pretrained/formation_diffusion_cpu --scenes dataset:100 --unseen random:100 \\
+        --seed 1000000 --out outputs/bench
 
-Scenes: ``random:N`` (the valid scenes of seeds S..S+N-1, S = --seed, default 1_000_000, disjoint
-from the dataset's seeds), or a scenes JSON file. Writes ``OUT/results.json`` (keyed by controller:
-success_rate, n_episodes, collisions, timeouts, episodes, ...) and PNG figures.
+Scenes: ``random:N`` (the valid scenes of seeds S..S+N-1, S = --seed, default 1_000_000, which the
+dataset never uses), ``dataset:N`` (the first N episodes of a dataset: ``--dataset.root``, or the
+``dataset_scenes.json`` shipped with the policy), or a scenes JSON file. ``--unseen random:N`` also
+runs the diffusion controllers on unseen scenes for the standard-vs-adaptive table.
 """
 
 from __future__ import annotations
@@ -20,80 +27,376 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import PACController
+from lerobot_formation.core.metrics import episode_metrics, summarize
+from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords, PACController
 from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes, load_scenes, sample_scenes
-from lerobot_formation.evaluation import basic_summary, evaluate
+from lerobot_formation.evaluation import evaluate
 
-CONTROLLERS = ("pac",)
+CONTROLLERS = ("pac", "mppi", "diffusion", "diffusion-adaptive")
+
+# The paper's Table "Three-way controller comparison on dataset" (100 episodes) and Table "Standard
+# vs adaptive"; mean and std as printed.
+PAPER_THREE_WAY = {
+    "success_rate": (
+        "Success Rate (%)",
+        {"mppi": 65.0, "diffusion": 62.0, "pac": 100.0, "diffusion-adaptive": 70.0},  # adaptive: Table 2
+    ),
+    "path_length": (
+        "Path Length (m)",
+        {"mppi": (9.35, 1.52), "diffusion": (9.12, 1.33), "pac": (9.38, 1.83)},
+    ),
+    "path_optimality": (
+        "Path Optimality",
+        {"mppi": (0.775, 0.120), "diffusion": (0.791, 0.110), "pac": (0.780, 0.133)},
+    ),
+    "tracking_deviation": (
+        "Tracking Deviation (m)",
+        {"mppi": (1.067, 0.447), "diffusion": (1.064, 0.419), "pac": (1.139, 0.513)},
+    ),
+    "min_clearance": (
+        "Min Clearance (m)",
+        {"mppi": (0.440, 0.193), "diffusion": (0.305, 0.237), "pac": (0.488, 0.140)},
+    ),
+    "mean_clearance": (
+        "Mean Clearance (m)",
+        {"mppi": (0.974, 0.164), "diffusion": (0.895, 0.174), "pac": (1.078, 0.180)},
+    ),
+    "mean_control": (
+        "Mean Control Magnitude",
+        {"mppi": (0.602, 0.079), "diffusion": (0.370, 0.031), "pac": (0.452, 0.050)},
+    ),
+    "control_smoothness": (
+        "Control Smoothness",
+        {"mppi": (4.538, 1.151), "diffusion": (0.336, 0.102), "pac": (1.164, 0.650)},
+    ),
+    "energy": ("Energy Usage", {"mppi": (10.20, 3.11), "diffusion": (5.31, 1.34), "pac": (6.95, 2.00)}),
+    "time": ("Time (s)", {"mppi": (25.98, 10.20), "diffusion": (31.05, 6.75), "pac": (27.81, 6.49)}),
+    "mean_velocity": (
+        "Mean Velocity (m/s)",
+        {"mppi": (0.390, 0.084), "diffusion": (0.297, 0.023), "pac": (0.340, 0.040)},
+    ),
+    "mean_curvature": (
+        "Mean Curvature",
+        {"mppi": (28.29, 52.73), "diffusion": (0.787, 0.606), "pac": (0.733, 0.388)},
+    ),
+    "peak_curvature": (
+        "Peak Curvature",
+        {"mppi": (6767, 15229), "diffusion": (5.28, 2.77), "pac": (5.51, 3.57)},
+    ),
+    "jerk": ("Motion Jerk", {"mppi": (23.10, 3.51), "diffusion": (0.359, 0.055), "pac": (0.576, 0.114)}),
+    "orientation_stability": (
+        "Orientation Stability",
+        {"mppi": (0.202, 0.028), "diffusion": (0.188, 0.023), "pac": (0.225, 0.026)},
+    ),
+}
+EXTRA_ROWS = {
+    "formation_min_clearance": "Formation Min Clearance (m), all episodes",
+    "final_formation_error": "Final Formation Error (m)",
+    "mean_follower_velocity_error": "Mean Follower Velocity Error (m/s)",
+}
+PAPER_ADAPTIVE = {
+    ("unseen", "diffusion"): 25.0,
+    ("unseen", "diffusion-adaptive"): 26.0,
+    ("dataset", "diffusion"): 62.0,
+}
+PAPER_ADAPTIVE[("dataset", "diffusion-adaptive")] = 70.0
+SET_TITLES = {
+    "unseen": "Random seeds (unseen)",
+    "random": "Random seeds (unseen)",
+    "dataset": "Dataset episodes",
+}
 
 
-def parse_scenes(spec: str, seed: int) -> Scenes:
-    """``random:N`` or a path to a scenes JSON file."""
-    if spec.startswith("random:"):
+# -- scenes ------------------------------------------------------------------------------------------
+def dataset_scenes(root: str | Path, n: int) -> Scenes:
+    """Scenes of the first n episodes of a dataset made by ``generate_pac_dataset``."""
+    import pyarrow.parquet as pq
+
+    from datasets_scripts.generate_pac_dataset import scenes_from_frames
+
+    files = sorted(Path(root).glob("data/*/*.parquet"))
+    if not files:
+        raise ValueError(f"--dataset.root {root} holds no data/*/*.parquet files")
+    cols = ["frame_index", "episode_index", "scene.seed", "scene.obstacles", "scene.goal", "scene.start"]
+    rows = []
+    for f in files:
         try:
-            n = int(spec.split(":", 1)[1])
+            t = pq.read_table(f, columns=cols, filters=[("frame_index", "=", 0)])
+        except Exception as e:  # a dataset without scene columns
+            raise ValueError(f"{f} lacks the scene.* columns of generate_pac_dataset: {e}") from e
+        rows.append(t)
+    import pyarrow as pa
+
+    t = pa.concat_tables(rows).sort_by("episode_index").slice(0, n)
+    if len(t) < n:
+        raise ValueError(f"dataset {root} has {len(t)} episodes, fewer than the {n} asked for")
+    return scenes_from_frames(
+        np.asarray(t["scene.obstacles"].to_pylist()),
+        np.asarray(t["scene.goal"].to_pylist()),
+        np.asarray(t["scene.start"].to_pylist()),
+        np.asarray(t["scene.seed"].to_pylist()),
+    )
+
+
+def parse_scenes(
+    spec: str, seed: int, dataset_root: str | None = None, policy_path: str | None = None
+) -> Scenes:
+    """``random:N``, ``dataset:N`` or a path to a scenes JSON file."""
+    kind, _, count = spec.partition(":")
+    if kind in ("random", "dataset"):
+        try:
+            n = int(count)
         except ValueError as e:
-            raise ValueError(f"--scenes random:N needs an integer N, got {spec!r}") from e
+            raise ValueError(f"--scenes {kind}:N needs an integer N, got {spec!r}") from e
         if n < 1:
-            raise ValueError(f"--scenes random:N needs N >= 1, got {n}")
-        return sample_scenes(seed + np.arange(n))
+            raise ValueError(f"--scenes {kind}:N needs N >= 1, got {n}")
+        if kind == "random":
+            return sample_scenes(seed + np.arange(n))
+        if dataset_root:
+            return dataset_scenes(dataset_root, n)
+        shipped = Path(policy_path or "") / "dataset_scenes.json"
+        if policy_path and shipped.is_file():
+            scenes = load_scenes(shipped)
+            if len(scenes) < n:
+                raise ValueError(f"{shipped} holds {len(scenes)} scenes, fewer than {n}")
+            return scenes[:n]
+        raise ValueError(
+            "--scenes dataset:N needs --dataset.root, or a --policy.path with dataset_scenes.json"
+        )
     return load_scenes(spec)
 
 
-def make_controller(name: str, params: FormationParams):
+# -- controllers -------------------------------------------------------------------------------------
+def make_controller(name: str, params: FormationParams, args: argparse.Namespace, bundle=None):
     if name == "pac":
         return PACController(params=params)
+    if name == "mppi":
+        from lerobot_formation.core.mppi import MPPIConfig, MPPIController
+
+        return MPPIController(MPPIConfig(seed=args.seed_policy), params)
+    if name in ("diffusion", "diffusion-adaptive"):
+        from lerobot_formation.diffusion_controller import DiffusionController
+
+        return DiffusionController(
+            args.policy_path,
+            candidates=args.candidates if name == "diffusion-adaptive" else 1,
+            adaptive=name == "diffusion-adaptive",
+            num_inference_steps=args.num_inference_steps,
+            seed=args.seed_policy,
+            params=params,
+            policy_bundle=bundle,
+        )
     raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLERS}")
 
 
-def write_figures(out: Path, name: str, rec, scenes: Scenes) -> list[str]:
-    from lerobot_formation.plots import plot_formation_errors, plot_trajectories
+# -- results -----------------------------------------------------------------------------------------
+def _clean(x):
+    if isinstance(x, float | np.floating):
+        return None if not np.isfinite(x) else float(x)
+    if isinstance(x, np.integer | np.bool_):
+        return x.item()
+    return x
+
+
+def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
+    per = episode_metrics(rec, scenes.start, scenes.goal)
+    summary = summarize(per)
+    episodes = []
+    for b in range(len(rec)):
+        e = {
+            "seed": int(scenes.seeds[b]),
+            "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
+            "steps": int(rec.steps[b]),
+        }
+        e.update({k: _clean(v[b]) for k, v in per.items() if k not in ("success", "collision", "timeout")})
+        episodes.append(e)
+    summary["episodes"] = episodes
+    return summary
+
+
+def _fmt(mean, std, digits=3):
+    if mean is None:
+        return "n/a"
+    return f"{mean:.{digits}g} ± {std:.{digits}g}" if std is not None else f"{mean:.{digits}g}"
+
+
+def three_way_table(results: dict, label: str) -> str:
+    cols = [c for c in ("mppi", "diffusion", "diffusion-adaptive", "pac") if c in results]
+    head = "| Metric | " + " | ".join(f"{c} (ours) | {c} (paper)" for c in cols) + " |"
+    lines = [f"### Three-way comparison on {label}", "", head, "|---" * (1 + 2 * len(cols)) + "|"]
+    for key, (title, paper) in PAPER_THREE_WAY.items():
+        row = [title]
+        for c in cols:
+            r = results[c]
+            if key == "success_rate":
+                lo, hi = r["success_ci95"]
+                row.append(f"{100 * r['success_rate']:.1f} [{100 * lo:.0f}, {100 * hi:.0f}]")
+                row.append(f"{paper[c]:.1f}")
+            else:
+                m = r.get(key) or {}
+                row.append(_fmt(m.get("mean"), m.get("std")))
+                p = paper.get(c) if c != "diffusion-adaptive" else None
+                row.append(_fmt(*p) if p else "—")
+        lines.append("| " + " | ".join(row) + " |")
+    for key, title in EXTRA_ROWS.items():
+        row = [title]
+        for c in cols:
+            m = results[c].get(key) or {}
+            row += [_fmt(m.get("mean"), m.get("std")), "—"]
+        lines.append("| " + " | ".join(row) + " |")
+    n = {c: results[c]["n_episodes"] for c in cols}
+    lines += [
+        "",
+        f"Episodes per controller: {n}. Success in % with Wilson 95 % interval. Path and motion rows are "
+        "mean ± std over successful episodes; the formation minimum clearance is over all episodes.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def adaptive_table(by_set: dict[str, dict]) -> str:
+    lines = [
+        "### Standard vs adaptive diffusion policy",
+        "",
+        "| Scenes | Method | Success % (ours) [95 % CI] | Collisions | Timeouts | Success % (paper) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for set_name, results in by_set.items():
+        for c in ("diffusion", "diffusion-adaptive"):
+            if c not in results:
+                continue
+            r = results[c]
+            lo, hi = r["success_ci95"]
+            paper = PAPER_ADAPTIVE.get(("unseen" if set_name == "random" else set_name, c))
+            lines.append(
+                f"| {SET_TITLES.get(set_name, set_name + ' scenes')} | "
+                f"{'Standard' if c == 'diffusion' else 'Adaptive'} | {100 * r['success_rate']:.1f} "
+                f"[{100 * lo:.0f}, {100 * hi:.0f}] | {r['collisions']} | {r['timeouts']} | "
+                f"{paper if paper is not None else '—'} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes) -> list[str]:
+    from lerobot_formation.plots import (
+        plot_failures,
+        plot_final_error_histogram,
+        plot_formation_errors,
+        plot_trajectories,
+    )
 
     ok = np.flatnonzero(rec.outcome == 1)
     shown = list(ok[:2]) if len(ok) else list(range(min(2, len(rec))))
     files = [
         plot_trajectories(rec, scenes, shown, out / f"{name}_trajectories.png", title=name),
         plot_formation_errors(rec, shown, out / f"{name}_formation_error.png", title=name),
+        plot_final_error_histogram(rec, out / f"{name}_final_error_hist.png", title=name),
     ]
+    if (rec.outcome != 1).any():
+        files.append(plot_failures(rec, scenes, out / f"{name}_failures.png", title=name))
     return [f.name for f in files]
 
 
-def main(argv: list[str] | None = None) -> int:
+def run_set(names, scenes, params, args, out: Path, label: str, bundle, figures: bool) -> dict:
+    results = {}
+    for name in names:
+        t0 = time.perf_counter()
+        ctrl = make_controller(name, params, args, bundle)
+        rec = evaluate(ctrl, scenes, params, progress=not args.no_progress, desc=f"{name} ({label})")
+        entry = controller_results(rec, scenes)
+        entry["wall_time_s"] = time.perf_counter() - t0
+        entry["scenes"] = label
+        if figures:
+            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes)
+        results[name] = entry
+        lo, hi = entry["success_ci95"]
+        print(
+            f"[{label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
+            f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
+            flush=True,
+        )
+    return results
+
+
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="lerobot-formation-bench", description=__doc__.split("\n")[0])
     ap.add_argument("--controllers", default="pac", help=f"comma-separated, from {CONTROLLERS}")
-    ap.add_argument("--scenes", default="random:20", help="random:N or FILE.json")
+    ap.add_argument("--scenes", default="random:20", help="random:N, dataset:N or FILE.json")
+    ap.add_argument(
+        "--unseen", default=None, help="also run the diffusion controllers on these scenes (random:N)"
+    )
     ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START, help="first seed for random:N")
+    ap.add_argument("--policy.path", dest="policy_path", default=None, help="LeRobot checkpoint folder")
+    ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="dataset for dataset:N")
+    ap.add_argument("--candidates", type=int, default=10, help="K of the adaptive policy")
+    ap.add_argument(
+        "--num-inference-steps", type=int, default=None, help="DDIM steps (default: checkpoint's)"
+    )
+    ap.add_argument("--seed-policy", type=int, default=0, help="seed of the policies' noise")
     ap.add_argument("--out", default="outputs/bench", help="output folder")
     ap.add_argument("--no-figures", action="store_true")
+    ap.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
     args = ap.parse_args(argv)
     names = [c.strip() for c in args.controllers.split(",") if c.strip()]
     for n in names:
         if n not in CONTROLLERS:
             ap.error(f"unknown controller {n!r}; choose from {CONTROLLERS}")
+    diffusion = [n for n in names if n.startswith("diffusion")]
+    if diffusion and not args.policy_path:
+        ap.error(f"controllers {diffusion} need --policy.path")
+    if args.candidates < 1:
+        ap.error(f"--candidates must be >= 1, got {args.candidates}")
     try:
-        scenes = parse_scenes(args.scenes, args.seed)
+        scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path)
+        unseen = parse_scenes(args.unseen, args.seed) if args.unseen else None
     except ValueError as e:
         ap.error(str(e))
     params = FormationParams()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {}
-    for name in names:
-        t0 = time.perf_counter()
-        rec = evaluate(make_controller(name, params), scenes, params, progress=True, desc=name)
-        entry = basic_summary(rec, scenes)
-        entry["wall_time_s"] = time.perf_counter() - t0
-        if not args.no_figures:
-            entry["figures"] = write_figures(out, name, rec, scenes)
-        results[name] = entry
-        print(
-            f"{name}: success {entry['success_rate']:.1%} of {entry['n_episodes']} "
-            f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s"
+    bundle = None
+    if diffusion:
+        import torch
+
+        from lerobot_formation.diffusion_controller import load_policy
+
+        torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+        bundle = load_policy(args.policy_path)
+    label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
+    results = {label: run_set(names, scenes, params, args, out, label, bundle, not args.no_figures)}
+    if unseen is not None and diffusion:
+        results["unseen"] = run_set(
+            diffusion, unseen, params, args, out, "unseen", bundle, not args.no_figures
         )
+    # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
+    # other scene sets under "by_scenes".
+    payload = dict(results[label])
+    payload["by_scenes"] = {k: v for k, v in results.items()}
+    payload["meta"] = {
+        "scenes": args.scenes,
+        "unseen": args.unseen,
+        "seed": args.seed,
+        "policy_path": args.policy_path,
+        "candidates": args.candidates,
+        "num_inference_steps": args.num_inference_steps,
+        "date": time.strftime("%Y-%m-%d"),
+    }
     tmp = out / "results.json.tmp"
-    tmp.write_text(json.dumps(results, indent=1))
+    tmp.write_text(json.dumps(payload, indent=1, default=_clean))
     os.replace(tmp, out / "results.json")
-    print(f"wrote {out / 'results.json'}")
+    tables = [three_way_table(results[label], f"{label} scenes ({args.scenes})")]
+    if diffusion:
+        sets = {label: results[label]}
+        if "unseen" in results:
+            sets["unseen"] = results["unseen"]
+        tables.append(adaptive_table(sets))
+    (out / "tables.md").write_text("\n".join(tables))
+    print(f"wrote {out / 'results.json'}, {out / 'tables.md'}")
     return 0
 
 

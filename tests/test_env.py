@@ -46,7 +46,8 @@ def test_vector_env_matches_single_env():
     venv = FormationVectorEnv(B)
     singles = [FormationEnv() for _ in range(B)]
     vobs, _ = venv.reset(seed=100)
-    sobs = [e.reset(seed=100 + i)[0] for i, e in enumerate(singles)]
+    for i, e in enumerate(singles):
+        e.reset(seed=100 + i)
     rng = np.random.default_rng(0)
     for _ in range(steps):
         a = rng.uniform([0, -1.5], [0.6, 1.5], size=(B, 2)).astype(np.float32)

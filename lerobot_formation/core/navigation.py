@@ -52,9 +52,11 @@ class CostToGo:
             ij = np.where(better[:, None], nb[bi, best], ij)
         return self.origin + self.resolution * ij.astype(np.float64)
 
-    def at(self, xy: np.ndarray) -> np.ndarray:
+    def at(self, xy: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Cost-to-go at points xy (P, 2); point p reads field rows[p] (default: field p)."""
         ij = self.cell(xy)
-        return self.value[np.arange(len(xy)), ij[:, 0], ij[:, 1]]
+        rows = np.arange(len(xy)) if rows is None else rows
+        return self.value[rows, ij[:, 0], ij[:, 1]]
 
 
 def cost_to_go(

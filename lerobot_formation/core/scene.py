@@ -144,10 +144,14 @@ def scenes_from_list(items: list[dict], config: SceneConfig | None = None, check
         try:
             obs = np.asarray(s["obstacles"], dtype=np.float64)
         except (TypeError, ValueError) as e:
-            raise ValueError(f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}") from e
+            raise ValueError(
+                f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}"
+            ) from e
         if obs.size:
             if obs.ndim != 2 or obs.shape[1] != 3:
-                raise ValueError(f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}")
+                raise ValueError(
+                    f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}"
+                )
             obstacles[b, : len(obs)] = obs
             mask[b, : len(obs)] = True
         g = np.asarray(s["goal"], dtype=np.float64)

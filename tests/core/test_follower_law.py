@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.dynamics import FormationParams, agent_positions, formation_error, initial_state, step
+from lerobot_formation.core.dynamics import (
+    FormationParams,
+    agent_positions,
+    formation_error,
+    initial_state,
+    step,
+)
 
 PAPER_START = np.array([[0.0, 0.0, np.pi / 2]])
 

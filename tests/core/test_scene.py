@@ -40,7 +40,9 @@ def test_sampled_scenes_follow_spec_and_are_valid():
 
 
 def test_passage_check_finds_enclosed_goal():
-    ring = [[5 + 1.6 * np.cos(a), 5 + 1.6 * np.sin(a), 0.8] for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    ring = [
+        [5 + 1.6 * np.cos(a), 5 + 1.6 * np.sin(a), 0.8] for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ]
     closed = scenes_from_list([{"obstacles": ring, "goal": [5, 5]}], check=False)
     open_ = scenes_from_list([{"obstacles": ring[:3], "goal": [5, 5]}], check=False)
     cfg = SceneConfig()
@@ -79,7 +81,11 @@ def test_impossible_scenes_are_rejected(scene, match):
 
 @pytest.mark.parametrize(
     ("text", "match"),
-    [("{not json", "not valid JSON"), ('{"foo": []}', "key 'scenes'"), ('{"scenes": [{"goal": [1, 1]}]}', "obstacles")],
+    [
+        ("{not json", "not valid JSON"),
+        ('{"foo": []}', "key 'scenes'"),
+        ('{"scenes": [{"goal": [1, 1]}]}', "obstacles"),
+    ],
 )
 def test_malformed_scenes_file(tmp_path, text, match):
     f = tmp_path / "bad.json"
@@ -94,7 +100,9 @@ def test_missing_scenes_file(tmp_path):
 
 
 def test_obstacle_grid_cells_and_shared_cell():
-    sc = scenes_from_list([{"obstacles": [[2.5, 3.7, 0.4], [2.2, 3.1, 0.6], [5.9, 1.6, 0.3]], "goal": [5, 5]}])
+    sc = scenes_from_list(
+        [{"obstacles": [[2.5, 3.7, 0.4], [2.2, 3.1, 0.6], [5.9, 1.6, 0.3]], "goal": [5, 5]}]
+    )
     g = obstacle_grid(sc.obstacles, sc.mask).reshape(7, 7)
     assert g[1, 2] == pytest.approx(0.6)  # two centres in cell (1, 2): the larger radius
     assert g[4, 0] == pytest.approx(0.3)

@@ -1,0 +1,217 @@
+"""Config of the ``formation_diffusion`` policy: LeRobot's diffusion policy plus EMA, paper defaults."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
+from lerobot.optim import AdamWConfig
+from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.env import STATE_DIM
+
+ACTION_DIM = 2  # [v, omega]
+# observation.environment_state sizes the env can emit: "grid" (51) and "grid+list" (66).
+ENV_STATE_DIMS = tuple(environment_state_dim(e) for e in ENCODINGS)
+
+
+logger = logging.getLogger(__name__)
+
+
+def config_error(message: str) -> ValueError:
+    """A ValueError for an invalid config value, its message also logged at ERROR level.
+
+    draccus reports a ValueError raised while it builds a config from the command line or a JSON file
+    as "Couldn't instantiate class ... using the given arguments." and drops the message; the log line
+    keeps it visible on the terminal.
+    """
+    logger.error(message)
+    return ValueError(message)
+
+
+def _describe(features: dict[str, PolicyFeature] | None) -> str:
+    if not features:
+        return "none"
+    return ", ".join(f"'{k}' ({ft.type.name}, shape {tuple(ft.shape)})" for k, ft in features.items())
+
+
+@PreTrainedConfig.register_subclass("formation_diffusion")
+@dataclass
+class FormationDiffusionConfig(DiffusionConfig):
+    """LeRobot's ``DiffusionConfig`` with an EMA of the weights; defaults are the paper's hyperparameters.
+
+    Every ``DiffusionConfig`` field keeps its meaning (see its docstring). The defaults differ where
+    the paper's Table "Training and Model Hyperparameters" (SPEC "The policy") sets a value: U-Net
+    ``down_dims`` (256, 512, 1024), ``kernel_size`` 5, ``n_groups`` 8, ``diffusion_step_embed_dim``
+    256; DDPM with 100 steps, ``squaredcos_cap_v2``, epsilon prediction, ``clip_sample``; T_p =
+    ``horizon`` 64, T_o = ``n_obs_steps`` 2, T_a = ``n_action_steps`` 10; AdamW (the optimizer preset
+    is ``AdamWConfig``, where ``DiffusionConfig``'s is Adam) with ``optimizer_lr`` 1.05e-4,
+    ``optimizer_weight_decay`` 1e-6, cosine schedule with 1000 warm-up steps; EMA power 0.75. The
+    batch size (256) is ``lerobot-train``'s ``--batch_size``, not a policy field.
+
+    Features (checked by ``validate_features`` when the policy is built, i.e. at start-up):
+    ``observation.state`` (STATE, (7,)): the midpoint [x, y, cos phi, sin phi, x', y', omega];
+    ``observation.environment_state`` (ENV, (51,) "grid" or (66,) "grid+list"); ``action``
+    (ACTION, (2,)) = [v, omega]. No image features. Other inputs are ignored by the model.
+
+    Normalization: STATE and ACTION MIN_MAX (to [-1, 1]; ``clip_sample`` relies on the action range);
+    ENV IDENTITY. The environment state holds obstacle radii in [0, 0.8] m, the goal and (with
+    "grid+list") obstacle coordinates, all within a few metres already. The dataset's goal is constant
+    (5, 5), so MIN_MAX or MEAN_STD statistics would divide by ~0 and blow up any other goal, and a
+    cell that never held an obstacle in the data would do the same for an unseen scene.
+
+    Args:
+        drop_n_last_frames: frames at each episode's end the training sampler never starts a window
+            at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
+            Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
+            that differs raises ``ValueError``.
+        use_ema: keep an exponential moving average of the diffusion model (``ema_diffusion``) and
+            use it for inference in eval mode. ``--policy.use_ema=false`` at evaluation uses the live
+            weights of an EMA checkpoint.
+        ema_power: EMA warm-up power (paper: 0.75).
+        ema_inv_gamma: EMA warm-up inverse multiplicative factor.
+        ema_min_decay: lower bound on the EMA decay (after the first update).
+        ema_max_decay: upper bound on the EMA decay.
+        ema_update_after_step: optimizer steps during which the EMA just copies the live weights.
+
+    The EMA decay after the k-th optimizer step is diffusers' ``EMAModel.get_decay(k)`` with
+    ``use_ema_warmup=True``: with s = k - ema_update_after_step - 1, 0 if s <= 0, else
+    clamp(1 - (1 + s / ema_inv_gamma) ** -ema_power, ema_min_decay, ema_max_decay).
+    """
+
+    # Inputs / output structure.
+    n_obs_steps: int = 2
+    horizon: int = 64
+    n_action_steps: int = 10
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.MIN_MAX,
+            "ENV": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.MIN_MAX,
+        }
+    )
+    drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
+
+    # Unet.
+    down_dims: tuple[int, ...] = (256, 512, 1024)
+    kernel_size: int = 5
+    n_groups: int = 8
+    diffusion_step_embed_dim: int = 256
+
+    # Noise scheduler.
+    noise_scheduler_type: str = "DDPM"
+    num_train_timesteps: int = 100
+    beta_schedule: str = "squaredcos_cap_v2"
+    prediction_type: str = "epsilon"
+    clip_sample: bool = True
+
+    # Training presets.
+    optimizer_lr: float = 1.05e-4
+    optimizer_betas: tuple = (0.95, 0.999)
+    optimizer_eps: float = 1e-8
+    optimizer_weight_decay: float = 1e-6
+    scheduler_name: str = "cosine"
+    scheduler_warmup_steps: int = 1000
+
+    # EMA (diffusers EMAModel with use_ema_warmup=True, as in the original Diffusion Policy).
+    use_ema: bool = True
+    ema_power: float = 0.75
+    ema_inv_gamma: float = 1.0
+    ema_min_decay: float = 0.0
+    ema_max_decay: float = 0.9999
+    ema_update_after_step: int = 0
+
+    def __post_init__(self):
+        # Horizon first, so that this message (not DiffusionConfig's) explains a bad horizon.
+        if self.n_obs_steps < 1:
+            raise config_error(f"n_obs_steps must be >= 1, got {self.n_obs_steps}")
+        factor = 2 ** len(self.down_dims)
+        if self.horizon < factor or self.horizon % factor != 0:
+            below = self.horizon // factor * factor
+            nearest = [h for h in (below, below + factor) if h > 0]
+            raise config_error(
+                f"horizon={self.horizon} does not fit the U-Net: with down_dims={list(self.down_dims)} "
+                f"({len(self.down_dims)} stages) LeRobot's diffusion U-Net needs a horizon that is a "
+                f"positive multiple of 2**len(down_dims) = {factor}; nearest valid horizons: "
+                f"{nearest}. Change --policy.horizon or --policy.down_dims."
+            )
+        max_action_steps = self.horizon - self.n_obs_steps + 1
+        if not 1 <= self.n_action_steps <= max_action_steps:
+            raise config_error(
+                f"n_action_steps={self.n_action_steps} must be in [1, horizon - n_obs_steps + 1] = "
+                f"[1, {max_action_steps}] (horizon={self.horizon}, n_obs_steps={self.n_obs_steps})"
+            )
+        expected_drop = self.horizon - self.n_action_steps - self.n_obs_steps + 1
+        if self.drop_n_last_frames is None:
+            self.drop_n_last_frames = expected_drop
+        elif self.drop_n_last_frames != expected_drop:
+            raise config_error(
+                f"drop_n_last_frames={self.drop_n_last_frames} does not match horizon - n_action_steps - "
+                f"n_obs_steps + 1 = {self.horizon} - {self.n_action_steps} - {self.n_obs_steps} + 1 = "
+                f"{expected_drop}. Set it to {expected_drop}, or to null to derive it."
+            )
+        if self.ema_power <= 0 or self.ema_inv_gamma <= 0:
+            raise config_error(
+                "ema_power and ema_inv_gamma must be > 0, got "
+                f"ema_power={self.ema_power}, ema_inv_gamma={self.ema_inv_gamma}"
+            )
+        if not 0.0 <= self.ema_min_decay <= self.ema_max_decay <= 1.0:
+            raise config_error(
+                "need 0 <= ema_min_decay <= ema_max_decay <= 1, got "
+                f"ema_min_decay={self.ema_min_decay}, ema_max_decay={self.ema_max_decay}"
+            )
+        if self.ema_update_after_step < 0:
+            raise config_error(f"ema_update_after_step must be >= 0, got {self.ema_update_after_step}")
+        super().__post_init__()
+
+    def validate_features(self) -> None:
+        """Check the formation features; the error names the feature, its shape and what was found."""
+        inputs = self.input_features or {}
+        found = f"Input features found: {_describe(inputs)}."
+        state = inputs.get(OBS_STATE)
+        if state is None or state.type is not FeatureType.STATE:
+            raise ValueError(
+                f"formation_diffusion needs the input feature '{OBS_STATE}' (STATE, shape ({STATE_DIM},): "
+                f"midpoint [x, y, cos phi, sin phi, x', y', omega]). {found}"
+            )
+        if tuple(state.shape) != (STATE_DIM,):
+            raise ValueError(
+                f"'{OBS_STATE}' must have shape ({STATE_DIM},) (midpoint [x, y, cos phi, sin phi, x', y', "
+                f"omega]), got {tuple(state.shape)}"
+            )
+        env_state = inputs.get(OBS_ENV_STATE)
+        if env_state is None or env_state.type is not FeatureType.ENV:
+            raise ValueError(
+                f"formation_diffusion needs the input feature '{OBS_ENV_STATE}' (ENV, shape "
+                f"{' or '.join(f'({d},)' for d in ENV_STATE_DIMS)}: obstacle grid + goal). {found}"
+            )
+        if tuple(env_state.shape) not in [(d,) for d in ENV_STATE_DIMS]:
+            raise ValueError(
+                f"'{OBS_ENV_STATE}' must have shape "
+                + " or ".join(f"({d},) ({e!r})" for d, e in zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
+                + f", got {tuple(env_state.shape)}"
+            )
+        if self.image_features:
+            raise ValueError(
+                f"formation_diffusion takes no image features, got {sorted(self.image_features)}. {found}"
+            )
+        action = self.action_feature
+        if action is None or tuple(action.shape) != (ACTION_DIM,):
+            raise ValueError(
+                f"formation_diffusion needs the output feature '{ACTION}' (ACTION, shape ({ACTION_DIM},): "
+                f"[v, omega]). Output features found: {_describe(self.output_features)}."
+            )
+        super().validate_features()
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        """AdamW, as the paper and the original Diffusion Policy train (DiffusionConfig's preset is Adam)."""
+        return AdamWConfig(
+            lr=self.optimizer_lr,
+            betas=self.optimizer_betas,
+            eps=self.optimizer_eps,
+            weight_decay=self.optimizer_weight_decay,
+        )

@@ -1,0 +1,136 @@
+"""Per-episode formation metrics for LeRobot's evaluator (gymnasium + NumPy only, no torch/lerobot).
+
+``lerobot-eval`` keeps only three numbers per episode (``sum_reward``, ``max_reward``, ``success``)
+and drops every other ``info`` key, so a plugin cannot add columns to ``eval_info.json``.
+``FormationEpisodeMetrics`` wraps one ``FormationEnv`` (under its ``TimeLimit``) and, when an
+episode ends:
+
+1. adds ``info["formation_metrics"]``: the SPEC "Metrics" of the episode, computed by the project's
+   one implementation (``core.metrics.episode_metrics``), plus ``outcome``, ``steps``,
+   ``scene_seed`` and ``reset_seed``. A vector env carries it in ``info["final_info"]``;
+   any Python caller of ``FormationEnvConfig.create_envs`` sees it;
+2. if ``log_path`` is set, appends the same record as one JSON line to that file (NaN -> null).
+   ``--env.episode_metrics_path=<file>`` turns this on for ``lerobot-eval`` and for the env
+   evaluation inside ``lerobot-train``; join the lines with ``eval_info.json``'s
+   ``per_task[*].metrics`` / per-episode ``seed`` through ``reset_seed``. Episodes LeRobot
+   discards (the surplus of the last batch when ``n_episodes`` is not a multiple of the batch
+   size) are logged too; their ``reset_seed`` is past the last seed LeRobot reports.
+
+Episode metrics key list: ``core.metrics.METRIC_KEYS`` and ``FLAG_KEYS`` (``success``,
+``collision``, ``timeout``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from lerobot_formation.core import dynamics
+from lerobot_formation.core.metrics import episode_metrics
+from lerobot_formation.core.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TIMEOUT, EpisodeRecords
+
+INFO_KEY = "formation_metrics"
+
+
+class FormationEpisodeMetrics(gym.Wrapper):
+    """Record one ``FormationEnv`` episode and report its formation metrics when it ends.
+
+    Args:
+        env: a ``FormationEnv``, usually under a ``TimeLimit`` (truncation counts as a timeout).
+        log_path: JSON-lines file to append one record per finished episode to; None: no file.
+    """
+
+    def __init__(self, env: gym.Env, log_path: str | os.PathLike | None = None):
+        super().__init__(env)
+        self.log_path = Path(log_path) if log_path is not None else None
+        self._trace: dict[str, list] | None = None
+        self._reset_seed: int | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._reset_seed = None if seed is None else int(seed)
+        base = self.env.unwrapped
+        self._trace = {k: [] for k in ("poses", "positions", "fe", "fve", "agent", "mid", "actions")}
+        self._record(base.state, info)
+        return obs, info
+
+    def step(self, action):
+        if self._trace is None:
+            raise RuntimeError("call reset() before step()")
+        base = self.env.unwrapped
+        prev_pose = base.state.pose.copy()
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        params = base.params
+        state = base.state
+        self._trace["actions"].append(dynamics.clip_action(np.asarray(action, np.float64)[None], params)[0])
+        desired_vel = (
+            dynamics.desired_follower_positions(state.pose, params.graph)
+            - dynamics.desired_follower_positions(prev_pose, params.graph)
+        ) / params.dt  # (1, F, 2) [m/s]
+        self._trace["fve"].append(float(np.linalg.norm(state.follower_vel - desired_vel, axis=-1).mean()))
+        self._record(state, info)
+        if terminated or truncated:
+            record = self._finish(info)
+            info = {**info, INFO_KEY: record}
+            if self.log_path is not None:
+                self._write(record)
+        return obs, reward, terminated, truncated, info
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _record(self, state: dynamics.FormationState, info: dict[str, Any]) -> None:
+        t = self._trace
+        t["poses"].append(state.pose[0].copy())
+        t["positions"].append(dynamics.agent_positions(state)[0])
+        t["fe"].append(info["formation_error"])
+        t["agent"].append(info["clearance"])
+        t["mid"].append(info["midpoint_clearance"])
+
+    def _finish(self, info: dict[str, Any]) -> dict[str, Any]:
+        t = self._trace
+        if info["is_collision"]:
+            outcome = COLLISION
+        elif info["is_success"]:
+            outcome = SUCCESS
+        else:
+            outcome = TIMEOUT
+        n = len(t["actions"])
+        base = self.env.unwrapped
+        rec = EpisodeRecords(
+            poses=np.asarray(t["poses"])[None],
+            actions=np.asarray(t["actions"]).reshape(1, n, 2),
+            positions=np.asarray(t["positions"])[None],
+            formation_error=np.asarray(t["fe"], np.float64)[None],
+            follower_velocity_error=np.asarray(t["fve"], np.float64).reshape(1, n),
+            agent_clearance=np.asarray(t["agent"], np.float64)[None],
+            midpoint_clearance=np.asarray(t["mid"], np.float64)[None],
+            outcome=np.array([outcome]),
+            steps=np.array([n]),
+            dt=base.params.dt,
+        )
+        metrics = episode_metrics(rec, base.scene.start, base.scene.goal)
+        record: dict[str, Any] = {
+            "outcome": OUTCOME_NAMES[outcome],
+            "steps": n,
+            "scene_seed": int(info["scene_seed"]),
+            "reset_seed": self._reset_seed,
+        }
+        for key, value in metrics.items():
+            v = value[0]
+            record[key] = bool(v) if isinstance(v, np.bool_) else float(v)
+        return record
+
+    def _write(self, record: dict[str, Any]) -> None:
+        line = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()}
+        line.update(wall_time=time.time(), pid=os.getpid())
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        # One write of one short line in append mode: lines from several worker processes do not
+        # interleave on a local file system.
+        with open(self.log_path, "a") as f:
+            f.write(json.dumps(line) + "\n")

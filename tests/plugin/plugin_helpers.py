@@ -1,0 +1,57 @@
+"""Shared builders for the LeRobot plugin tests: tiny policy configs and fake batches."""
+
+import torch
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+
+HORIZON, N_OBS, N_ACT = 16, 2, 8
+
+
+def formation_features(state_dim=7, env_dim=51, action_dim=2):
+    inputs = {
+        OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(state_dim,)),
+        OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(env_dim,)),
+    }
+    outputs = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(action_dim,))}
+    return inputs, outputs
+
+
+def tiny_config(**overrides) -> FormationDiffusionConfig:
+    inputs, outputs = formation_features()
+    kwargs = dict(
+        device="cpu",
+        push_to_hub=False,
+        input_features=inputs,
+        output_features=outputs,
+        horizon=HORIZON,
+        n_obs_steps=N_OBS,
+        n_action_steps=N_ACT,
+        down_dims=(16, 32),
+        kernel_size=3,
+        n_groups=4,
+        diffusion_step_embed_dim=16,
+        noise_scheduler_type="DDIM",
+        num_inference_steps=4,
+    )
+    kwargs.update(overrides)
+    return FormationDiffusionConfig(**kwargs)
+
+
+def train_batch(batch_size=4, seed=0, env_dim=51):
+    g = torch.Generator().manual_seed(seed)
+    return {
+        OBS_STATE: torch.randn(batch_size, N_OBS, 7, generator=g),
+        OBS_ENV_STATE: torch.rand(batch_size, N_OBS, env_dim, generator=g),
+        ACTION: torch.rand(batch_size, HORIZON, 2, generator=g) * 2 - 1,
+        "action_is_pad": torch.zeros(batch_size, HORIZON, dtype=torch.bool),
+    }
+
+
+def obs_batch(batch_size=4, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return {
+        OBS_STATE: torch.randn(batch_size, 7, generator=g),
+        OBS_ENV_STATE: torch.rand(batch_size, 51, generator=g),
+    }

@@ -1,0 +1,183 @@
+"""EMA of formation_diffusion: diffusers' schedule, one update per optimizer step, used for inference."""
+
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from diffusers.training_utils import EMAModel
+from plugin_helpers import N_ACT, obs_batch, tiny_config, train_batch
+
+from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+
+
+def make_policy(seed=0, **overrides) -> FormationDiffusionPolicy:
+    torch.manual_seed(seed)
+    return FormationDiffusionPolicy(tiny_config(**overrides))
+
+
+def reference_ema(policy: FormationDiffusionPolicy) -> EMAModel:
+    """diffusers' own EMAModel on a copy of the initial live weights, with the config's schedule."""
+    c = policy.config
+    return EMAModel(
+        policy.diffusion.parameters(),
+        decay=c.ema_max_decay,
+        min_decay=c.ema_min_decay,
+        update_after_step=c.ema_update_after_step,
+        use_ema_warmup=True,
+        inv_gamma=c.ema_inv_gamma,
+        power=c.ema_power,
+    )
+
+
+def train_steps(policy, n, ref: EMAModel | None = None, lr=1e-2):
+    opt = torch.optim.AdamW(policy.get_optim_params(), lr=lr)
+    policy.train()
+    for i in range(n):
+        loss, _ = policy.forward(train_batch(seed=i))
+        loss.backward()
+        opt.step()
+        opt.zero_grad()
+        policy.update()
+        if ref is not None:
+            ref.step(policy.diffusion.parameters())
+
+
+def max_abs_diff(a, b) -> float:
+    return max((x - y).abs().max().item() for x, y in zip(a, b, strict=True))
+
+
+@pytest.mark.parametrize("update_after_step", [0, 3])
+def test_decay_schedule_is_diffusers(update_after_step):
+    policy = make_policy(ema_update_after_step=update_after_step, ema_min_decay=0.1)
+    ref = reference_ema(policy)
+    for step in [1, 2, 3, 4, 5, 10, 100, 10_000, 10**6, 10**8]:
+        assert policy.ema_decay(step) == ref.get_decay(step)
+    # The formula itself (SPEC: power 0.75, inv_gamma 1, capped at 0.9999).
+    policy = make_policy()
+    for k in [2, 10, 1000]:
+        s = k - 1
+        assert policy.ema_decay(k) == pytest.approx(1 - (1 + s) ** -0.75)
+    assert policy.ema_decay(1) == 0.0
+    assert policy.ema_decay(10**9) == 0.9999
+
+
+def test_ema_tracks_diffusers_and_differs_from_live():
+    policy = make_policy()
+    ref = reference_ema(policy)
+    train_steps(policy, 5, ref)
+    assert int(policy.ema_step) == 5
+    ema = list(policy.ema_diffusion.parameters())
+    assert max_abs_diff(ema, ref.shadow_params) < 1e-6
+    assert max_abs_diff(ema, policy.diffusion.parameters()) > 1e-4
+    assert not any(p.requires_grad for p in ema)
+
+
+def test_optimizer_gets_only_live_weights():
+    policy = make_policy()
+    optim_ids = {id(p) for p in policy.get_optim_params()}
+    assert optim_ids == {id(p) for p in policy.diffusion.parameters()}
+    assert not optim_ids & {id(p) for p in policy.ema_diffusion.parameters()}
+
+
+def test_select_action_uses_ema_weights_in_eval_mode():
+    policy = make_policy()
+    train_steps(policy, 4)
+    policy.eval()
+    obs = obs_batch()
+    noise = torch.randn(4, policy.config.horizon, 2, generator=torch.Generator().manual_seed(7))
+    history = {k: torch.stack([v, v], dim=1) for k, v in obs.items()}  # first call copies the obs
+    with torch.no_grad():
+        want = policy.ema_diffusion.generate_actions(history, noise=noise)
+        live = policy.diffusion.generate_actions(history, noise=noise)
+    assert (want - live).abs().max() > 1e-4
+    policy.reset()
+    first = policy.select_action(dict(obs), noise=noise)
+    torch.testing.assert_close(first, want[:, 0])
+    rest = [policy.select_action(dict(obs), noise=noise) for _ in range(N_ACT - 1)]
+    torch.testing.assert_close(torch.stack([first, *rest], dim=1), want)
+    # Train mode: the live weights.
+    policy.train()
+    policy.reset()
+    torch.testing.assert_close(policy.predict_action_chunk(history, noise=noise), live)
+
+
+def test_use_ema_false_builds_no_copy():
+    policy = make_policy(use_ema=False)
+    assert policy.ema_diffusion is None
+    policy.update()  # no-op
+    assert not any(k.startswith("ema_") for k in policy.state_dict())
+
+
+def test_checkpoint_round_trip_keeps_ema_and_step(tmp_path):
+    policy = make_policy()
+    train_steps(policy, 3)
+    policy.save_pretrained(tmp_path)
+    loaded = FormationDiffusionPolicy.from_pretrained(tmp_path)
+    assert int(loaded.ema_step) == 3
+    assert max_abs_diff(loaded.ema_diffusion.parameters(), policy.ema_diffusion.parameters()) == 0
+    assert max_abs_diff(loaded.diffusion.parameters(), policy.diffusion.parameters()) == 0
+    assert not loaded.training
+    # Resuming continues the schedule: the next update uses decay(4).
+    loaded.train()
+    train_steps(loaded, 1)
+    assert int(loaded.ema_step) == 4
+
+
+def test_checkpoint_without_ema_starts_ema_from_live(tmp_path, caplog):
+    plain = make_policy(use_ema=False)
+    plain.save_pretrained(tmp_path)
+    with caplog.at_level(logging.WARNING):
+        loaded = FormationDiffusionPolicy.from_pretrained(tmp_path, config=tiny_config(use_ema=True))
+    assert "holds no EMA weights" in caplog.text
+    assert int(loaded.ema_step) == 0
+    assert max_abs_diff(loaded.ema_diffusion.parameters(), plain.diffusion.parameters()) == 0
+
+
+def test_ema_update_through_accelerate_once_per_step():
+    """lerobot-train's path: prepare(), step, then update() on the unwrapped model, every process."""
+    from accelerate import Accelerator
+
+    accelerator = Accelerator(cpu=True, step_scheduler_with_optimizer=False)
+    policy = make_policy()
+    ref = reference_ema(policy)
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-2)
+    model, optimizer = accelerator.prepare(policy, optimizer)
+    model.train()
+    for i in range(3):
+        loss, _ = model.forward(train_batch(seed=i))
+        accelerator.backward(loss)
+        optimizer.step()
+        optimizer.zero_grad()
+        unwrapped = accelerator.unwrap_model(model, keep_fp32_wrapper=True)
+        assert unwrapped is policy
+        unwrapped.update()
+        ref.step(policy.diffusion.parameters())
+        assert int(policy.ema_step) == i + 1
+    assert max_abs_diff(policy.ema_diffusion.parameters(), ref.shadow_params) < 1e-6
+
+
+def test_ema_identical_on_every_process_under_ddp(tmp_path):
+    """Two CPU processes (gloo), each on its own batches: same EMA, one update per optimizer step."""
+    here = Path(__file__).resolve().parent
+    out = tmp_path / "ddp.json"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(here), os.environ.get("PYTHONPATH", "")])}
+    env.update(OMP_NUM_THREADS="1", HF_HUB_OFFLINE="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
+    proc = subprocess.run(
+        [*cmd, str(here / "ddp_ema_worker.py"), str(out)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    result = json.loads(out.read_text())
+    assert result["num_processes"] == 2
+    assert result["ema_steps"] == [3, 3]
+    assert result["live_rank_gap"] == 0.0 and result["ema_rank_gap"] == 0.0
+    assert result["ema_live_gap"] > 0
