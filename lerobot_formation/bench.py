@@ -29,7 +29,7 @@ import numpy as np
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.metrics import episode_metrics, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords, PACController
-from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes, load_scenes, sample_scenes
+from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport, Scenes, load_scenes, sample_scenes
 from lerobot_formation.evaluation import evaluate
 
 CONTROLLERS = ("pac", "mppi", "diffusion", "diffusion-adaptive")
@@ -139,9 +139,13 @@ def dataset_scenes(root: str | Path, n: int) -> Scenes:
 
 
 def parse_scenes(
-    spec: str, seed: int, dataset_root: str | None = None, policy_path: str | None = None
+    spec: str,
+    seed: int,
+    dataset_root: str | None = None,
+    policy_path: str | None = None,
+    report: SamplingReport | None = None,
 ) -> Scenes:
-    """``random:N``, ``dataset:N`` or a path to a scenes JSON file."""
+    """``random:N``, ``dataset:N`` or a path to a scenes JSON file. ``report`` counts rejected draws."""
     kind, _, count = spec.partition(":")
     if kind in ("random", "dataset"):
         try:
@@ -151,7 +155,7 @@ def parse_scenes(
         if n < 1:
             raise ValueError(f"--scenes {kind}:N needs N >= 1, got {n}")
         if kind == "random":
-            return sample_scenes(seed + np.arange(n))
+            return sample_scenes(seed + np.arange(n), report=report)
         if dataset_root:
             return dataset_scenes(dataset_root, n)
         shipped = Path(policy_path or "") / "dataset_scenes.json"
@@ -351,8 +355,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"controllers {diffusion} need --policy.path")
     if args.candidates < 1:
         ap.error(f"--candidates must be >= 1, got {args.candidates}")
+    report = SamplingReport()
     try:
-        scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path)
+        scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
         unseen = parse_scenes(args.unseen, args.seed) if args.unseen else None
     except ValueError as e:
         ap.error(str(e))
@@ -385,7 +390,14 @@ def main(argv: list[str] | None = None) -> int:
         "candidates": args.candidates,
         "num_inference_steps": args.num_inference_steps,
         "date": time.strftime("%Y-%m-%d"),
+        "scene_sampling": report.as_dict() if report.drawn else None,
     }
+    if report.drawn:
+        print(
+            f"scenes: {report.accepted} valid of {report.drawn} drawn, rejection rate {report.rejection_rate:.1%} "
+            f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
+            f"no passage {report.rejected_passage})"
+        )
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, default=_clean))
     os.replace(tmp, out / "results.json")
