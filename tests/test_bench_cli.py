@@ -1,0 +1,51 @@
+"""lerobot-formation-bench: results.json keys, tables, figures and bad arguments."""
+
+import json
+
+import pytest
+
+from lerobot_formation.bench import main, parse_scenes
+from lerobot_formation.core.scene import sample_scenes, save_scenes
+
+
+def test_bench_pac_and_mppi_write_results_tables_and_figures(tmp_path):
+    assert (
+        main(["--controllers", "pac,mppi", "--scenes", "random:3", "--out", str(tmp_path), "--no-progress"])
+        == 0
+    )
+    res = json.loads((tmp_path / "results.json").read_text())
+    for name in ("pac", "mppi"):
+        r = res[name]
+        assert {"success_rate", "n_episodes", "collisions", "timeouts", "episodes", "success_ci95"} <= set(r)
+        assert r["n_episodes"] == 3 and 0 <= r["success_rate"] <= 1
+        assert len(r["episodes"]) == 3 and {"seed", "outcome", "steps", "path_length"} <= set(
+            r["episodes"][0]
+        )
+        assert (tmp_path / f"{name}_random_trajectories.png").stat().st_size > 1000
+        assert (tmp_path / f"{name}_random_formation_error.png").is_file()
+    assert res["meta"]["scene_sampling"]["accepted"] == 3
+    tables = (tmp_path / "tables.md").read_text()
+    assert "| Success Rate (%) |" in tables and "65.0" in tables  # the paper's MPPI beside ours
+
+
+def test_scenes_file_and_dataset_spec(tmp_path):
+    save_scenes(sample_scenes([7, 8]), tmp_path / "s.json")
+    assert len(parse_scenes(str(tmp_path / "s.json"), 0)) == 2
+    with pytest.raises(ValueError, match="dataset:N needs"):
+        parse_scenes("dataset:5", 0)
+    with pytest.raises(ValueError, match="integer N"):
+        parse_scenes("random:x", 0)
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--controllers", "pac,foo"], "unknown controller 'foo'"),
+        (["--controllers", "diffusion"], "need --policy.path"),
+        (["--scenes", "random:0"], "N >= 1"),
+    ],
+)
+def test_bad_arguments(argv, match, capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        main([*argv, "--out", str(tmp_path)])
+    assert match in capsys.readouterr().err
