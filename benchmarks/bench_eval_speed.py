@@ -1,0 +1,238 @@
+"""Evaluation speed (issue 5, benchmark 1): the batched engine against the stock ``lerobot-eval``.
+
+Both evaluate the same checkpoint (``--policy.path``) on the same scenes:
+
+- **engine**: ``evaluate(DiffusionController(path), scenes)``, in this process: every episode at once,
+  one batched policy call per replan for the live episodes.
+- **stock**: the real ``lerobot-eval`` console script, in a subprocess, with ``--env.type=formation
+  --env.scenes_file=<the scenes> --seed=0`` (eval seed i is scene i), once per setting of
+  ``--stock``: ``default`` (no ``--eval.*`` flag but the episode count: LeRobot picks
+  ``batch_size = min(floor(0.7 x CPUs), n_episodes, 64)``, 1 on 2 cores, hence a sync env) and
+  ``B:sync`` / ``B:async`` (``--eval.batch_size=B --eval.use_async_envs=false|true``). lerobot-eval
+  always renders 10 episodes to video; that is part of its cost, no flag turns it off.
+
+Timings: the stock ``eval_s`` is lerobot-eval's own timer around ``eval_policy_all`` (rollouts,
+rendering, videos; not the Python start-up, imports, env or policy creation); the engine's is
+``evaluate()`` alone (the policy loaded before, cold otherwise). The whole-command times (the
+subprocess's wall time; the engine's policy load + evaluate) are printed too. Each setting's success
+rate is printed, as a check that every run did the same job.
+
+Run (full size, ~1 h with every stock setting at 100 episodes of the default policy)::
+
+    HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_eval_speed.py \\
+        --policy.path pretrained/<name> --episodes 100
+
+``--quick`` is a smoke run (10 episodes of 60 steps, three stock settings). The last line is the
+ratio of the best stock time to the engine's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+
+BIN = Path(sys.executable).parent
+DEFAULT_STOCK = "default,10:sync,25:sync,50:sync,100:sync,2:async,10:async,25:async"
+QUICK_STOCK = "default,10:sync,2:async"
+
+
+def checkpoint_encoding(path: str) -> str:
+    """The env's obstacle encoding that matches the checkpoint's environment_state size."""
+    from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+
+    cfg = json.loads((Path(path) / "config.json").read_text())
+    dim = cfg["input_features"]["observation.environment_state"]["shape"][0]
+    for e in ENCODINGS:
+        if environment_state_dim(e) == dim:
+            return e
+    raise ValueError(f"{path}: environment_state has {dim} values; no known encoding matches")
+
+
+def parse_stock(spec: str) -> list[tuple[str, int | None, bool | None]]:
+    out = []
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        if item == "default":
+            out.append(("default", None, None))
+            continue
+        b, _, mode = item.partition(":")
+        if not b.isdigit() or int(b) < 1 or mode not in ("sync", "async"):
+            raise ValueError(f"--stock items are 'default' or B:sync / B:async, got {item!r}")
+        out.append((item, int(b), mode == "async"))
+    return out
+
+
+def run_stock(
+    name: str,
+    batch: int | None,
+    use_async: bool | None,
+    args: argparse.Namespace,
+    scenes_file: Path,
+    encoding: str,
+    out: Path,
+    threads: int,
+) -> dict:
+    cmd = [
+        str(BIN / "lerobot-eval"),
+        f"--policy.path={args.policy_path}",
+        "--policy.device=cpu",
+        "--env.type=formation",
+        f"--env.obstacle_encoding={encoding}",
+        f"--env.scenes_file={scenes_file}",
+        f"--env.episode_length={args.episode_length}",
+        "--seed=0",
+        f"--eval.n_episodes={args.episodes}",
+        f"--output_dir={out}",
+    ]
+    if batch is not None:
+        cmd += [f"--eval.batch_size={batch}", f"--eval.use_async_envs={'true' if use_async else 'false'}"]
+    env = {
+        **os.environ,
+        "HF_HUB_OFFLINE": "1",
+        "HF_DATASETS_OFFLINE": "1",
+        "OMP_NUM_THREADS": str(threads),
+        "TOKENIZERS_PARALLELISM": "false",
+    }
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"lerobot-eval ({name}) failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    overall = json.loads((out / "eval_info.json").read_text())["overall"]
+    return {
+        "name": name,
+        "wall_s": wall,
+        "eval_s": float(overall["eval_s"]),
+        "success": float(overall["pc_success"]) / 100,
+        "n_episodes": int(overall["n_episodes"]),
+        "command": " ".join(cmd[:1] + [c for c in cmd[1:] if not c.startswith("--output_dir")]),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    from lerobot_formation.core.scene import UNSEEN_SEED_START
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--policy.path", dest="policy_path", required=True, help="checkpoint folder")
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument(
+        "--scenes", default=None, help="random:N (default, N = --episodes), dataset:N or FILE.json"
+    )
+    ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START, help="first seed of random:N")
+    ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="for --scenes dataset:N")
+    ap.add_argument("--episode-length", type=int, default=600, help="control steps before a timeout")
+    ap.add_argument("--stock", default=None, help=f"lerobot-eval settings (default: {DEFAULT_STOCK})")
+    ap.add_argument(
+        "--threads", type=int, default=None, help="torch threads, both paths (default: OMP_NUM_THREADS)"
+    )
+    ap.add_argument("--out", default=None, help="keep lerobot-eval's outputs here (default: a temp dir)")
+    ap.add_argument(
+        "--quick", action="store_true", help="smoke run: 10 episodes of 60 steps, 3 stock settings"
+    )
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.episodes = min(args.episodes, 10)
+        args.episode_length = min(args.episode_length, 60)
+        args.stock = args.stock or QUICK_STOCK
+    try:
+        stock = parse_stock(args.stock or DEFAULT_STOCK)
+    except ValueError as e:
+        ap.error(str(e))
+
+    import torch
+
+    from lerobot_formation.bench import parse_scenes
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.rollout import SUCCESS
+    from lerobot_formation.core.scene import save_scenes
+    from lerobot_formation.diffusion_controller import DiffusionController
+    from lerobot_formation.evaluation import evaluate
+
+    threads = args.threads or torch.get_num_threads()
+    torch.set_num_threads(threads)
+    scenes = parse_scenes(
+        args.scenes or f"random:{args.episodes}", args.seed, args.dataset_root, args.policy_path
+    )
+    if len(scenes) < args.episodes:
+        ap.error(f"--scenes gives {len(scenes)} scenes, fewer than --episodes {args.episodes}")
+    scenes = scenes[: args.episodes]
+    encoding = checkpoint_encoding(args.policy_path)
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_eval_speed_"))
+    out.mkdir(parents=True, exist_ok=True)
+    scenes_file = out / "scenes.json"
+    save_scenes(scenes, scenes_file)
+    print(
+        f"{args.episodes} episodes of at most {args.episode_length} steps, policy {args.policy_path} "
+        f"(env encoding {encoding!r}), scenes {args.scenes or f'random:{args.episodes}'} -> {scenes_file}; "
+        f"torch threads {threads}, {os.cpu_count()} CPUs",
+        flush=True,
+    )
+
+    # Engine.
+    t0 = time.perf_counter()
+    ctrl = DiffusionController(args.policy_path)
+    load_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rec = evaluate(ctrl, scenes, FormationParams(max_steps=args.episode_length))
+    engine_s = time.perf_counter() - t0
+    engine_success = float(np.mean(rec.outcome == SUCCESS))
+    print(
+        f"engine: {engine_s:.1f} s for {len(scenes)} episodes ({ctrl.replans} batched replans), policy load "
+        f"{load_s:.1f} s; success {engine_success:.0%}",
+        flush=True,
+    )
+
+    # Stock lerobot-eval.
+    results = []
+    try:
+        for name, batch, use_async in stock:
+            r = run_stock(
+                name,
+                batch,
+                use_async,
+                args,
+                scenes_file,
+                encoding,
+                out / f"lerobot_eval_{name.replace(':', '_')}",
+                threads,
+            )
+            results.append(r)
+            print(
+                f"lerobot-eval {name:>9}: eval_s {r['eval_s']:7.1f} s, whole command {r['wall_s']:7.1f} s, "
+                f"success {r['success']:.0%} of {r['n_episodes']}; "
+                f"{r['eval_s'] / engine_s:.1f}x the engine",
+                flush=True,
+            )
+    finally:
+        if not args.out:
+            shutil.rmtree(out, ignore_errors=True)
+    if not results:
+        return 0
+    best = min(results, key=lambda r: r["eval_s"])
+    default = next((r for r in results if r["name"] == "default"), None)
+    if default is not None:
+        print(
+            f"lerobot-eval default settings: {default['eval_s']:.1f} s ({default['eval_s'] / engine_s:.1f}x the engine)"
+        )
+    print(f"lerobot-eval fastest setting: {best['name']} ({best['eval_s']:.1f} s): {best['command']}")
+    print(
+        f"whole commands: lerobot-eval {best['name']} {best['wall_s']:.1f} s vs engine load + evaluate "
+        f"{load_s + engine_s:.1f} s: {best['wall_s'] / (load_s + engine_s):.1f}x"
+    )
+    print(f"ratio lerobot-eval best / engine (evaluation time): {best['eval_s'] / engine_s:.1f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

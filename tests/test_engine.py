@@ -1,0 +1,285 @@
+"""The diffusion policy behind the batched evaluation engine (issue 5 tests).
+
+A tiny checkpoint is trained once for this module through the real ``lerobot-train`` console script
+(tiny config, 4 steps) on a tiny PAC dataset, as ``tests/plugin/test_plugin_e2e.py`` does. Then:
+
+(a) the engine (``evaluate(DiffusionController(path), scenes)``) against LeRobot's own evaluation:
+    1. step for step: with the same initial noise, the engine's actions equal (bit for bit) those of
+       ``lerobot.scripts.lerobot_eval.rollout`` (the loop ``lerobot-eval`` runs) on a vector env of
+       the same scenes, over three replans. This checks the observations, their history, the
+       normalisation, the chunk alignment and the action execution. It holds while every episode
+       is alive: after one ends, the stock loop still draws noise for it and the engine does not;
+    2. whole episodes through the ``lerobot-eval`` console script: the same success rate and mean
+       episode reward on the same scenes, within sampling noise (tolerance below);
+(b) the adaptive policy with K = 1 and the same noise is the standard policy, action for action;
+(c) the DDIM step override (``set_inference_steps``) sets the sampler and its step count on both the
+    live and the EMA model, is what the engine and ``select_action`` run, and rejects bad counts.
+
+Tolerance of (a2): the two paths draw their noise from different generators once episodes end, so
+their episodes are different samples of the same process and cannot be compared one by one.
+lerobot-eval runs 100 episodes (scene i = seed i); the engine runs the same 100 scenes with 5 noise
+seeds. Each statistic must agree within 3 standard errors of the difference (binomial for the
+success rate, Welch for the reward): about a 0.3 % false alarm if the two paths are the same
+process; both runs are deterministic, and the standard errors ignore that both sides share the
+scenes, which only widens the bound. The scenes are an empty field with a goal 0.56-1.04 m ahead and
+30-step episodes, where this barely trained policy succeeds about half the time, so the statistics
+move with the executed actions' scale (without the unnormalisation the engine's success drops from
+~0.47 to ~0.29, beyond the ~0.16 bound) and with the episode rules (length, success, reward). A
+4-step policy barely reacts to its observations, which is why (a1) checks those exactly.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.rollout import COLLISION, SUCCESS
+from lerobot_formation.core.scene import (
+    UNSEEN_SEED_START,
+    load_scenes,
+    sample_scenes,
+    save_scenes,
+    scenes_from_list,
+)
+from lerobot_formation.diffusion_controller import DiffusionController, load_policy, set_inference_steps
+from lerobot_formation.evaluation import evaluate
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+TINY = REPO / "configs" / "formation_diffusion_tiny.json"
+REPO_ID = "local/formation_engine_test"
+EPISODES = 100  # lerobot-eval episodes (one batch of 100 sync envs)
+ENGINE_SEEDS = 5  # noise seeds of the engine over the same scenes
+EPISODE_LENGTH = 30
+
+
+def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """A LeRobot console script, offline, one torch thread (as tests/plugin/test_plugin_e2e.py)."""
+    env = {
+        **os.environ,
+        "HF_HUB_OFFLINE": "1",
+        "HF_DATASETS_OFFLINE": "1",
+        "HF_LEROBOT_HOME": str(cwd / "hf_lerobot_home"),
+        "OMP_NUM_THREADS": "1",
+        "TOKENIZERS_PARALLELISM": "false",
+    }
+    proc = subprocess.run(
+        [str(BIN / name), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
+    if proc.returncode != 0:
+        pytest.fail(f"{name} {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny models run fastest on one thread, and a busy 2-core machine makes two threads crawl."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("engine")
+
+
+@pytest.fixture(scope="module")
+def checkpoint(workdir) -> Path:
+    """A tiny formation_diffusion checkpoint trained through the lerobot-train CLI."""
+    sys.path.insert(0, str(REPO))
+    try:
+        from datasets_scripts.generate_pac_dataset import main as generate
+    finally:
+        sys.path.remove(str(REPO))
+    root = workdir / "dataset"
+    generate(["--episodes", "3", "--seed", "0", "--repo-id", REPO_ID, "--root", str(root), "--no-progress"])
+    out = workdir / "train"
+    run_cli(
+        "lerobot-train",
+        f"--config_path={TINY}",
+        f"--dataset.repo_id={REPO_ID}",
+        f"--dataset.root={root}",
+        f"--output_dir={out}",
+        "--env_eval_freq=0",
+        cwd=workdir,
+    )
+    return out / "checkpoints" / "last" / "pretrained_model"
+
+
+@pytest.fixture(scope="module")
+def bundle(checkpoint):
+    """(policy, preprocessor, postprocessor), shared by the tests that do not change the sampler."""
+    return load_policy(checkpoint)
+
+
+def near_goal_scenes(n: int, seed: int = 0):
+    """Empty field; the goal 0.56-1.04 m from the start, within 34 deg of the initial heading (+y)."""
+    rng = np.random.default_rng(seed)
+    heading = np.pi / 2 + rng.uniform(-0.6, 0.6, n)
+    dist = 0.8 * rng.uniform(0.7, 1.3, n)
+    goals = np.stack([dist * np.cos(heading), dist * np.sin(heading)], axis=1)
+    return scenes_from_list([{"obstacles": [], "goal": g.tolist()} for g in goals])
+
+
+def engine_sum_reward(rec, scenes) -> np.ndarray:
+    """FormationEnv's episode return: progress to the goal, +1 on success, -1 on collision."""
+    end = rec.poses[np.arange(len(rec)), rec.steps, :2]
+    progress = np.linalg.norm(scenes.start[:, :2] - scenes.goal, axis=1) - np.linalg.norm(
+        end - scenes.goal, axis=1
+    )
+    return progress + (rec.outcome == SUCCESS) - (rec.outcome == COLLISION)
+
+
+def test_engine_actions_equal_lerobot_rollout(checkpoint, bundle, workdir):
+    from lerobot.envs.factory import make_env_pre_post_processors
+    from lerobot.scripts.lerobot_eval import rollout
+
+    from lerobot_formation.core.dynamics import clip_action
+    from lerobot_formation.env_config import FormationEnvConfig
+
+    B, T, seed = 8, 24, 7  # three replans of n_action_steps = 8; far goals, so all stay alive
+    scenes_file = workdir / "parity_scenes.json"
+    save_scenes(sample_scenes(UNSEEN_SEED_START + np.arange(B)), scenes_file)
+    scenes = load_scenes(scenes_file)
+    policy, pre, post = bundle
+    params = FormationParams(max_steps=T)
+    rec = evaluate(DiffusionController(checkpoint, seed=seed, policy_bundle=bundle), scenes, params)
+    assert (rec.steps == T).all(), "an episode ended early: the noise streams would diverge"
+
+    env_cfg = FormationEnvConfig(scenes_file=str(scenes_file), episode_length=T)
+    env = env_cfg.create_envs(B, use_async_envs=False)["formation"][0]
+    env_pre, env_post = make_env_pre_post_processors(env_cfg, policy.config)
+    torch.manual_seed(seed)  # the stock loop draws its noise from the global generator
+    try:
+        stock = rollout(env, policy, env_pre, env_post, pre, post, seeds=list(range(B)))
+    finally:
+        env.close()
+    stock_actions = clip_action(stock["action"].numpy().astype(np.float64), params)  # the env clips
+    np.testing.assert_array_equal(rec.actions, stock_actions)
+
+
+def test_engine_success_matches_lerobot_eval(checkpoint, bundle, workdir):
+    scenes = near_goal_scenes(EPISODES)
+    scenes_file = workdir / "near_goal_scenes.json"
+    save_scenes(scenes, scenes_file)
+    out = workdir / "eval"
+    run_cli(
+        "lerobot-eval",
+        f"--policy.path={checkpoint}",
+        "--policy.device=cpu",
+        "--env.type=formation",
+        f"--env.scenes_file={scenes_file}",
+        f"--env.episode_length={EPISODE_LENGTH}",
+        "--seed=0",  # eval seed i -> scene i of the file
+        f"--eval.n_episodes={EPISODES}",
+        f"--eval.batch_size={EPISODES}",
+        "--eval.use_async_envs=false",
+        f"--output_dir={out}",
+        cwd=workdir,
+    )
+    metrics = json.loads((out / "eval_info.json").read_text())["per_task"][0]["metrics"]
+    stock_success = np.asarray(metrics["successes"], dtype=float)
+    stock_reward = np.asarray(metrics["sum_rewards"], dtype=float)
+    assert len(stock_success) == EPISODES
+
+    params = FormationParams(max_steps=EPISODE_LENGTH)
+    succ, reward = [], []
+    for seed in range(ENGINE_SEEDS):
+        rec = evaluate(DiffusionController(checkpoint, seed=seed, policy_bundle=bundle), scenes, params)
+        succ.append(rec.outcome == SUCCESS)
+        reward.append(engine_sum_reward(rec, scenes))
+    engine_success = np.concatenate(succ).astype(float)
+    engine_reward = np.concatenate(reward)
+
+    p_s, p_e = stock_success.mean(), engine_success.mean()
+    # Meaningful only if the outcome is uncertain: neither (nearly) always nor never a success.
+    assert 0.15 <= p_e <= 0.85, f"engine success {p_e:.2f}: the scenes no longer discriminate"
+    p = np.concatenate([stock_success, engine_success]).mean()
+    se = np.sqrt(p * (1 - p) * (1 / len(stock_success) + 1 / len(engine_success)))
+    assert abs(p_s - p_e) <= 3 * se, (
+        f"success: lerobot-eval {p_s:.2f} vs engine {p_e:.2f} (3 SE = {3 * se:.2f})"
+    )
+    se_r = np.sqrt(
+        stock_reward.var(ddof=1) / len(stock_reward) + engine_reward.var(ddof=1) / len(engine_reward)
+    )
+    assert abs(stock_reward.mean() - engine_reward.mean()) <= 3 * se_r, (
+        f"mean episode reward: lerobot-eval {stock_reward.mean():.3f} vs engine "
+        f"{engine_reward.mean():.3f} (3 SE = {3 * se_r:.3f})"
+    )
+
+
+def test_adaptive_with_one_candidate_is_standard(checkpoint, bundle):
+    scenes = sample_scenes(UNSEEN_SEED_START + np.arange(6))  # real obstacle fields
+    params = FormationParams(max_steps=40)
+    standard = DiffusionController(checkpoint, seed=3, policy_bundle=bundle)
+    adaptive = DiffusionController(checkpoint, candidates=1, adaptive=True, seed=3, policy_bundle=bundle)
+    assert (standard.name, adaptive.name) == ("diffusion", "diffusion-adaptive")
+    a = evaluate(standard, scenes, params)
+    b = evaluate(adaptive, scenes, params)
+    assert adaptive.replans == standard.replans > 0
+    np.testing.assert_array_equal(a.actions, b.actions)  # NaN padding compares equal
+    np.testing.assert_array_equal(a.outcome, b.outcome)
+    np.testing.assert_array_equal(a.steps, b.steps)
+    # Not vacuous: other noise gives other actions.
+    c = evaluate(
+        DiffusionController(checkpoint, candidates=1, adaptive=True, seed=4, policy_bundle=bundle),
+        scenes,
+        params,
+    )
+    assert not np.array_equal(a.actions[:, :8], c.actions[:, :8])
+
+
+def count_denoiser_calls(model, fn) -> int:
+    calls = []
+    handle = model.unet.register_forward_hook(lambda *_: calls.append(1))
+    try:
+        fn()
+    finally:
+        handle.remove()
+    return len(calls)
+
+
+def test_ddim_step_override(checkpoint):
+    from diffusers.schedulers.scheduling_ddim import DDIMScheduler
+
+    policy, pre, post = load_policy(checkpoint)  # own copy: the sampler is changed below
+    cfg = policy.config
+    ctrl = DiffusionController(checkpoint, policy_bundle=(policy, pre, post))
+    ctrl.reset(sample_scenes(UNSEEN_SEED_START + np.arange(3)))
+    idx = np.arange(3)
+    plan = lambda: ctrl.plan(idx, ctrl.scenes.start)  # noqa: E731
+    assert count_denoiser_calls(policy.ema_diffusion, plan) == cfg.num_inference_steps  # checkpoint's: 4
+
+    set_inference_steps(policy, None)  # keeps the checkpoint's sampler
+    assert count_denoiser_calls(policy.ema_diffusion, plan) == cfg.num_inference_steps
+
+    set_inference_steps(policy, 2)
+    for model in (policy.diffusion, policy.ema_diffusion):
+        assert isinstance(model.noise_scheduler, DDIMScheduler)
+        assert model.num_inference_steps == 2
+        assert model.noise_scheduler.config.num_train_timesteps == cfg.num_train_timesteps
+    assert count_denoiser_calls(policy.ema_diffusion, plan) == 2
+    assert plan().shape == (3, cfg.n_action_steps, 2)
+
+    # The stock select_action runs the overridden sampler too.
+    obs = pre({"observation.state": torch.zeros(1, 7), "observation.environment_state": torch.zeros(1, 51)})
+
+    def select():
+        policy.reset()
+        policy.select_action(obs)
+
+    assert count_denoiser_calls(policy.ema_diffusion, select) == 2
+
+    for bad in (0, -1, cfg.num_train_timesteps + 1):
+        with pytest.raises(ValueError, match="inference steps must be in"):
+            set_inference_steps(policy, bad)
+        with pytest.raises(ValueError, match="inference steps must be in"):
+            DiffusionController(checkpoint, num_inference_steps=bad, policy_bundle=(policy, pre, post))
