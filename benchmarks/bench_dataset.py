@@ -54,10 +54,7 @@ def main() -> None:
         )
         # 2. Writer only, same episodes both ways.
         g = gen.Generator(FormationParams(), batch_size=args.write_episodes + 10)
-        eps = [
-            gen.episode_frames(rec, sc, b, "grid")
-            for rec, sc, b in g.episodes(gen.seed_stream(0, 1, 0), args.write_episodes)
-        ]
+        eps = list(g.episodes(gen.seed_stream(0, 1, 0), args.write_episodes))
         frames = sum(len(e["action"]) for e in eps)
         fast = write_only(eps, tmp / "fast", fast=True)
         slow = write_only(eps, tmp / "slow", fast=False)

@@ -163,38 +163,103 @@ def skip_noop_image_embedding(features: dict):
         dataset_writer.embed_images = original
 
 
-class Generator:
-    """Collects successful PAC episodes in seed order, batch by batch."""
+def simulate_batch(
+    seeds: np.ndarray, scenes: Scenes | None, params: FormationParams, obstacle_encoding: str
+) -> tuple[int, list[dict[str, np.ndarray]]]:
+    """PAC on one batch of scenes (the seeds' scenes, or the given ones): (attempted, frames of the
+    successful episodes in seed order). Runs in a worker process when generation is pipelined."""
+    if scenes is None:
+        scenes = sample_scenes(seeds)
+    rec = rollout(scenes, PACController(params=params), params)
+    ok = np.flatnonzero(rec.outcome == SUCCESS)
+    return len(scenes), [episode_frames(rec, scenes, b, obstacle_encoding) for b in ok]
 
-    def __init__(self, params: FormationParams, batch_size: int = 256):
+
+class Generator:
+    """Collects successful PAC episodes in seed order, batch by batch.
+
+    With ``workers > 0`` the batches are simulated in worker processes, ``workers`` batches ahead,
+    while the caller writes: on 2 cores simulation and LeRobot's writer then overlap. The episodes
+    and their order do not depend on ``workers``.
+    """
+
+    def __init__(
+        self, params: FormationParams, batch_size: int = 256, obstacle_encoding: str = "grid", workers=0
+    ):
         self.params = params
         self.batch_size = batch_size
+        self.obstacle_encoding = obstacle_encoding
+        self.workers = workers
         self.attempted = 0
         self.succeeded = 0
 
-    def episodes(self, seeds_iter, n: int, scenes_file: Scenes | None = None, progress=None):
-        """Yield (records, scenes, b) for successful episodes until n are produced."""
-        produced = 0
-        while produced < n:
+    def _batches(self, seeds_iter, scenes_file: Scenes | None):
+        while True:
             seeds = np.asarray([next(seeds_iter) for _ in range(self.batch_size)])
             if scenes_file is not None:
                 seeds = seeds[seeds < len(scenes_file)]
                 if len(seeds) == 0:
                     return
-                scenes = scenes_file[seeds]
+                yield seeds, scenes_file[seeds]
             else:
-                scenes = sample_scenes(seeds)
-            rec = rollout(scenes, PACController(params=self.params), self.params)
-            self.attempted += len(seeds)
-            ok = np.flatnonzero(rec.outcome == SUCCESS)
-            self.succeeded += len(ok)
-            for b in ok:
+                yield seeds, None
+
+    def episodes(self, seeds_iter, n: int, scenes_file: Scenes | None = None, progress=None):
+        """Yield the frames of successful episodes until n are produced."""
+        produced = 0
+        batches = self._batches(seeds_iter, scenes_file)
+        if self.workers > 0:
+            import concurrent.futures
+            import multiprocessing
+
+            pool = concurrent.futures.ProcessPoolExecutor(
+                self.workers, mp_context=multiprocessing.get_context("fork")
+            )
+            pending = [
+                pool.submit(simulate_batch, *bt, self.params, self.obstacle_encoding)
+                for bt in _take(batches, self.workers)
+            ]
+
+            def results():
+                while pending:
+                    out = pending.pop(0).result()
+                    for bt in _take(batches, 1):
+                        pending.append(pool.submit(simulate_batch, *bt, self.params, self.obstacle_encoding))
+                    yield out
+
+        else:
+            pool = None
+
+            def results():
+                for bt in batches:
+                    yield simulate_batch(*bt, self.params, self.obstacle_encoding)
+
+        try:
+            for attempted, frames_list in results():
+                self.attempted += attempted
+                self.succeeded += len(frames_list)
+                for frames in frames_list:
+                    if produced >= n:
+                        return
+                    produced += 1
+                    if progress is not None:
+                        progress(1)
+                    yield frames
                 if produced >= n:
                     return
-                produced += 1
-                if progress is not None:
-                    progress(1)
-                yield rec, scenes, b
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _take(it, k: int) -> list:
+    out = []
+    for _ in range(k):
+        try:
+            out.append(next(it))
+        except StopIteration:
+            break
+    return out
 
 
 def seed_stream(start: int, num_shards: int, shard_index: int):
@@ -221,6 +286,7 @@ def generate(
     fast_write: bool = True,
     batch_size: int = 256,
     progress: bool = True,
+    workers: int = 1,
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict."""
     import datasets as hf_datasets
@@ -245,7 +311,7 @@ def generate(
 
         bar = tqdm(total=n, desc=f"PAC episodes (shard {shard_index + 1}/{num_shards})", unit="ep")
     # Simulate a little more than needed (PAC keeps ~98 %), but never more than batch_size at once.
-    gen = Generator(params, min(batch_size, int(np.ceil(n * 1.05)) + 2))
+    gen = Generator(params, min(batch_size, int(np.ceil(n * 1.05)) + 2), obstacle_encoding, workers)
     frames_total = 0
     ds = None
     try:
@@ -255,10 +321,9 @@ def generate(
         start = 0 if scenes_file is not None else seed
         skip = skip_noop_image_embedding(ds.meta.features) if fast_write else contextlib.nullcontext()
         with skip:
-            for rec, scenes, b in gen.episodes(
+            for frames in gen.episodes(
                 seed_stream(start, num_shards, shard_index), n, scenes_file, bar.update if bar else None
             ):
-                frames = episode_frames(rec, scenes, b, obstacle_encoding)
                 frames_total += len(frames["action"])
                 write_episode(ds, frames, fast=fast_write)
             ds.finalize()
@@ -432,6 +497,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--num-shards", type=int, default=1)
     ap.add_argument("--shard-index", type=int, default=0)
     ap.add_argument("--batch-size", type=int, default=256, help="episodes simulated at once")
+    ap.add_argument("--workers", type=int, default=1, help="simulation processes beside the writer (0: none)")
     ap.add_argument(
         "--slow-write", action="store_true", help="per-frame add_frame instead of episode buffers"
     )
@@ -444,6 +510,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         ap.error(f"--seed must be >= 0, got {args.seed}")
     if args.num_shards < 1 or not 0 <= args.shard_index < args.num_shards:
         ap.error(f"need 0 <= --shard-index < --num-shards, got {args.shard_index} and {args.num_shards}")
+    if args.workers < 0:
+        ap.error(f"--workers must be >= 0, got {args.workers}")
     if args.batch_size < 1:
         ap.error(f"--batch-size must be >= 1, got {args.batch_size}")
     if "/" not in args.repo_id or args.repo_id.count("/") != 1:
@@ -473,6 +541,7 @@ def main(argv: list[str] | None = None) -> int:
             fast_write=not args.slow_write,
             batch_size=args.batch_size,
             progress=not args.no_progress,
+            workers=args.workers,
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -235,3 +235,9 @@ def test_shards_are_valid_and_disjoint(tmp_path):
         assert ds.meta.total_episodes == 3
         seeds.append({int(ds[int(e["dataset_from_index"])]["scene.seed"]) for e in ds.meta.episodes})
     assert not seeds[0] & seeds[1]
+
+
+def test_pipelined_and_inline_simulation_write_the_same_files(tiny, tmp_path):
+    inline = tmp_path / "inline"
+    _generate(inline, workers=0)
+    assert _hashes(inline) == _hashes(tiny)
