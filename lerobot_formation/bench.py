@@ -366,11 +366,10 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     bundle = None
     if diffusion:
-        import torch
-
         from lerobot_formation.diffusion_controller import load_policy
 
-        torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+        # torch's thread count follows OMP_NUM_THREADS; two busy processes with 2 threads each on
+        # 2 cores crawl, so set OMP_NUM_THREADS=1 when running several jobs at once.
         bundle = load_policy(args.policy_path)
     label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
     results = {label: run_set(names, scenes, params, args, out, label, bundle, not args.no_figures)}
