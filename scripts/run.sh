@@ -10,7 +10,8 @@ export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 
 find_python() {
   local c v
-  for c in python3.13 python3.12 python3 python; do
+  # 3.12 first: the version lerobot 0.6.1 and its wheels are known to work with here.
+  for c in python3.12 python3.13 python3 python; do
     if command -v "$c" >/dev/null 2>&1 && "$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then
       command -v "$c"; return 0
     fi
@@ -18,12 +19,12 @@ find_python() {
   # pyenv keeps other versions out of PATH unless selected: look in its versions folder.
   local root="${PYENV_ROOT:-$HOME/.pyenv}"
   if command -v pyenv >/dev/null 2>&1; then root="$(pyenv root)"; fi
-  for v in $(ls -d "$root"/versions/3.1[2-9]* 2>/dev/null | sort -V -r); do
+  for v in $(ls -d "$root"/versions/3.12* 2>/dev/null | sort -V -r) $(ls -d "$root"/versions/3.1[3-9]* 2>/dev/null | sort -V); do
     if [ -x "$v/bin/python3" ] && "$v/bin/python3" -c 'import sys; sys.exit(sys.version_info < (3, 12))'; then
       echo "$v/bin/python3"; return 0
     fi
   done
-  for c in /usr/bin/python3.1[2-9] /usr/local/bin/python3.1[2-9]; do
+  for c in /usr/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.1[3-9] /usr/local/bin/python3.1[3-9]; do
     [ -x "$c" ] && { echo "$c"; return 0; }
   done
   return 1
