@@ -84,6 +84,15 @@ def observation_spaces(obstacle_encoding: str, max_obstacles: int = 5) -> spaces
     )
 
 
+def action_space(params: FormationParams) -> spaces.Box:
+    """[v, omega] within the bounds the env clips to."""
+    return spaces.Box(
+        np.array([0.0, -params.omega_max], np.float32),
+        np.array([params.v_max, params.omega_max], np.float32),
+        dtype=np.float32,
+    )
+
+
 def scene_from_option(scene: Any, config: SceneConfig) -> Scenes:
     if isinstance(scene, Scenes):
         if len(scene) != 1:
@@ -120,11 +129,7 @@ class FormationEnv(gym.Env):
         self.max_obstacles = max_obstacles
         self.scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.observation_space = observation_spaces(obstacle_encoding, max_obstacles)
-        self.action_space = spaces.Box(
-            np.array([0.0, -self.params.omega_max], np.float32),
-            np.array([self.params.v_max, self.params.omega_max], np.float32),
-            dtype=np.float32,
-        )
+        self.action_space = action_space(self.params)
         self.task = TASK
         self.task_description = TASK
         self._renderer = Renderer(render_size) if render_mode == "rgb_array" else None

@@ -9,7 +9,6 @@ the returned observation already belongs to its next episode and ``infos["final_
 from __future__ import annotations
 
 import numpy as np
-from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
@@ -18,7 +17,7 @@ from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome
 from lerobot_formation.core.scene import FAR, SceneConfig, Scenes, load_scenes, sample_scenes
-from lerobot_formation.env import TASK, midpoint_state, observation_spaces
+from lerobot_formation.env import TASK, action_space, midpoint_state, observation_spaces
 
 
 class FormationVectorEnv(VectorEnv):
@@ -44,11 +43,7 @@ class FormationVectorEnv(VectorEnv):
         self.max_episode_steps = max_episode_steps
         self.file_scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.single_observation_space = observation_spaces(obstacle_encoding, max_obstacles)
-        self.single_action_space = spaces.Box(
-            np.array([0.0, -self.params.omega_max], np.float32),
-            np.array([self.params.v_max, self.params.omega_max], np.float32),
-            dtype=np.float32,
-        )
+        self.single_action_space = action_space(self.params)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.task = TASK
