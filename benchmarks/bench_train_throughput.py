@@ -55,8 +55,7 @@ os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 
 import torch  # noqa: E402
 
-import lerobot_formation.configuration_formation_diffusion  # noqa: E402,F401  (registers the policy)
-import lerobot_formation.env_config  # noqa: E402,F401  (registers --env.type=formation)
+import lerobot_formation.plugin  # noqa: E402,F401  (registers the policy, its processor step, the env)
 
 
 @dataclass

@@ -64,6 +64,10 @@ class FormationDiffusionConfig(DiffusionConfig):
     cell that never held an obstacle in the data would do the same for an unseen scene.
 
     Args:
+        egocentric_obstacles: give the network the goal and the obstacle list in the midpoint's frame,
+            nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
+            (the paper feeds world coordinates).
+        max_obstacles: obstacle rows in the "grid+list" encoding.
         drop_n_last_frames: frames at each episode's end the training sampler never starts a window
             at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
             Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
@@ -95,6 +99,9 @@ class FormationDiffusionConfig(DiffusionConfig):
         }
     )
     drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
+    # Goal and obstacle list in the midpoint's frame, nearest first (processor_formation_diffusion.py).
+    egocentric_obstacles: bool = False
+    max_obstacles: int = 5
 
     # Unet.
     down_dims: tuple[int, ...] = (256, 512, 1024)
@@ -194,6 +201,14 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"'{OBS_ENV_STATE}' must have shape "
                 + " or ".join(f"({d},) ({e!r})" for d, e in zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
                 + f", got {tuple(env_state.shape)}"
+            )
+        if self.egocentric_obstacles and tuple(env_state.shape) != (
+            ENV_STATE_DIMS[ENCODINGS.index("grid+list")],
+        ):
+            raise ValueError(
+                f"egocentric_obstacles=true needs '{OBS_ENV_STATE}' in the 'grid+list' encoding "
+                f"({ENV_STATE_DIMS[ENCODINGS.index('grid+list')]} values), got {tuple(env_state.shape)}; "
+                "set --policy.egocentric_obstacles=false or --env.obstacle_encoding=grid+list"
             )
         if self.image_features:
             raise ValueError(

@@ -32,7 +32,7 @@ def load_policy(path: str | Path, device: str = "cpu"):
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
-    import lerobot_formation.configuration_formation_diffusion  # noqa: F401  (registers the type)
+    import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor step)
 
     path = Path(path)
     if not (path / "config.json").is_file():

@@ -5,14 +5,25 @@ Hugging Face ``datasets`` query. For a low-dim dataset such a query costs ~2-3 m
 ``Features`` deep copies and per-cell tensor conversion, so a diffusion sample costs 5-8 ms and the
 trainer waits for data ~70-80 % of the time on 2 cores (benchmarks/bench_train_throughput.py).
 
-This module replaces ``DatasetReader._query_hf_dataset`` with the same query on in-memory columns:
-the first windowed read of a reader copies the queried numeric columns out of the (memory-mapped)
-Arrow table once (~100 MB for the full PAC dataset), and each later query is a NumPy gather. Results
-are the same tensors, bit for bit (``tests/plugin/test_fast_reads.py``). Readers with video keys
-keep LeRobot's path. The patch is applied when the plugin is imported (``lerobot-train`` imports it
-through the ``lerobot_env_formation`` shim) and is active in the process that reads data: use
-``--num_workers=0`` (the reads become cheap enough), since spawned DataLoader workers do not import
-the plugin and fall back to LeRobot's reader.
+Even with the windows fixed, the rest of ``DatasetReader.get_item`` costs ~0.3 ms a sample: the base
+row through ``datasets`` (``Features`` copies, ``hf_transform_to_torch`` per cell), the episode's
+bounds as a row of the episodes ``Dataset`` and Python list comprehensions for the window indices.
+
+This module replaces two ``DatasetReader`` methods for low-dimensional readers (no video, no image
+or depth feature, no image transforms):
+
+- ``get_item``: every numeric column is copied once out of the (memory-mapped) Arrow table into a
+  tensor (~150 MB for the full PAC dataset), episode bounds into two arrays; a sample is then a few
+  tensor gathers. Same keys, values, dtypes and shapes as LeRobot's, bit for bit
+  (``tests/plugin/test_fast_reads.py``); integers come out as int64 and floats as float32, as
+  ``hf_transform_to_torch``'s ``torch.tensor(python value)`` gives them.
+- ``_query_hf_dataset`` (used by ``get_item`` for readers the fast path does not take, e.g. with
+  filtered indices): the same query on in-memory columns.
+
+Any other reader (videos, images, string columns) keeps LeRobot's path. The patch is applied when
+the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim) and
+is active in the process that reads data: use ``--num_workers=0`` (the reads become cheap enough),
+since spawned DataLoader workers do not import the plugin and fall back to LeRobot's reader.
 """
 
 from __future__ import annotations
@@ -24,6 +35,7 @@ import torch
 
 _ENABLED = os.environ.get("LEROBOT_FORMATION_FAST_READS", "1") != "0"
 _original = None
+_original_get_item = None
 
 
 def _column_tensor(table, key: str) -> torch.Tensor:
@@ -40,7 +52,81 @@ def _column_tensor(table, key: str) -> torch.Tensor:
         arr = values.reshape(len(col), -1)
     else:
         arr = col.to_numpy(zero_copy_only=False)
-    return torch.from_numpy(np.ascontiguousarray(arr))
+    # hf_transform_to_torch builds torch.tensor(python value): int64 for integers, float32 for floats.
+    if arr.dtype.kind in "iu":
+        arr = arr.astype(np.int64, copy=False)
+    elif arr.dtype.kind == "f":
+        arr = arr.astype(np.float32, copy=False)
+    elif arr.dtype.kind != "b":
+        raise TypeError(f"column {key!r} of dtype {arr.dtype} is not numeric")
+    arr = np.ascontiguousarray(arr)
+    return torch.from_numpy(arr if arr.flags.writeable else arr.copy())
+
+
+class _LowDimTable:
+    """A reader's columns and episode bounds in memory (built on its first fast read)."""
+
+    def __init__(self, reader):
+        table = reader.hf_dataset.data
+        self.columns = {key: _column_tensor(table, key) for key in table.column_names}
+        episodes = reader._meta.episodes
+        ep_index = np.asarray(episodes.data.column("episode_index").to_numpy(), dtype=np.int64)
+        n = int(ep_index.max()) + 1 if len(ep_index) else 0
+        self.ep_from = np.zeros(n, np.int64)
+        self.ep_to = np.zeros(n, np.int64)
+        self.ep_from[ep_index] = episodes.data.column("dataset_from_index").to_numpy()
+        self.ep_to[ep_index] = episodes.data.column("dataset_to_index").to_numpy()
+        self.deltas = {k: np.asarray(d, dtype=np.int64) for k, d in (reader.delta_indices or {}).items()}
+        # Selected episodes only: the table's rows are relative, the windows absolute.
+        self.abs_to_rel = None
+        if reader._absolute_to_relative_idx is not None:
+            absolute = self.columns["index"].numpy()
+            self.abs_to_rel = np.full(int(absolute.max()) + 1, -1, np.int64)
+            self.abs_to_rel[absolute] = np.arange(len(absolute))
+        self.tasks: dict[int, str] = {}
+
+
+def _fast_path_ok(reader) -> bool:
+    meta = reader._meta
+    return (
+        len(meta.video_keys) == 0
+        and len(meta.camera_keys) == 0
+        and not reader._image_depth_units
+        and reader._image_transforms is None
+        and reader.hf_dataset is not None
+        and reader.hf_dataset._indices is None
+    )
+
+
+def _fast_get_item(self, idx) -> dict:
+    table = self.__dict__.get("_formation_table")
+    if table is None:
+        if self.__dict__.get("_formation_slow") or not _fast_path_ok(self):
+            return _original_get_item(self, idx)
+        try:
+            table = self._formation_table = _LowDimTable(self)
+        except (TypeError, KeyError, ValueError):  # an unusual column: LeRobot's own path
+            self._formation_slow = True
+            return _original_get_item(self, idx)
+    idx = int(idx)
+    item = {key: col[idx] for key, col in table.columns.items()}
+    if table.deltas:
+        ep = int(item["episode_index"])
+        abs_idx = int(item["index"])
+        start, end = table.ep_from[ep], table.ep_to[ep]
+        for key, delta in table.deltas.items():
+            q = abs_idx + delta
+            rows = np.clip(q, start, end - 1)
+            if table.abs_to_rel is not None:
+                rows = table.abs_to_rel[rows]
+            item[key] = table.columns[key][torch.from_numpy(rows)]
+            item[f"{key}_is_pad"] = torch.from_numpy((q < start) | (q >= end))
+    task_idx = int(item["task_index"])
+    task = table.tasks.get(task_idx)
+    if task is None:
+        task = table.tasks[task_idx] = self._meta.tasks.iloc[task_idx].name
+    item["task"] = task
+    return item
 
 
 def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
@@ -70,19 +156,23 @@ def install() -> bool:
         return False
     from lerobot.datasets.dataset_reader import DatasetReader
 
+    global _original_get_item
     if _original is None:
         _original = DatasetReader._query_hf_dataset
         DatasetReader._query_hf_dataset = _fast_query_hf_dataset
+        _original_get_item = DatasetReader.get_item
+        DatasetReader.get_item = _fast_get_item
     return True
 
 
 def uninstall() -> None:
-    global _original
+    global _original, _original_get_item
     if _original is not None:
         from lerobot.datasets.dataset_reader import DatasetReader
 
         DatasetReader._query_hf_dataset = _original
-        _original = None
+        DatasetReader.get_item = _original_get_item
+        _original = _original_get_item = None
 
 
 install()  # importing the plugin turns it on (unless LEROBOT_FORMATION_FAST_READS=0)

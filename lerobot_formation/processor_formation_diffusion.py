@@ -1,18 +1,95 @@
-"""Processors of ``formation_diffusion``: exactly LeRobot's diffusion processors (found by name by LeRobot).
+"""Processors of ``formation_diffusion``: LeRobot's diffusion processors (found by name by LeRobot).
 
-Pre: rename (none), add batch dim, device, normalize (STATE and ACTION MIN_MAX, ENV IDENTITY: see
-``FormationDiffusionConfig.normalization_mapping``). Post: unnormalize the action, move it to the CPU.
+Pre: rename (none), add batch dim, device, [egocentric obstacles], normalize (STATE and ACTION
+MIN_MAX, ENV IDENTITY: see ``FormationDiffusionConfig.normalization_mapping``). Post: unnormalize
+the action, move it to the CPU.
+
+The optional ``EgocentricObstaclesProcessorStep`` (``--policy.egocentric_obstacles=true``, needs the
+"grid+list" encoding) rewrites the goal and the obstacle list of ``observation.environment_state``
+into the midpoint's frame and orders the obstacles nearest surface first. Same size, so the dataset,
+the env and the U-Net's conditioning are unchanged; only what the numbers mean is. Why: the planner
+must react to obstacles *relative to itself*; in world coordinates a small network has to learn the
+subtraction and the rotation by the heading before it can learn to avoid anything.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
+from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.policies.diffusion.processor_diffusion import make_diffusion_pre_post_processors
-from lerobot.processor import PolicyAction, PolicyProcessorPipeline
+from lerobot.processor import (
+    NormalizerProcessorStep,
+    ObservationProcessorStep,
+    PolicyAction,
+    PolicyProcessorPipeline,
+    ProcessorStepRegistry,
+)
 
 from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+from lerobot_formation.core.obstacle_grid import GRID_SIZE
+
+STATE = "observation.state"
+ENV = "observation.environment_state"
+
+
+def egocentric_environment_state(state: torch.Tensor, env: torch.Tensor, max_obstacles: int) -> torch.Tensor:
+    """World-frame ``environment_state`` (..., 51 + 3M) -> the same layout in the midpoint's frame.
+
+    ``state`` (..., 7) is [x, y, cos phi, sin phi, x', y', omega]. The grid (49) is kept; the goal
+    becomes R(phi)^T (g - p); each obstacle row [x, y, r] with r > 0 becomes [R^T (c - p), r] and the
+    rows are sorted by surface distance |c - p| - r (padding rows, r = 0, stay zero and last).
+    """
+    n_grid = GRID_SIZE * GRID_SIZE
+    if env.shape[-1] != n_grid + 2 + 3 * max_obstacles:
+        raise ValueError(
+            f"egocentric obstacles need the grid+list encoding ({n_grid + 2 + 3 * max_obstacles} values), "
+            f"got {ENV} with {env.shape[-1]}"
+        )
+    p, c, s = state[..., 0:2], state[..., 2:3], state[..., 3:4]
+
+    def to_ego(xy: torch.Tensor) -> torch.Tensor:  # xy (..., [K,] 2) world -> ego
+        d = xy - (p if xy.dim() == p.dim() else p.unsqueeze(-2))
+        cc, ss = (c, s) if xy.dim() == p.dim() else (c.unsqueeze(-2), s.unsqueeze(-2))
+        return torch.cat([cc * d[..., 0:1] + ss * d[..., 1:2], -ss * d[..., 0:1] + cc * d[..., 1:2]], -1)
+
+    goal = to_ego(env[..., n_grid : n_grid + 2])
+    rows = env[..., n_grid + 2 :].reshape(*env.shape[:-1], max_obstacles, 3)
+    present = rows[..., 2:3] > 0
+    ego = torch.where(present, torch.cat([to_ego(rows[..., :2]), rows[..., 2:3]], -1), torch.zeros_like(rows))
+    surface = torch.where(present[..., 0], ego[..., :2].norm(dim=-1) - ego[..., 2], torch.inf)
+    order = surface.argsort(dim=-1, stable=True)
+    ego = torch.take_along_dim(ego, order.unsqueeze(-1), dim=-2)
+    return torch.cat([env[..., :n_grid], goal, ego.flatten(-2)], -1)
+
+
+@dataclass
+@ProcessorStepRegistry.register(name="formation_egocentric_obstacles")
+class EgocentricObstaclesProcessorStep(ObservationProcessorStep):
+    """``observation.environment_state``'s goal and obstacle list in the midpoint's frame (see above)."""
+
+    max_obstacles: int = 5
+
+    def observation(self, observation: dict) -> dict:
+        if ENV not in observation or STATE not in observation:
+            raise ValueError(
+                f"egocentric obstacles need {STATE} and {ENV}; the observation has {sorted(observation)}"
+            )
+        state, env = observation[STATE], observation[ENV]
+        if state.shape[:-1] != env.shape[:-1]:
+            raise ValueError(f"{STATE} {tuple(state.shape)} and {ENV} {tuple(env.shape)} disagree")
+        observation[ENV] = egocentric_environment_state(state.to(env.dtype), env, self.max_obstacles)
+        return observation
+
+    def get_config(self) -> dict[str, Any]:
+        return {"max_obstacles": self.max_obstacles}
+
+    def transform_features(
+        self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
+    ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
+        return features  # same keys, same shapes
 
 
 def make_formation_diffusion_pre_post_processors(
@@ -32,4 +109,10 @@ def make_formation_diffusion_pre_post_processors(
     Returns:
         (preprocessor, postprocessor).
     """
-    return make_diffusion_pre_post_processors(config, dataset_stats)
+    pre, post = make_diffusion_pre_post_processors(config, dataset_stats)
+    if getattr(config, "egocentric_obstacles", False):
+        steps = list(pre.steps)
+        at = next(i for i, st in enumerate(steps) if isinstance(st, NormalizerProcessorStep))
+        steps.insert(at, EgocentricObstaclesProcessorStep(max_obstacles=config.max_obstacles))
+        pre.steps = steps
+    return pre, post

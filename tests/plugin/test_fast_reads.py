@@ -19,7 +19,7 @@ def root(tmp_path_factory):
     return r
 
 
-def _items(root, idx, episodes=None):
+def _items(root, idx, episodes=None, windows=True):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     fps, n_obs, horizon = 10, 2, 16
@@ -28,6 +28,8 @@ def _items(root, idx, episodes=None):
         "observation.environment_state": [i / fps for i in range(1 - n_obs, 1)],
         "action": [i / fps for i in range(1 - n_obs, 1 - n_obs + horizon)],
     }
+    if not windows:
+        delta = None
     ds = LeRobotDataset(REPO, root=root, delta_timestamps=delta, episodes=episodes)
     idx = [i for i in idx if i < len(ds)]
     t0 = time.perf_counter()
@@ -35,14 +37,15 @@ def _items(root, idx, episodes=None):
     return out, (time.perf_counter() - t0) / len(idx)
 
 
-@pytest.mark.parametrize("episodes", [None, [1, 3, 4]])
-def test_fast_reads_equal_lerobot_reads(root, episodes):
+@pytest.mark.parametrize(("episodes", "windows"), [(None, True), ([1, 3, 4], True), (None, False)])
+def test_fast_reads_equal_lerobot_reads(root, episodes, windows):
+    # Episode starts and ends (padding on both sides) and random frames.
     idx = list(range(0, 40)) + list(np.random.default_rng(0).integers(0, 500, 60))
     fast_reads.install()
-    fast, t_fast = _items(root, idx, episodes)
+    fast, t_fast = _items(root, idx, episodes, windows)
     fast_reads.uninstall()
     try:
-        slow, t_slow = _items(root, idx, episodes)
+        slow, t_slow = _items(root, idx, episodes, windows)
     finally:
         fast_reads.install()
     for a, b in zip(fast, slow, strict=True):

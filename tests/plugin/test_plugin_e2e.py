@@ -68,9 +68,12 @@ def dataset_root(workdir) -> Path:
     finally:
         sys.path.remove(str(REPO))
     root = workdir / "dataset"
-    generate(["--episodes", "3", "--seed", "0", "--repo-id", REPO_ID, "--root", str(root)])
+    generate(
+        ["--episodes", "3", "--seed", "0", "--repo-id", REPO_ID, "--root", str(root)]
+        + ["--obstacle-encoding", "grid+list"]
+    )
     info = json.loads((root / "meta" / "info.json").read_text())
-    assert info["features"]["observation.environment_state"]["shape"] == [51]
+    assert info["features"]["observation.environment_state"]["shape"] == [66]
     return root
 
 
@@ -82,6 +85,8 @@ def trained(workdir, dataset_root) -> Path:
         f"--config_path={TINY}",
         f"--dataset.repo_id={REPO_ID}",
         f"--dataset.root={dataset_root}",
+        "--env.obstacle_encoding=grid+list",
+        "--policy.egocentric_obstacles=true",  # the CPU config's custom preprocessor step
         f"--output_dir={out}",
         cwd=workdir,
     )
@@ -101,6 +106,9 @@ def test_train_writes_checkpoints_with_ema(trained):
     assert len(list((trained / "eval" / "videos_step_000004" / "formation_0").glob("*.mp4"))) == 2
     train_cfg = json.loads((model / "train_config.json").read_text())
     assert train_cfg["optimizer"]["type"] == "adamw"
+    steps = json.loads((model / "policy_preprocessor.json").read_text())["steps"]
+    names = [s["registry_name"] for s in steps]
+    assert names.index("formation_egocentric_obstacles") == names.index("normalizer_processor") - 1
 
 
 def test_eval_on_checkpoint(trained, workdir):
@@ -110,6 +118,7 @@ def test_eval_on_checkpoint(trained, workdir):
         "lerobot-eval",
         f"--policy.path={trained / 'checkpoints' / 'last' / 'pretrained_model'}",
         "--env.type=formation",
+        "--env.obstacle_encoding=grid+list",
         "--env.episode_length=20",
         f"--env.episode_metrics_path={metrics}",
         "--eval.n_episodes=2",
