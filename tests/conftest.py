@@ -1,4 +1,7 @@
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -15,3 +18,32 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def _run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """A console script of this environment (lerobot-train, lerobot-eval, ...), offline, one thread."""
+    env = {
+        **os.environ,
+        "HF_HUB_OFFLINE": "1",
+        "HF_DATASETS_OFFLINE": "1",
+        "HF_LEROBOT_HOME": str(cwd / "hf_lerobot_home"),
+        "OMP_NUM_THREADS": "1",  # tiny models; two threads on a busy 2-core machine crawl
+        "TOKENIZERS_PARALLELISM": "false",
+    }
+    proc = subprocess.run(
+        [str(Path(sys.executable).parent / name), *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    if proc.returncode != 0:
+        pytest.fail(f"{name} {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
+    return proc
+
+
+@pytest.fixture(scope="session")
+def run_cli():
+    """``run_cli(name, *args, cwd=...)``: run a console script; a non-zero exit fails the test."""
+    return _run_cli

@@ -29,8 +29,6 @@ move with the executed actions' scale (without the unnormalisation the engine's 
 """
 
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -59,31 +57,13 @@ ENGINE_SEEDS = 5  # noise seeds of the engine over the same scenes
 EPISODE_LENGTH = 30
 
 
-def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
-    """A LeRobot console script, offline, one torch thread (as tests/plugin/test_plugin_e2e.py)."""
-    env = {
-        **os.environ,
-        "HF_HUB_OFFLINE": "1",
-        "HF_DATASETS_OFFLINE": "1",
-        "HF_LEROBOT_HOME": str(cwd / "hf_lerobot_home"),
-        "OMP_NUM_THREADS": "1",
-        "TOKENIZERS_PARALLELISM": "false",
-    }
-    proc = subprocess.run(
-        [str(BIN / name), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
-    )
-    if proc.returncode != 0:
-        pytest.fail(f"{name} {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
-    return proc
-
-
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("engine")
 
 
 @pytest.fixture(scope="module")
-def checkpoint(workdir) -> Path:
+def checkpoint(workdir, run_cli) -> Path:
     """A tiny formation_diffusion checkpoint trained through the lerobot-train CLI."""
     sys.path.insert(0, str(REPO))
     try:
@@ -157,7 +137,7 @@ def test_engine_actions_equal_lerobot_rollout(checkpoint, bundle, workdir):
     np.testing.assert_array_equal(rec.actions, stock_actions)
 
 
-def test_engine_success_matches_lerobot_eval(checkpoint, bundle, workdir):
+def test_engine_success_matches_lerobot_eval(checkpoint, bundle, workdir, run_cli):
     scenes = near_goal_scenes(EPISODES)
     scenes_file = workdir / "near_goal_scenes.json"
     save_scenes(scenes, scenes_file)

@@ -6,8 +6,6 @@ env evaluation) -> ``lerobot-eval`` on its checkpoint -> ``lerobot-train --resum
 
 import importlib.metadata
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,23 +16,6 @@ REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 TINY = REPO / "configs" / "formation_diffusion_tiny.json"
 REPO_ID = "local/formation_plugin_e2e"
-
-
-def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {
-        **os.environ,
-        "HF_HUB_OFFLINE": "1",
-        "HF_DATASETS_OFFLINE": "1",
-        "HF_LEROBOT_HOME": str(cwd / "hf_lerobot_home"),
-        "OMP_NUM_THREADS": "1",  # tiny models; two threads on a busy 2-core machine crawl
-        "TOKENIZERS_PARALLELISM": "false",
-    }
-    proc = subprocess.run(
-        [str(BIN / name), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
-    )
-    if proc.returncode != 0:
-        pytest.fail(f"{name} {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
-    return proc
 
 
 def ema_step_and_gap(checkpoint: Path) -> tuple[int, float]:
@@ -78,7 +59,7 @@ def dataset_root(workdir) -> Path:
 
 
 @pytest.fixture(scope="module")
-def trained(workdir, dataset_root) -> Path:
+def trained(workdir, dataset_root, run_cli) -> Path:
     out = workdir / "train"
     run_cli(
         "lerobot-train",
@@ -111,7 +92,7 @@ def test_train_writes_checkpoints_with_ema(trained):
     assert names.index("formation_egocentric_obstacles") == names.index("normalizer_processor") - 1
 
 
-def test_eval_on_checkpoint(trained, workdir):
+def test_eval_on_checkpoint(trained, workdir, run_cli):
     out = workdir / "eval"
     metrics = out / "formation_metrics.jsonl"
     run_cli(
@@ -137,7 +118,7 @@ def test_eval_on_checkpoint(trained, workdir):
     assert all("final_formation_error" in r and "collision" in r for r in records)
 
 
-def test_resume_continues_the_run(trained, workdir):
+def test_resume_continues_the_run(trained, workdir, run_cli):
     run_cli(
         "lerobot-train",
         f"--config_path={trained / 'checkpoints' / 'last' / 'pretrained_model' / 'train_config.json'}",
