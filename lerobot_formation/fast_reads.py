@@ -21,9 +21,11 @@ or depth feature, no image transforms):
   filtered indices): the same query on in-memory columns.
 
 Any other reader (videos, images, string columns) keeps LeRobot's path. The patch is applied when
-the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim) and
-is active in the process that reads data: use ``--num_workers=0`` (the reads become cheap enough),
-since spawned DataLoader workers do not import the plugin and fall back to LeRobot's reader.
+the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim).
+DataLoader workers (``--num_workers>0``, spawned) never import the plugin themselves, so a pickled
+reader carries a small marker object of this module: unpickling it in a worker imports this module,
+which patches the worker's reader class too. The in-memory table is not pickled; each worker builds
+its own on its first read.
 """
 
 from __future__ import annotations
@@ -84,6 +86,19 @@ class _LowDimTable:
             self.abs_to_rel = np.full(int(absolute.max()) + 1, -1, np.int64)
             self.abs_to_rel[absolute] = np.arange(len(absolute))
         self.tasks: dict[int, str] = {}
+
+
+class _FastReadsMarker:
+    """Pickled with each reader: unpickling it imports this module, i.e. installs the fast path."""
+
+    def __reduce__(self):
+        return (_FastReadsMarker, ())
+
+
+def _getstate(self) -> dict:
+    state = {k: v for k, v in self.__dict__.items() if k != "_formation_table"}
+    state["_formation_fast_reads"] = _FastReadsMarker()
+    return state
 
 
 def _fast_path_ok(reader) -> bool:
@@ -162,6 +177,7 @@ def install() -> bool:
         DatasetReader._query_hf_dataset = _fast_query_hf_dataset
         _original_get_item = DatasetReader.get_item
         DatasetReader.get_item = _fast_get_item
+        DatasetReader.__getstate__ = _getstate
     return True
 
 
@@ -172,6 +188,7 @@ def uninstall() -> None:
 
         DatasetReader._query_hf_dataset = _original
         DatasetReader.get_item = _original_get_item
+        del DatasetReader.__getstate__
         _original = _original_get_item = None
 
 

@@ -56,3 +56,37 @@ def test_fast_reads_equal_lerobot_reads(root, episodes, windows):
             else:
                 assert a[k] == b[k], k
     assert t_fast < t_slow / 3, (t_fast, t_slow)
+
+
+def _collate_reporting_reader(items):
+    """Runs in the DataLoader worker: the batch, and which get_item the worker's reader class has."""
+    from lerobot.datasets.dataset_reader import DatasetReader
+    from torch.utils.data import default_collate
+
+    return default_collate(items), DatasetReader.get_item.__name__
+
+
+def test_spawned_workers_get_the_fast_path(root):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    delta = {"action": [i / 10 for i in range(-1, 15)]}
+    fast_reads.install()
+    ds = LeRobotDataset(REPO, root=root, delta_timestamps=delta)
+    ds[0]  # builds the main process's table, which must not travel to the worker
+    loader = torch.utils.data.DataLoader(
+        ds,
+        batch_size=8,
+        num_workers=1,
+        multiprocessing_context="spawn",
+        collate_fn=_collate_reporting_reader,
+    )
+    batch, worker_get_item = next(iter(loader))
+    assert worker_get_item == "_fast_get_item"
+    expected = torch.stack([ds[i]["action"] for i in range(8)])
+    assert torch.equal(batch["action"], expected)
+    fast_reads.uninstall()
+    try:  # and the stock reader stays stock in its workers when the plugin is off
+        ds2 = LeRobotDataset(REPO, root=root, delta_timestamps=delta)
+        assert "_formation_fast_reads" not in ds2.reader.__getstate__()
+    finally:
+        fast_reads.install()
