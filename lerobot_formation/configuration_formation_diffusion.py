@@ -202,12 +202,11 @@ class FormationDiffusionConfig(DiffusionConfig):
                 + " or ".join(f"({d},) ({e!r})" for d, e in zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
                 + f", got {tuple(env_state.shape)}"
             )
-        if self.egocentric_obstacles and tuple(env_state.shape) != (
-            ENV_STATE_DIMS[ENCODINGS.index("grid+list")],
-        ):
+        grid_list_dim = environment_state_dim("grid+list", self.max_obstacles)
+        if self.egocentric_obstacles and tuple(env_state.shape) != (grid_list_dim,):
             raise ValueError(
                 f"egocentric_obstacles=true needs '{OBS_ENV_STATE}' in the 'grid+list' encoding "
-                f"({ENV_STATE_DIMS[ENCODINGS.index('grid+list')]} values), got {tuple(env_state.shape)}; "
+                f"({grid_list_dim} values), got {tuple(env_state.shape)}; "
                 "set --policy.egocentric_obstacles=false or --env.obstacle_encoding=grid+list"
             )
         if self.image_features:

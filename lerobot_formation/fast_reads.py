@@ -17,8 +17,9 @@ or depth feature, no image transforms):
   tensor gathers. Same keys, values, dtypes and shapes as LeRobot's, bit for bit
   (``tests/plugin/test_fast_reads.py``); integers come out as int64 and floats as float32, as
   ``hf_transform_to_torch``'s ``torch.tensor(python value)`` gives them.
-- ``_query_hf_dataset`` (used by ``get_item`` for readers the fast path does not take, e.g. with
-  filtered indices): the same query on in-memory columns.
+- ``_query_hf_dataset`` (used by LeRobot's ``get_item`` for readers the fast path does not take,
+  e.g. with image features stored in the table or image transforms): the same windowed query on
+  in-memory columns.
 
 Any other reader (videos, images, string columns) keeps LeRobot's path. The patch is applied when
 the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim).
@@ -91,12 +92,12 @@ class _LowDimTable:
 class _FastReadsMarker:
     """Pickled with each reader: unpickling it imports this module, i.e. installs the fast path."""
 
-    def __reduce__(self):
-        return (_FastReadsMarker, ())
+
+_CACHES = ("_formation_table", "_formation_columns")  # per process, rebuilt on the first read
 
 
 def _getstate(self) -> dict:
-    state = {k: v for k, v in self.__dict__.items() if k != "_formation_table"}
+    state = {k: v for k, v in self.__dict__.items() if k not in _CACHES}
     state["_formation_fast_reads"] = _FastReadsMarker()
     return state
 

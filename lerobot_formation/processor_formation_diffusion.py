@@ -27,12 +27,11 @@ from lerobot.processor import (
     PolicyProcessorPipeline,
     ProcessorStepRegistry,
 )
+from lerobot.utils.constants import OBS_ENV_STATE as ENV
+from lerobot.utils.constants import OBS_STATE as STATE
 
 from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.core.obstacle_grid import GRID_SIZE
-
-STATE = "observation.state"
-ENV = "observation.environment_state"
+from lerobot_formation.core.obstacle_grid import GRID_SIZE, environment_state_dim
 
 
 def egocentric_environment_state(state: torch.Tensor, env: torch.Tensor, max_obstacles: int) -> torch.Tensor:
@@ -43,22 +42,22 @@ def egocentric_environment_state(state: torch.Tensor, env: torch.Tensor, max_obs
     rows are sorted by surface distance |c - p| - r (padding rows, r = 0, stay zero and last).
     """
     n_grid = GRID_SIZE * GRID_SIZE
-    if env.shape[-1] != n_grid + 2 + 3 * max_obstacles:
+    expected = environment_state_dim("grid+list", max_obstacles)
+    if env.shape[-1] != expected:
         raise ValueError(
-            f"egocentric obstacles need the grid+list encoding ({n_grid + 2 + 3 * max_obstacles} values), "
+            f"egocentric obstacles need the grid+list encoding ({expected} values), "
             f"got {ENV} with {env.shape[-1]}"
         )
     p, c, s = state[..., 0:2], state[..., 2:3], state[..., 3:4]
 
-    def to_ego(xy: torch.Tensor) -> torch.Tensor:  # xy (..., [K,] 2) world -> ego
-        d = xy - (p if xy.dim() == p.dim() else p.unsqueeze(-2))
-        cc, ss = (c, s) if xy.dim() == p.dim() else (c.unsqueeze(-2), s.unsqueeze(-2))
-        return torch.cat([cc * d[..., 0:1] + ss * d[..., 1:2], -ss * d[..., 0:1] + cc * d[..., 1:2]], -1)
+    def rotate_into(d: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:  # R(phi)^T d
+        return torch.cat([c * d[..., 0:1] + s * d[..., 1:2], -s * d[..., 0:1] + c * d[..., 1:2]], -1)
 
-    goal = to_ego(env[..., n_grid : n_grid + 2])
+    goal = rotate_into(env[..., n_grid : n_grid + 2] - p, c, s)
     rows = env[..., n_grid + 2 :].reshape(*env.shape[:-1], max_obstacles, 3)
+    centres = rotate_into(rows[..., :2] - p.unsqueeze(-2), c.unsqueeze(-2), s.unsqueeze(-2))
     present = rows[..., 2:3] > 0
-    ego = torch.where(present, torch.cat([to_ego(rows[..., :2]), rows[..., 2:3]], -1), torch.zeros_like(rows))
+    ego = torch.where(present, torch.cat([centres, rows[..., 2:3]], -1), torch.zeros_like(rows))
     surface = torch.where(present[..., 0], ego[..., :2].norm(dim=-1) - ego[..., 2], torch.inf)
     order = surface.argsort(dim=-1, stable=True)
     ego = torch.take_along_dim(ego, order.unsqueeze(-1), dim=-2)

@@ -49,13 +49,16 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: {args.run}/checkpoints holds no numbered checkpoints")
     written = [(c / "pretrained_model" / "model.safetensors").stat().st_mtime for c in ckpts]
     if args.start:
-        day = dt.datetime.fromtimestamp(written[0])
-        t = dt.time.fromisoformat(args.start) if len(args.start) <= 8 else None
-        start = (
-            dt.datetime.combine(day.date(), t).timestamp()
-            if t
-            else dt.datetime.fromisoformat(args.start).timestamp()
-        )
+        try:  # a time of day is taken on the first checkpoint's date
+            day = dt.datetime.fromtimestamp(written[0]).date()
+            start = dt.datetime.combine(day, dt.time.fromisoformat(args.start)).timestamp()
+        except ValueError:
+            try:
+                start = dt.datetime.fromisoformat(args.start).timestamp()
+            except ValueError:
+                raise SystemExit(
+                    f"error: --start {args.start!r} is neither HH:MM:SS nor an ISO date-time"
+                ) from None
     else:  # assume steady progress up to the first checkpoint
         first_step = int(ckpts[0].name)
         per_step = (written[1] - written[0]) / (int(ckpts[1].name) - first_step) if len(ckpts) > 1 else 0
