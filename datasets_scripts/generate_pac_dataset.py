@@ -24,9 +24,14 @@ Features (all float32 with names, fps 10, task string ``TASK``):
   not ``observation.*`` keys, so policies ignore them, and as ordinary columns they survive LeRobot's
   split and merge.
 
-Reliability: the dataset is written to a temporary sibling folder and renamed into place at the
-end, so an interrupted run leaves nothing at the destination. The same arguments give byte-identical
-data files.
+Reliability: the dataset is written to a temporary sibling folder ``.NAME.tmp-PID`` and renamed into
+place at the end, so an interrupted run leaves nothing at the destination. On any exit (an error,
+Ctrl-C, SIGTERM or SIGHUP, which raise SystemExit) the temporary folder is removed and the simulation
+workers stopped; after a SIGKILL the workers die with their parent (``_die_with_parent``) and the next
+run into the same destination removes the folder (``remove_stale_temporaries``). A run refuses to
+start while a live process writes the same destination, checks again right before the rename, and
+the rename never replaces a folder that appeared meanwhile (``rename_noreplace``) unless
+``--overwrite``. The same arguments give byte-identical data files.
 """
 
 from __future__ import annotations
@@ -44,9 +49,10 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state
+from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state, get_encoding
 from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACController, rollout
-from lerobot_formation.core.scene import Scenes, load_scenes, sample_scenes
+from lerobot_formation.core.scene import SCENE_PRESETS, SceneConfig, Scenes, load_scenes, sample_scenes
+from lerobot_formation.core.scene import scene_preset as scene_preset_config
 from lerobot_formation.env import TASK
 
 FPS = 10
@@ -55,10 +61,10 @@ PAPER_EPISODES = 1878
 STATE_NAMES = ["x", "y", "cos_phi", "sin_phi", "x_dot", "y_dot", "omega"]
 
 
-def dataset_features(obstacle_encoding: str = "grid") -> dict:
-    grid_names = [f"grid_{i}_{j}" for i in range(7) for j in range(7)] + ["goal_x", "goal_y"]
-    if obstacle_encoding == "grid+list":
-        grid_names += [f"obstacle_{k}_{c}" for k in range(MAX_OBSTACLES) for c in ("x", "y", "r")]
+def dataset_features(obstacle_encoding: str = "grid", scene_slots: int = MAX_OBSTACLES) -> dict:
+    """LeRobot features of a PAC dataset; ``scene_slots`` obstacle rows in ``scene.obstacles`` (every
+    obstacle of every scene, whatever the observation encodes)."""
+    grid_names = get_encoding(obstacle_encoding).names(get_encoding(obstacle_encoding).slots(None))
     return {
         "observation.state": {"dtype": "float32", "shape": (7,), "names": STATE_NAMES},
         "observation.environment_state": {
@@ -70,8 +76,8 @@ def dataset_features(obstacle_encoding: str = "grid") -> dict:
         "scene.seed": {"dtype": "int64", "shape": (1,), "names": None},
         "scene.obstacles": {
             "dtype": "float32",
-            "shape": (3 * MAX_OBSTACLES,),
-            "names": [f"obstacle_{k}_{c}" for k in range(MAX_OBSTACLES) for c in ("x", "y", "r")],
+            "shape": (3 * scene_slots,),
+            "names": [f"obstacle_{k}_{c}" for k in range(scene_slots) for c in ("x", "y", "r")],
         },
         "scene.goal": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
         "scene.start": {"dtype": "float32", "shape": (3,), "names": ["x", "y", "phi"]},
@@ -79,7 +85,7 @@ def dataset_features(obstacle_encoding: str = "grid") -> dict:
 
 
 def episode_frames(
-    rec: EpisodeRecords, scenes: Scenes, b: int, obstacle_encoding: str
+    rec: EpisodeRecords, scenes: Scenes, b: int, obstacle_encoding: str, scene_slots: int = MAX_OBSTACLES
 ) -> dict[str, np.ndarray]:
     """The frames of episode b as arrays (n, ...): observation before action t, and action t."""
     n = int(rec.steps[b])
@@ -91,15 +97,30 @@ def episode_frames(
     vel = np.stack([prev_a[:, 0] * np.cos(prev_phi), prev_a[:, 0] * np.sin(prev_phi), prev_a[:, 1]], axis=-1)
     vel[0] = 0.0
     state = np.concatenate([poses[:, :2], np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3]), vel], axis=1)
-    env = environment_state(
-        scenes.obstacles[b : b + 1], scenes.mask[b : b + 1], scenes.goal[b : b + 1], obstacle_encoding
-    )
-    obs_list = np.zeros((MAX_OBSTACLES, 3), np.float32)
-    real = scenes.obstacles[b][scenes.mask[b]][:MAX_OBSTACLES]
+    if get_encoding(obstacle_encoding).egocentric:  # moves with the team: one row per frame
+        env = environment_state(
+            np.repeat(scenes.obstacles[b : b + 1], n, axis=0),
+            np.repeat(scenes.mask[b : b + 1], n, axis=0),
+            np.repeat(scenes.goal[b : b + 1], n, axis=0),
+            obstacle_encoding,
+            pose=poses,
+        )
+    else:
+        env = np.repeat(
+            environment_state(
+                scenes.obstacles[b : b + 1], scenes.mask[b : b + 1], scenes.goal[b : b + 1], obstacle_encoding
+            ),
+            n,
+            axis=0,
+        )
+    real = scenes.obstacles[b][scenes.mask[b]]
+    if len(real) > scene_slots:
+        raise ValueError(f"scene {b} has {len(real)} obstacles, more than the dataset's {scene_slots} slots")
+    obs_list = np.zeros((scene_slots, 3), np.float32)
     obs_list[: len(real)] = real
     return {
         "observation.state": state.astype(np.float32),
-        "observation.environment_state": np.repeat(env, n, axis=0),
+        "observation.environment_state": env,
         "action": actions.astype(np.float32),
         "scene.seed": np.full((n, 1), scenes.seeds[b], dtype=np.int64),
         "scene.obstacles": np.repeat(obs_list.reshape(1, -1), n, axis=0),
@@ -111,10 +132,10 @@ def episode_frames(
 def scenes_from_frames(
     obstacles: np.ndarray, goal: np.ndarray, start: np.ndarray, seeds: np.ndarray
 ) -> Scenes:
-    """Rebuild Scenes from the per-episode ``scene.*`` values, (B, 15), (B, 2), (B, 3), (B,)."""
+    """Rebuild Scenes from the per-episode ``scene.*`` values, (B, 3 slots), (B, 2), (B, 3), (B,)."""
     from lerobot_formation.core.scene import FAR
 
-    obs = np.asarray(obstacles, dtype=np.float64).reshape(len(goal), MAX_OBSTACLES, 3)
+    obs = np.asarray(obstacles, dtype=np.float64).reshape(len(goal), -1, 3)
     mask = obs[..., 2] > 0
     obs[~mask] = (FAR, FAR, 0.0)
     return Scenes(obs, mask, np.asarray(goal, np.float64), np.asarray(start, np.float64), np.asarray(seeds))
@@ -164,15 +185,20 @@ def skip_noop_image_embedding(features: dict):
 
 
 def simulate_batch(
-    seeds: np.ndarray, scenes: Scenes | None, params: FormationParams, obstacle_encoding: str
+    seeds: np.ndarray,
+    scenes: Scenes | None,
+    params: FormationParams,
+    obstacle_encoding: str,
+    scene_config: SceneConfig | None = None,
+    scene_slots: int = MAX_OBSTACLES,
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
     """PAC on one batch of scenes (the seeds' scenes, or the given ones): (attempted, frames of the
     successful episodes in seed order). Runs in a worker process when generation is pipelined."""
     if scenes is None:
-        scenes = sample_scenes(seeds)
+        scenes = sample_scenes(seeds, scene_config)
     rec = rollout(scenes, PACController(params=params), params)
     ok = np.flatnonzero(rec.outcome == SUCCESS)
-    return len(scenes), [episode_frames(rec, scenes, b, obstacle_encoding) for b in ok]
+    return len(scenes), [episode_frames(rec, scenes, b, obstacle_encoding, scene_slots) for b in ok]
 
 
 class Generator:
@@ -184,14 +210,26 @@ class Generator:
     """
 
     def __init__(
-        self, params: FormationParams, batch_size: int = 256, obstacle_encoding: str = "grid", workers=0
+        self,
+        params: FormationParams,
+        batch_size: int = 256,
+        obstacle_encoding: str = "grid",
+        workers=0,
+        scene_config: SceneConfig | None = None,
+        scene_slots: int = MAX_OBSTACLES,
     ):
+        self.scene_config = scene_config
+        self.scene_slots = scene_slots
         self.params = params
         self.batch_size = batch_size
         self.obstacle_encoding = obstacle_encoding
         self.workers = workers
         self.attempted = 0
         self.succeeded = 0
+
+    @property
+    def _sim_args(self) -> tuple:
+        return self.params, self.obstacle_encoding, self.scene_config, self.scene_slots
 
     def _batches(self, seeds_iter, scenes_file: Scenes | None):
         while True:
@@ -213,18 +251,20 @@ class Generator:
             import multiprocessing
 
             pool = concurrent.futures.ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("fork")
+                self.workers,
+                mp_context=multiprocessing.get_context("fork"),
+                initializer=_die_with_parent,
+                initargs=(os.getpid(),),
             )
             pending = [
-                pool.submit(simulate_batch, *bt, self.params, self.obstacle_encoding)
-                for bt in _take(batches, self.workers)
+                pool.submit(simulate_batch, *bt, *self._sim_args) for bt in _take(batches, self.workers)
             ]
 
             def results():
                 while pending:
                     out = pending.pop(0).result()
                     for bt in _take(batches, 1):
-                        pending.append(pool.submit(simulate_batch, *bt, self.params, self.obstacle_encoding))
+                        pending.append(pool.submit(simulate_batch, *bt, *self._sim_args))
                     yield out
 
         else:
@@ -232,7 +272,7 @@ class Generator:
 
             def results():
                 for bt in batches:
-                    yield simulate_batch(*bt, self.params, self.obstacle_encoding)
+                    yield simulate_batch(*bt, *self._sim_args)
 
         try:
             for attempted, frames_list in results():
@@ -249,7 +289,51 @@ class Generator:
                     return
         finally:
             if pool is not None:
-                pool.shutdown(wait=False, cancel_futures=True)
+                _stop_pool(pool)
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Worker initializer: the worker ends when the generating process does, however it ends.
+
+    On Linux ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` has the kernel kill the worker the moment its parent
+    dies (SIGKILL included); a daemon thread also polls ``os.getppid()`` every 0.5 s (other systems,
+    and the case where the parent died before the prctl call). Without this a killed generation left
+    its worker blocked on the result pipe, holding ~500 MB.
+    """
+    import signal
+    import threading
+
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # the parent's SystemExit handler is not the worker's
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the parent, which stops the workers
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(1)
+            time.sleep(0.5)
+
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
+def _stop_pool(pool) -> None:
+    """Shut the worker pool down without waiting for running batches: cancel the queued ones and
+    terminate the workers (on success they are idle; on an error or a signal they may be mid-batch)."""
+    procs = list(getattr(pool, "_processes", {}).values())  # CPython's ProcessPoolExecutor
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.terminate()
+    for proc in procs:
+        with contextlib.suppress(Exception):
+            proc.join(timeout=5)
 
 
 def _take(it, k: int) -> list:
@@ -273,6 +357,82 @@ def shard_episodes(total: int, num_shards: int, shard_index: int) -> int:
     return total // num_shards + (1 if shard_index < total % num_shards else 0)
 
 
+# -- temporary folders and the final rename ---------------------------------------------------------
+def _tmp_prefix(root: Path) -> str:
+    return f".{root.name}.tmp-"
+
+
+def _old_prefix(root: Path) -> str:
+    return f".{root.name}.old-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def remove_stale_temporaries(root: Path) -> list[Path]:
+    """Remove the ``.NAME.tmp-PID`` / ``.NAME.old-PID`` folders beside ``root`` that runs killed with
+    SIGKILL (no cleanup possible) left behind: those whose PID is no longer alive. Returns them.
+
+    Raises:
+        FileExistsError: a live process (not this one) is writing ``root`` now.
+    """
+    root = Path(root)
+    removed = []
+    if not root.parent.is_dir():
+        return removed
+    for prefix in (_tmp_prefix(root), _old_prefix(root)):
+        for path in sorted(root.parent.glob(f"{prefix}*")):
+            pid_text = path.name[len(prefix) :]
+            if not pid_text.isdigit() or int(pid_text) == os.getpid():
+                continue
+            if _pid_alive(int(pid_text)):
+                if prefix == _tmp_prefix(root):
+                    raise FileExistsError(
+                        f"another generation (pid {pid_text}) is writing {root} now (its temporary folder {path}); "
+                        f"wait for it, or remove {path} if process {pid_text} is not a generation"
+                    )
+                continue
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def rename_noreplace(src: Path, dst: Path) -> None:
+    """``os.rename(src, dst)`` that never replaces ``dst`` (a folder that appeared meanwhile, even an
+    empty one, which plain ``rename`` replaces): ``renameat2(RENAME_NOREPLACE)`` on Linux, atomic;
+    elsewhere a check right before the rename. Raises FileExistsError if ``dst`` exists."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import errno
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = getattr(libc, "renameat2", None)
+        if fn is not None:
+            AT_FDCWD, RENAME_NOREPLACE = -100, 1
+            if fn(AT_FDCWD, os.fsencode(src), AT_FDCWD, os.fsencode(dst), RENAME_NOREPLACE) == 0:
+                return
+            err = ctypes.get_errno()
+            if err == errno.EEXIST:
+                raise FileExistsError(
+                    f"destination {dst} appeared while this run was generating (another generation?); "
+                    "nothing was replaced: pass --overwrite to replace it"
+                )
+            if err not in (errno.ENOSYS, errno.EINVAL):  # unsupported here: fall back
+                raise OSError(err, os.strerror(err), str(src), None, str(dst))
+    if os.path.lexists(dst):
+        raise FileExistsError(
+            f"destination {dst} appeared while this run was generating; nothing was replaced"
+        )
+    os.rename(src, dst)
+
+
 def generate(
     root: Path,
     repo_id: str,
@@ -287,6 +447,7 @@ def generate(
     batch_size: int = 256,
     progress: bool = True,
     workers: int = 1,
+    scene_preset: str = "paper",
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict."""
     import datasets as hf_datasets
@@ -298,12 +459,24 @@ def generate(
     if root.exists() and not overwrite:
         raise FileExistsError(f"destination {root} already exists; pass --overwrite to replace it")
     n = shard_episodes(episodes, num_shards, shard_index)
-    tmp = root.parent / f".{root.name}.tmp-{os.getpid()}"
+    root.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(root)  # of killed runs; refuses if a live generation writes root
+    tmp = root.parent / f"{_tmp_prefix(root)}{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
-    root.parent.mkdir(parents=True, exist_ok=True)
     params = FormationParams()
+    scene_config = scene_preset_config(scene_preset)
     scenes_file = load_scenes(scenes_path) if scenes_path else None
+    if scenes_file is not None:
+        held = len(range(shard_index, len(scenes_file), num_shards))  # this shard's scenes of the file
+        if n > held:
+            raise ValueError(
+                f"--episodes {episodes} asks for more episodes than scenes file {scenes_path} holds "
+                f"({len(scenes_file)} scenes{f', {held} of them in shard {shard_index}' if num_shards > 1 else ''})"
+            )
+    # scene.obstacles keeps every obstacle of every scene: as many rows as the distribution can need
+    scene_slots = scene_config.max_obstacles if scenes_file is None else scenes_file.obstacles.shape[1]
+    scene_slots = max(scene_slots, MAX_OBSTACLES)
     t0 = time.perf_counter()
     bar = None
     if progress:
@@ -311,26 +484,52 @@ def generate(
 
         bar = tqdm(total=n, desc=f"PAC episodes (shard {shard_index + 1}/{num_shards})", unit="ep")
     # Simulate a little more than needed (PAC keeps ~98 %), but never more than batch_size at once.
-    gen = Generator(params, min(batch_size, int(np.ceil(n * 1.05)) + 2), obstacle_encoding, workers)
+    gen = Generator(
+        params,
+        min(batch_size, int(np.ceil(n * 1.05)) + 2),
+        obstacle_encoding,
+        workers,
+        scene_config,
+        scene_slots,
+    )
     frames_total = 0
     ds = None
+    finalized = False
     try:
         ds = LeRobotDataset.create(
-            repo_id=repo_id, fps=FPS, features=dataset_features(obstacle_encoding), root=tmp, use_videos=False
+            repo_id=repo_id,
+            fps=FPS,
+            features=dataset_features(obstacle_encoding, scene_slots),
+            root=tmp,
+            use_videos=False,
         )
         start = 0 if scenes_file is not None else seed
         skip = skip_noop_image_embedding(ds.meta.features) if fast_write else contextlib.nullcontext()
-        with skip:
-            for frames in gen.episodes(
-                seed_stream(start, num_shards, shard_index), n, scenes_file, bar.update if bar else None
-            ):
+        episodes_iter = gen.episodes(
+            seed_stream(start, num_shards, shard_index), n, scenes_file, bar.update if bar else None
+        )
+        with skip, contextlib.closing(episodes_iter):  # closing stops the workers at once, on any exit
+            for frames in episodes_iter:
                 frames_total += len(frames["action"])
                 write_episode(ds, frames, fast=fast_write)
             ds.finalize()
+            finalized = True
         if ds.meta.total_episodes == 0:
             raise RuntimeError("PAC produced no successful episode: nothing to write")
-    except BaseException:
-        if ds is not None:  # close LeRobot's parquet writers first, or they write into tmp on exit
+        extra = {
+            "obstacle_encoding": obstacle_encoding,
+            "scene_preset": scene_preset,
+            "seed": seed,
+            "num_shards": num_shards,
+            "shard_index": shard_index,
+            "fast_write": fast_write,
+            "requested_episodes": n,
+        }
+        return _publish(tmp, root, ds, gen, t0, overwrite, extra, repo_id)
+    except BaseException:  # any exit, SystemExit of SIGTERM included (main()): leave nothing behind
+        if (
+            ds is not None and not finalized
+        ):  # close LeRobot's parquet writers, or they write into tmp on exit
             with contextlib.suppress(Exception):
                 ds.finalize()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -338,6 +537,12 @@ def generate(
     finally:
         if bar is not None:
             bar.close()
+
+
+def _publish(
+    tmp: Path, root: Path, ds, gen: Generator, t0: float, overwrite: bool, summary_extra: dict, repo_id: str
+) -> dict:
+    """Write the summary files into the finished dataset ``tmp`` and move it to ``root``."""
     summary = {
         "repo_id": repo_id,
         "episodes": int(ds.meta.total_episodes),
@@ -346,23 +551,29 @@ def generate(
         "pac_succeeded": gen.succeeded,
         "pac_success_rate": gen.succeeded / max(gen.attempted, 1),
         "seconds": time.perf_counter() - t0,
-        "obstacle_encoding": obstacle_encoding,
-        "seed": seed,
-        "num_shards": num_shards,
-        "shard_index": shard_index,
-        "fast_write": fast_write,
+        **summary_extra,
     }
     # LeRobot writes stats.json keys in set order, which varies between runs: sort them.
     stats_path = tmp / "meta" / "stats.json"
     stats_path.write_text(json.dumps(json.loads(stats_path.read_text()), indent=4, sort_keys=True))
     (tmp / "meta" / "generation.json").write_text(json.dumps(summary, indent=1))
+    if root.exists() and not overwrite:  # checked again: it appeared while this run was generating
+        raise FileExistsError(
+            f"destination {root} appeared while this run was generating (another generation?); "
+            "nothing was replaced: pass --overwrite to replace it"
+        )
     if root.exists():  # --overwrite: swap, then delete the old one
-        trash = root.parent / f".{root.name}.old-{os.getpid()}"
+        trash = root.parent / f"{_old_prefix(root)}{os.getpid()}"
         os.rename(root, trash)
-        os.rename(tmp, root)
+        try:
+            rename_noreplace(tmp, root)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.rename(trash, root)  # put the old one back
+            raise
         shutil.rmtree(trash, ignore_errors=True)
     else:
-        os.rename(tmp, root)
+        rename_noreplace(tmp, root)
     summary["mb"] = sum(f.stat().st_size for f in root.rglob("*") if f.is_file()) / 1e6
     summary["seconds"] = time.perf_counter() - t0
     return summary
@@ -487,22 +698,50 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--episodes", type=int, default=PAPER_EPISODES, help="successful episodes to keep (all shards)"
     )
     ap.add_argument("--seed", type=int, default=0, help="first scene seed")
-    ap.add_argument("--repo-id", default="local/formation_pac")
+    ap.add_argument(
+        "--repo-id",
+        default="local/formation_pac",
+        help="dataset id 'owner/name', as LeRobotDataset(repo_id) loads it; also the default --root's name",
+    )
     ap.add_argument("--root", default=None, help="dataset folder (default: $HF_LEROBOT_HOME/<repo-id>)")
     ap.add_argument("--scenes", default=None, help="scenes JSON file to use instead of random seeds")
-    ap.add_argument("--obstacle-encoding", default="grid", choices=ENCODINGS)
+    ap.add_argument(
+        "--obstacle-encoding",
+        default="grid",
+        choices=ENCODINGS,
+        help="observation.environment_state: 'grid' (the paper's 7x7 radius grid + goal, 51 values), "
+        "'grid+list' (plus the obstacles [x, y, r], 66; the CPU config's) or another encoding of "
+        "core/obstacle_grid.py; must match the policy trained on it",
+    )
+    ap.add_argument(
+        "--scene-preset",
+        default="paper",
+        choices=tuple(SCENE_PRESETS),
+        help="scene distribution: 'paper' (SPEC's), or wider ones (core/scene.py SCENE_PRESETS)",
+    )
     ap.add_argument(
         "--push-to", default=None, help="also lay the dataset out as a hub repo under this folder"
     )
-    ap.add_argument("--num-shards", type=int, default=1)
-    ap.add_argument("--shard-index", type=int, default=0)
+    ap.add_argument(
+        "--num-shards", type=int, default=1, help="split --episodes into this many independent datasets"
+    )
+    ap.add_argument("--shard-index", type=int, default=0, help="which shard to write, 0 .. --num-shards - 1")
     ap.add_argument("--batch-size", type=int, default=256, help="episodes simulated at once")
     ap.add_argument("--workers", type=int, default=1, help="simulation processes beside the writer (0: none)")
     ap.add_argument(
         "--slow-write", action="store_true", help="per-frame add_frame instead of episode buffers"
     )
-    ap.add_argument("--overwrite", action="store_true")
-    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --root (and --push-to copy); without it an existing one is an error",
+    )
+    ap.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bar (there is none either when stderr is not a terminal); the summary "
+        "line is always printed",
+    )
     args = ap.parse_args(argv)
     if args.episodes < 1:
         ap.error(f"--episodes must be >= 1, got {args.episodes}")
@@ -523,10 +762,43 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    from lerobot_formation.plugin import quiet_torchcodec_warning
+
+    quiet_torchcodec_warning()  # LeRobotDataset.create logs torchcodec's FFmpeg traceback otherwise
     if args.root is None:
         from lerobot.utils.constants import HF_LEROBOT_HOME
 
         args.root = str(Path(HF_LEROBOT_HOME) / args.repo_id)
+    with exit_on_signals():
+        return _run(args, argv)
+
+
+@contextlib.contextmanager
+def exit_on_signals():
+    """SIGTERM (and SIGHUP) raise SystemExit(128 + signal) in the main thread, so every ``finally`` and
+    ``except BaseException`` runs: the temporary folder is removed and the workers stopped. (SIGKILL
+    cannot be caught: its workers die with it, see ``_die_with_parent``, and the next run removes its
+    temporary folder, see ``remove_stale_temporaries``.)"""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    previous = {n: signal.signal(getattr(signal, n), handler) for n in names}
+    try:
+        yield
+    finally:
+        for n, h in previous.items():
+            signal.signal(getattr(signal, n), h)
+
+
+def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     try:
         summary = generate(
             Path(args.root),
@@ -540,8 +812,9 @@ def main(argv: list[str] | None = None) -> int:
             overwrite=args.overwrite,
             fast_write=not args.slow_write,
             batch_size=args.batch_size,
-            progress=not args.no_progress,
+            progress=not args.no_progress and sys.stderr.isatty(),  # no bars in logs
             workers=args.workers,
+            scene_preset=args.scene_preset,
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -556,6 +829,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         summary["pushed_to"] = str(dest)
+    if summary["episodes"] < summary["requested_episodes"]:
+        print(
+            f"warning: only {summary['episodes']} of the {summary['requested_episodes']} episodes asked for: "
+            f"PAC succeeded on {summary['pac_succeeded']} of the {summary['pac_attempted']} scenes of {args.scenes}",
+            file=sys.stderr,
+        )
     print(
         f"episodes {summary['episodes']}, frames {summary['frames']}, {summary['mb']:.1f} MB, "
         f"PAC success while generating {summary['pac_success_rate']:.1%} "

@@ -11,9 +11,17 @@ Example::
         --seed 1000000 --out outputs/bench
 
 Scenes: ``random:N`` (the valid scenes of seeds S..S+N-1, S = --seed, default 1_000_000, which the
-dataset never uses), ``dataset:N`` (the first N episodes of a dataset: ``--dataset.root``, or the
+dataset never uses; ``<preset>:N`` the same from a scene preset of ``core.scene.SCENE_PRESETS``, e.g.
+``gates:25``; ``hard:N`` N/4 scenes of each of gates, blockers, dense and goals), the
+``dataset:N`` (the first N episodes of a dataset: ``--dataset.root``, or the
 ``dataset_scenes.json`` shipped with the policy), or a scenes JSON file. ``--unseen random:N`` also
 runs the diffusion controllers on unseen scenes for the standard-vs-adaptive table.
+
+Bad input (arguments, scene files, a ``--policy.path`` that is missing, incomplete, broken or of
+another policy type, a controller the checkpoint cannot serve) is one line ``error: ...`` on stderr
+and exit code 2. If a controller fails after others finished, ``results.json`` and ``tables.md`` are
+still written with the finished ones (``meta.incomplete``, ``meta.error``) before the error.
+Clearance metrics are null (n/a in the tables) for scenes with no obstacle.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -29,10 +38,64 @@ import numpy as np
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.metrics import episode_metrics, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords, PACController
-from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport, Scenes, load_scenes, sample_scenes
+from lerobot_formation.core.scene import (
+    HARD_PRESETS,
+    SCENE_PRESETS,
+    UNSEEN_SEED_START,
+    SamplingReport,
+    Scenes,
+    load_scenes,
+    sample_scenes,
+    scene_preset,
+)
 from lerobot_formation.evaluation import evaluate
 
-CONTROLLERS = ("pac", "mppi", "diffusion", "diffusion-adaptive")
+
+def _diffusion(candidates: bool, safety_filter: str | None, adaptive: bool = False):
+    """A factory of a diffusion controller: ``candidates`` True takes --candidates, else K = 1;
+    ``safety_filter`` None is the world-frame adaptive rule (or standard), "none"/"cbf" the policy's
+    own safety layer (core.safety)."""
+
+    def factory(name: str, params: FormationParams, args: argparse.Namespace, bundle=None):
+        from lerobot_formation.diffusion_controller import DiffusionController
+
+        return DiffusionController(
+            args.policy_path,
+            candidates=args.candidates if candidates else 1,
+            adaptive=adaptive,
+            num_inference_steps=args.num_inference_steps,
+            seed=args.seed_policy,
+            params=params,
+            policy_bundle=bundle,
+            safety_filter=safety_filter,
+            name=name,
+        )
+
+    return factory
+
+
+def _pac(name, params, args, bundle=None):
+    return PACController(params=params)
+
+
+def _mppi(name, params, args, bundle=None):
+    from lerobot_formation.core.mppi import MPPIConfig, MPPIController
+
+    return MPPIController(MPPIConfig(seed=args.seed_policy), params)
+
+
+# Controllers by name: a factory (name, params, args, policy bundle) -> controller. A new controller is
+# one line here (the engine needs only reset(scenes) and act(state, idx), core/rollout.py).
+CONTROLLER_FACTORIES = {
+    "pac": _pac,
+    "mppi": _mppi,
+    "diffusion": _diffusion(False, None),  # standard: one sample per replan
+    "diffusion-adaptive": _diffusion(True, None, adaptive=True),  # best-of-K, world-frame cost-to-go rule
+    "diffusion-bestof": _diffusion(True, "none"),  # the policy's best-of-K (footprint, then progress)
+    "diffusion-cbf": _diffusion(False, "cbf"),  # one sample, CBF filter on every action
+    "diffusion-safe": _diffusion(True, "cbf"),  # best-of-K and the CBF filter
+}
+CONTROLLERS = tuple(CONTROLLER_FACTORIES)
 
 # The paper's Table "Three-way controller comparison on dataset" (100 episodes) and Table "Standard
 # vs adaptive"; mean and std as printed.
@@ -147,7 +210,7 @@ def parse_scenes(
 ) -> Scenes:
     """``random:N``, ``dataset:N`` or a path to a scenes JSON file. ``report`` counts rejected draws."""
     kind, _, count = spec.partition(":")
-    if kind in ("random", "dataset"):
+    if kind in ("random", "dataset", "hard") or kind in SCENE_PRESETS:
         try:
             n = int(count)
         except ValueError as e:
@@ -156,6 +219,18 @@ def parse_scenes(
             raise ValueError(f"--scenes {kind}:N needs N >= 1, got {n}")
         if kind == "random":
             return sample_scenes(seed + np.arange(n), report=report)
+        if kind in SCENE_PRESETS:
+            return sample_scenes(seed + np.arange(n), scene_preset(kind), report=report)
+        if kind == "hard":  # N/4 scenes of each hard preset, seeds seed.. of each
+            k = len(HARD_PRESETS)
+            sizes = [n // k + (1 if i < n % k else 0) for i in range(k)]
+            return Scenes.concat(
+                [
+                    sample_scenes(seed + np.arange(m), scene_preset(p), report=report)
+                    for p, m in zip(HARD_PRESETS, sizes, strict=True)
+                    if m
+                ]
+            )
         if dataset_root:
             return dataset_scenes(dataset_root, n)
         shipped = Path(policy_path or "") / "dataset_scenes.json"
@@ -172,25 +247,9 @@ def parse_scenes(
 
 # -- controllers -------------------------------------------------------------------------------------
 def make_controller(name: str, params: FormationParams, args: argparse.Namespace, bundle=None):
-    if name == "pac":
-        return PACController(params=params)
-    if name == "mppi":
-        from lerobot_formation.core.mppi import MPPIConfig, MPPIController
-
-        return MPPIController(MPPIConfig(seed=args.seed_policy), params)
-    if name in ("diffusion", "diffusion-adaptive"):
-        from lerobot_formation.diffusion_controller import DiffusionController
-
-        return DiffusionController(
-            args.policy_path,
-            candidates=args.candidates if name == "diffusion-adaptive" else 1,
-            adaptive=name == "diffusion-adaptive",
-            num_inference_steps=args.num_inference_steps,
-            seed=args.seed_policy,
-            params=params,
-            policy_bundle=bundle,
-        )
-    raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLERS}")
+    if name not in CONTROLLER_FACTORIES:
+        raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLERS}")
+    return CONTROLLER_FACTORIES[name](name, params, args, bundle)
 
 
 # -- results -----------------------------------------------------------------------------------------
@@ -289,11 +348,10 @@ def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes) -> 
         plot_trajectories,
     )
 
-    ok = np.flatnonzero(rec.outcome == 1)
-    shown = list(ok[:2]) if len(ok) else list(range(min(2, len(rec))))
+    shown = list(range(min(6, len(rec))))  # the same first scenes for every controller
     files = [
         plot_trajectories(rec, scenes, shown, out / f"{name}_trajectories.png", title=name),
-        plot_formation_errors(rec, shown, out / f"{name}_formation_error.png", title=name),
+        plot_formation_errors(rec, shown, out / f"{name}_formation_error.png", title=name, scenes=scenes),
         plot_final_error_histogram(rec, out / f"{name}_final_error_hist.png", title=name),
     ]
     if (rec.outcome != 1).any():
@@ -301,17 +359,57 @@ def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes) -> 
     return [f.name for f in files]
 
 
-def run_set(names, scenes, params, args, out: Path, label: str, bundle, figures: bool) -> dict:
-    results = {}
+def write_comparison_figure(out: Path, label: str, records: dict[str, EpisodeRecords], scenes: Scenes) -> str:
+    from lerobot_formation.plots import comparison_scenes, plot_controller_comparison
+
+    path = out / f"controllers_{label}.png"
+    title = SET_TITLES.get(label, label)
+    return plot_controller_comparison(records, scenes, comparison_scenes(records, 3), path, title=title).name
+
+
+def write_success_figure(out: Path, results: dict[str, dict]) -> str:
+    from lerobot_formation.plots import plot_success_rates
+
+    counts = {
+        f"{s} scenes": {
+            c: (round(r["success_rate"] * r["n_episodes"]), r["n_episodes"]) for c, r in res.items()
+        }
+        for s, res in results.items()
+    }
+    return plot_success_rates(counts, out / "success_rates.png").name
+
+
+class BenchInputError(ValueError):
+    """A bad input found while running (a controller that this checkpoint cannot serve, ...): reported
+    as one ``error:`` line, exit code 2, after writing the results of the controllers that finished."""
+
+
+def run_set(
+    names, scenes, params, args, out: Path, label: str, bundle, figures: bool, into: dict | None = None
+) -> dict:
+    """Run the controllers ``names`` on ``scenes``; each finished controller's entry is put into
+    ``into`` (default: a new dict, returned) at once, so a later failure keeps it."""
+    results, records = (into if into is not None else {}), {}
     for name in names:
         t0 = time.perf_counter()
-        ctrl = make_controller(name, params, args, bundle)
-        rec = evaluate(ctrl, scenes, params, progress=not args.no_progress, desc=f"{name} ({label})")
+        try:
+            ctrl = make_controller(name, params, args, bundle)
+        except ValueError as e:
+            raise BenchInputError(f"controller {name}: {e}") from e
+        # Progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them.
+        progress = not args.no_progress and sys.stderr.isatty()
+        rec = evaluate(ctrl, scenes, params, progress=progress, desc=f"{name} ({label})")
         entry = controller_results(rec, scenes)
         entry["wall_time_s"] = time.perf_counter() - t0
+        if getattr(ctrl, "stats", None):  # the safety layer's interventions
+            st = dict(ctrl.stats)
+            st["filter_intervention_rate"] = st["filter_interventions"] / max(st["steps"], 1)
+            st["replans_none_safe_rate"] = st["replans_none_safe"] / max(st["replans"], 1)
+            entry["safety"] = st
         entry["scenes"] = label
         if figures:
             entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes)
+            records[name] = rec
         results[name] = entry
         lo, hi = entry["success_ci95"]
         print(
@@ -319,13 +417,21 @@ def run_set(names, scenes, params, args, out: Path, label: str, bundle, figures:
             f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
             flush=True,
         )
+    if figures and len(records) > 1:
+        shared = write_comparison_figure(out, label, records, scenes)
+        for entry in results.values():
+            entry["figures"].append(shared)
     return results
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="lerobot-formation-bench", description=__doc__.split("\n")[0])
     ap.add_argument("--controllers", default="pac", help=f"comma-separated, from {CONTROLLERS}")
-    ap.add_argument("--scenes", default="random:20", help="random:N, dataset:N or FILE.json")
+    ap.add_argument(
+        "--scenes",
+        default="random:20",
+        help="random:N, <preset>:N (paper, wide, gates, blockers, dense, goals), hard:N, dataset:N or FILE.json",
+    )
     ap.add_argument(
         "--unseen", default=None, help="also run the diffusion controllers on these scenes (random:N)"
     )
@@ -338,48 +444,30 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--seed-policy", type=int, default=0, help="seed of the policies' noise")
     ap.add_argument("--out", default="outputs/bench", help="output folder")
-    ap.add_argument("--no-figures", action="store_true")
-    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--no-figures", action="store_true", help="write results.json and tables.md only")
+    ap.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bars (there are none either when stderr is not a terminal); the summary "
+        "lines are always printed",
+    )
     return ap
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = build_parser()
-    args = ap.parse_args(argv)
-    names = [c.strip() for c in args.controllers.split(",") if c.strip()]
-    for n in names:
-        if n not in CONTROLLERS:
-            ap.error(f"unknown controller {n!r}; choose from {CONTROLLERS}")
-    diffusion = [n for n in names if n.startswith("diffusion")]
-    if diffusion and not args.policy_path:
-        ap.error(f"controllers {diffusion} need --policy.path")
-    if args.candidates < 1:
-        ap.error(f"--candidates must be >= 1, got {args.candidates}")
-    report = SamplingReport()
-    try:
-        scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
-        unseen = parse_scenes(args.unseen, args.seed) if args.unseen else None
-    except ValueError as e:
-        ap.error(str(e))
-    params = FormationParams()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    bundle = None
-    if diffusion:
-        from lerobot_formation.diffusion_controller import load_policy
+def _fail(message: str):
+    """One line ``error: ...`` on stderr and exit code 2 (bad input; no traceback)."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
 
-        # torch's thread count follows OMP_NUM_THREADS; two busy processes with 2 threads each on
-        # 2 cores crawl, so set OMP_NUM_THREADS=1 when running several jobs at once.
-        bundle = load_policy(args.policy_path)
-    label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
-    results = {label: run_set(names, scenes, params, args, out, label, bundle, not args.no_figures)}
-    if unseen is not None and diffusion:
-        results["unseen"] = run_set(
-            diffusion, unseen, params, args, out, "unseen", bundle, not args.no_figures
-        )
+
+def write_results(
+    out: Path, results: dict, label: str, args, report: SamplingReport, error: str | None = None
+):
+    """results.json and tables.md of the controllers in ``results``; ``error`` marks a run that stopped
+    early (``meta.incomplete``, ``meta.error``), with what finished before it."""
     # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
     # other scene sets under "by_scenes".
-    payload = dict(results[label])
+    payload = dict(results.get(label, {}))
     payload["by_scenes"] = {k: v for k, v in results.items()}
     payload["meta"] = {
         "scenes": args.scenes,
@@ -390,23 +478,88 @@ def main(argv: list[str] | None = None) -> int:
         "num_inference_steps": args.num_inference_steps,
         "date": time.strftime("%Y-%m-%d"),
         "scene_sampling": report.as_dict() if report.drawn else None,
+        "incomplete": error is not None,
+        "error": error,
     }
+    tmp = out / "results.json.tmp"
+    tmp.write_text(json.dumps(payload, indent=1, default=_clean))
+    os.replace(tmp, out / "results.json")
+    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({args.scenes})")]
+    sets = {k: v for k, v in results.items() if any(c.startswith("diffusion") for c in v)}
+    if sets:
+        tables.append(adaptive_table(sets))
+    if error is not None:
+        tables.append(f"**Incomplete run**: {error}\n")
+    (out / "tables.md").write_text("\n".join(tables))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    names = [c.strip() for c in args.controllers.split(",") if c.strip()]
+    for n in names:
+        if n not in CONTROLLERS:
+            _fail(f"unknown controller {n!r}; choose from {CONTROLLERS}")
+    diffusion = [n for n in names if n.startswith("diffusion")]
+    if diffusion and not args.policy_path:
+        _fail(f"controllers {diffusion} need --policy.path")
+    if args.candidates < 1:
+        _fail(f"--candidates must be >= 1, got {args.candidates}")
+    if args.num_inference_steps is not None and args.num_inference_steps < 1:
+        _fail(f"--num-inference-steps must be >= 1, got {args.num_inference_steps}")
+    report = SamplingReport()
+    try:
+        scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
+        unseen = parse_scenes(args.unseen, args.seed) if args.unseen else None
+    except ValueError as e:
+        _fail(str(e))
+    params = FormationParams()
+    out = Path(args.out)
+    bundle = None
+    if diffusion:
+        from lerobot_formation.diffusion_controller import load_policy
+
+        # torch's thread count follows OMP_NUM_THREADS; two busy processes with 2 threads each on
+        # 2 cores crawl, so set OMP_NUM_THREADS=1 when running several jobs at once.
+        try:
+            bundle = load_policy(args.policy_path)
+        except ValueError as e:  # CheckpointError: missing, incomplete, broken or another policy type
+            _fail(f"--policy.path: {e}")
+        steps, most = args.num_inference_steps, bundle[0].config.num_train_timesteps
+        if steps is not None and steps > most:
+            _fail(
+                f"--num-inference-steps must be in [1, {most}] (the checkpoint's training steps), got {steps}"
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
+    results: dict[str, dict] = {label: {}}
+    try:
+        run_set(names, scenes, params, args, out, label, bundle, not args.no_figures, into=results[label])
+        if unseen is not None and diffusion:
+            results["unseen"] = {}
+            run_set(
+                diffusion, unseen, params, args, out, "unseen", bundle, not args.no_figures, results["unseen"]
+            )
+    except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
+        done = [f"{k}/{c}" for k, v in results.items() for c in v]
+        message = str(e) if isinstance(e, BenchInputError) else f"{type(e).__name__}: {e}"
+        if done:
+            write_results(out, results, label, args, report, error=message)
+            print(f"wrote {out / 'results.json'} with the finished controllers {done}", file=sys.stderr)
+        if isinstance(e, BenchInputError):
+            _fail(message)
+        raise
+    if not args.no_figures:
+        figures = sorted({f for res in results.values() for r in res.values() for f in r["figures"]})
+        figures.append(write_success_figure(out, results))
+        print(f"figures in {out}: {', '.join(figures)}")
     if report.drawn:
         print(
             f"scenes: {report.accepted} valid of {report.drawn} drawn, rejection rate {report.rejection_rate:.1%} "
             f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
             f"no passage {report.rejected_passage})"
         )
-    tmp = out / "results.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=1, default=_clean))
-    os.replace(tmp, out / "results.json")
-    tables = [three_way_table(results[label], f"{label} scenes ({args.scenes})")]
-    if diffusion:
-        sets = {label: results[label]}
-        if "unseen" in results:
-            sets["unseen"] = results["unseen"]
-        tables.append(adaptive_table(sets))
-    (out / "tables.md").write_text("\n".join(tables))
+    write_results(out, results, label, args, report)
     print(f"wrote {out / 'results.json'}, {out / 'tables.md'}")
     return 0
 

@@ -10,12 +10,15 @@ from lerobot.optim import AdamWConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim, get_encoding
 from lerobot_formation.env import STATE_DIM
 
 ACTION_DIM = 2  # [v, omega]
-# observation.environment_state sizes the env can emit: "grid" (51) and "grid+list" (66).
+# observation.environment_state sizes of each encoding at its default slot count.
 ENV_STATE_DIMS = tuple(environment_state_dim(e) for e in ENCODINGS)
+SAFETY_FILTERS = ("none", "cbf")
+_BOUNDS = FormationParams()
 
 
 logger = logging.getLogger(__name__)
@@ -67,7 +70,25 @@ class FormationDiffusionConfig(DiffusionConfig):
         egocentric_obstacles: give the network the goal and the obstacle list in the midpoint's frame,
             nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
             (the paper feeds world coordinates).
-        max_obstacles: obstacle rows in the "grid+list" encoding.
+        obstacle_encoding: name of the ``observation.environment_state`` encoding
+            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid", "grid+list", "nearest"). None: found
+            from the feature's size (checkpoints made before the field existed) and stored.
+        max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
+            "grid+list", 12 for "nearest").
+        fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
+            ``action_high`` (v in [0, 0.6], omega in [-1.5, 1.5]) instead of the dataset's min/max, so
+            the policy itself knows the action in physical units (the safety layer needs it).
+        num_candidates: K action chunks drawn per replan in one batched call; with K > 1 the safety
+            layer keeps the best (``core.safety.select_chunk``: no predicted collision of the whole
+            formation's footprint, then progress toward the goal). 1: the standard policy.
+        safety_filter: "none", or "cbf": every executed action passes a control-barrier-function
+            filter on [v, omega] for all four agents (``core.safety.cbf_filter``). Needs an egocentric
+            encoding ("nearest") and ``fixed_action_bounds``; it uses only the observed obstacles.
+        safety_margin: clearance [m] the safety layer keeps between every agent disc and every
+            obstacle (followers lag their square slots by up to ~0.1 m).
+        cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
+        replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
+            replan at the next step (the plan assumed a motion the filter did not allow).
         drop_n_last_frames: frames at each episode's end the training sampler never starts a window
             at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
             Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
@@ -101,7 +122,18 @@ class FormationDiffusionConfig(DiffusionConfig):
     drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
     # Goal and obstacle list in the midpoint's frame, nearest first (processor_formation_diffusion.py).
     egocentric_obstacles: bool = False
-    max_obstacles: int = 5
+    obstacle_encoding: str | None = None
+    max_obstacles: int | None = None
+    fixed_action_bounds: bool = False
+    action_low: tuple[float, float] = (0.0, -_BOUNDS.omega_max)
+    action_high: tuple[float, float] = (_BOUNDS.v_max, _BOUNDS.omega_max)
+
+    # Safety layer (inference only; see the Args above).
+    num_candidates: int = 1
+    safety_filter: str = "none"
+    safety_margin: float = 0.1
+    cbf_rate: float = 2.0
+    replan_on_intervention: bool = True
 
     # Unet.
     down_dims: tuple[int, ...] = (256, 512, 1024)
@@ -173,7 +205,25 @@ class FormationDiffusionConfig(DiffusionConfig):
             )
         if self.ema_update_after_step < 0:
             raise config_error(f"ema_update_after_step must be >= 0, got {self.ema_update_after_step}")
+        if self.obstacle_encoding is not None and self.obstacle_encoding not in ENCODINGS:
+            raise config_error(
+                f"obstacle_encoding must be one of {ENCODINGS} (or null), got {self.obstacle_encoding!r}"
+            )
+        if self.num_candidates < 1:
+            raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
+        if self.safety_filter not in SAFETY_FILTERS:
+            raise config_error(f"safety_filter must be one of {SAFETY_FILTERS}, got {self.safety_filter!r}")
+        if self.safety_margin < 0 or self.cbf_rate <= 0:
+            raise config_error(
+                f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
+            )
+        if not all(lo < hi for lo, hi in zip(self.action_low, self.action_high, strict=True)):
+            raise config_error(f"need action_low < action_high, got {self.action_low} and {self.action_high}")
         super().__post_init__()
+
+    @property
+    def safety_layer(self) -> bool:
+        return self.num_candidates > 1 or self.safety_filter != "none"
 
     def validate_features(self) -> None:
         """Check the formation features; the error names the feature, its shape and what was found."""
@@ -196,11 +246,33 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"formation_diffusion needs the input feature '{OBS_ENV_STATE}' (ENV, shape "
                 f"{' or '.join(f'({d},)' for d in ENV_STATE_DIMS)}: obstacle grid + goal). {found}"
             )
-        if tuple(env_state.shape) not in [(d,) for d in ENV_STATE_DIMS]:
+        if self.obstacle_encoding is None:  # a checkpoint from before the field: find it once, store it
+            if tuple(env_state.shape) not in [(d,) for d in ENV_STATE_DIMS]:
+                raise ValueError(
+                    f"'{OBS_ENV_STATE}' must have shape "
+                    + " or ".join(f"({d},) ({e!r})" for d, e in zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
+                    + f", got {tuple(env_state.shape)}; or set --policy.obstacle_encoding"
+                )
+            self.obstacle_encoding = ENCODINGS[ENV_STATE_DIMS.index(env_state.shape[0])]
+        expected = environment_state_dim(self.obstacle_encoding, self.max_obstacles)
+        if tuple(env_state.shape) != (expected,):
             raise ValueError(
-                f"'{OBS_ENV_STATE}' must have shape "
-                + " or ".join(f"({d},) ({e!r})" for d, e in zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
-                + f", got {tuple(env_state.shape)}"
+                f"'{OBS_ENV_STATE}' has shape {tuple(env_state.shape)}, but obstacle_encoding="
+                f"{self.obstacle_encoding!r} with max_obstacles={self.max_obstacles} has ({expected},); "
+                f"the dataset or env must use --env.obstacle_encoding={self.obstacle_encoding}"
+            )
+        if self.safety_layer and not (
+            get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
+        ):
+            raise ValueError(
+                f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
+                "needs an egocentric obstacle encoding ('nearest') and fixed_action_bounds=true; this policy "
+                f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
+            )
+        if self.egocentric_obstacles and get_encoding(self.obstacle_encoding).egocentric:
+            raise ValueError(
+                f"egocentric_obstacles=true rewrites a world-frame list; '{self.obstacle_encoding}' is already "
+                "egocentric: set --policy.egocentric_obstacles=false"
             )
         grid_list_dim = environment_state_dim("grid+list", self.max_obstacles)
         if self.egocentric_obstacles and tuple(env_state.shape) != (grid_list_dim,):

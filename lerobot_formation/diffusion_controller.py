@@ -9,6 +9,12 @@ does one episode at a time.
 Adaptive sampling draws K candidate chunks per replan in the same batched call and keeps the
 safest (``core.footprint.select_safest``: no predicted collision of the whole formation first, then
 progress toward the goal). With K = 1 and the same noise it is the standard policy.
+
+The policy's own safety layer (``safety="policy"``: the ``formation_diffusion`` config fields
+``num_candidates`` and ``safety_filter``, egocentric "nearest" checkpoints) runs here through the same
+functions as in ``select_action`` (``core.safety.select_chunk`` at every replan, ``core.safety.cbf_filter``
+on every executed action), on the same observation, so the engine and ``lerobot-eval`` evaluate the
+same controller.
 """
 
 from __future__ import annotations
@@ -18,32 +24,84 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.footprint import select_safest
 from lerobot_formation.core.navigation import cost_to_go
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state, environment_state_dim
+from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.scene import Scenes
 from lerobot_formation.env import midpoint_state
 
 
+class CheckpointError(ValueError):
+    """A policy folder that is not a usable ``formation_diffusion`` checkpoint (the message says why)."""
+
+
+CHECKPOINT_FILES = (
+    "config.json",
+    "model.safetensors",
+    "policy_preprocessor.json",
+    "policy_postprocessor.json",
+)
+
+
 def load_policy(path: str | Path, device: str = "cpu"):
     """Policy and pre/post-processors from a checkpoint folder (``.../pretrained_model`` or a hub-style
-    model folder)."""
+    model folder).
+
+    Raises:
+        CheckpointError (a ValueError): the folder is missing or incomplete, ``config.json`` is not
+            valid JSON or not a ``formation_diffusion`` config (a stock ``diffusion`` checkpoint has no
+            obstacle encoding and no EMA), or the weights or processors cannot be loaded (truncated).
+    """
+    import json
+
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor step)
 
     path = Path(path)
-    if not (path / "config.json").is_file():
-        raise FileNotFoundError(f"{path} is not a policy checkpoint folder: no config.json")
-    cfg = PreTrainedConfig.from_pretrained(path)
+    if not path.is_dir():
+        raise CheckpointError(f"policy checkpoint folder {path} does not exist")
+    missing = [f for f in CHECKPOINT_FILES if not (path / f).is_file()]
+    if "config.json" in missing:
+        raise CheckpointError(f"{path} is not a policy checkpoint folder: no config.json")
+    try:
+        raw = json.loads((path / "config.json").read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{path / 'config.json'} is not valid JSON: {e}") from e
+    kind = raw.get("type") if isinstance(raw, dict) else None
+    if kind != "formation_diffusion":
+        raise CheckpointError(
+            f"{path} holds a policy of type {kind!r}, not 'formation_diffusion'; only formation_diffusion "
+            "checkpoints can be evaluated here (train one with lerobot-train --policy.type=formation_diffusion)"
+        )
+    if missing:
+        raise CheckpointError(f"{path} is an incomplete checkpoint: no {', '.join(missing)}")
+    try:
+        cfg = PreTrainedConfig.from_pretrained(path)
+    except Exception as e:  # draccus raises many types for a bad field; the message names it
+        raise CheckpointError(f"{path / 'config.json'} is not a valid formation_diffusion config: {e}") from e
     cfg.device = device
-    policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
+    try:
+        policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
+    except (OSError, RuntimeError, ValueError, KeyError) as e:
+        raise CheckpointError(
+            f"{path / 'model.safetensors'} cannot be loaded (truncated, or another model's weights?): "
+            f"{type(e).__name__}: {e}"
+        ) from e
+    except Exception as e:  # safetensors' SafetensorError (truncated file) is no OSError
+        if type(e).__name__ != "SafetensorError":
+            raise
+        raise CheckpointError(f"{path / 'model.safetensors'} cannot be loaded (truncated?): {e}") from e
     policy.eval()
-    pre, post = make_pre_post_processors(
-        cfg, pretrained_path=str(path), preprocessor_overrides={"device_processor": {"device": device}}
-    )
+    try:
+        pre, post = make_pre_post_processors(
+            cfg, pretrained_path=str(path), preprocessor_overrides={"device_processor": {"device": device}}
+        )
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as e:
+        raise CheckpointError(f"the processors of {path} cannot be loaded: {type(e).__name__}: {e}") from e
     return policy, pre, post
 
 
@@ -96,15 +154,31 @@ class DiffusionController:
         device: str = "cpu",
         margin: float = 0.1,
         policy_bundle=None,
+        safety_filter: str | None = None,
+        name: str | None = None,
     ):
         if candidates < 1:
             raise ValueError(f"candidates must be >= 1, got {candidates}")
         self.policy, self.pre, self.post = policy_bundle or load_policy(path, device)
         set_inference_steps(self.policy, num_inference_steps)
-        self.adaptive = candidates > 1 if adaptive is None else adaptive
-        if not self.adaptive and candidates != 1:
-            raise ValueError(f"the standard policy draws one candidate, got candidates={candidates}")
-        self.name = "diffusion-adaptive" if self.adaptive else "diffusion"
+        # safety_filter None: the legacy world-frame adaptive rule (or standard); "none"/"cbf": the
+        # policy's own safety layer (best-of-K with core.safety.select_chunk, optional CBF filter).
+        self.policy_safety = safety_filter is not None
+        if self.policy_safety:
+            cfg = self.policy.config
+            if not (get_encoding(cfg.obstacle_encoding).egocentric and cfg.fixed_action_bounds):
+                raise ValueError(
+                    f"the policy's safety layer needs a checkpoint with obstacle_encoding 'nearest' and "
+                    f"fixed_action_bounds; {path} has {cfg.obstacle_encoding!r}, {cfg.fixed_action_bounds}"
+                )
+            self.filter = safety_filter
+            self.adaptive = False
+        else:
+            self.filter = "none"
+            self.adaptive = candidates > 1 if adaptive is None else adaptive
+            if not self.adaptive and candidates != 1:
+                raise ValueError(f"the standard policy draws one candidate, got candidates={candidates}")
+        self.name = name or ("diffusion-adaptive" if self.adaptive else "diffusion")
         self.K = candidates
         self.seed = seed
         self.params = params or FormationParams()
@@ -112,19 +186,22 @@ class DiffusionController:
         self.device = device
         cfg = self.policy.config
         self.n_obs, self.n_act, self.horizon = cfg.n_obs_steps, cfg.n_action_steps, cfg.horizon
-        env_dim = cfg.input_features["observation.environment_state"].shape[0]
-        self.encoding = next((e for e in ENCODINGS if environment_state_dim(e) == env_dim), None)
-        if self.encoding is None:
-            raise ValueError(
-                f"checkpoint's environment_state has {env_dim} values; no known encoding matches"
-            )
-        self.model = getattr(self.policy, "ema_diffusion", None) or self.policy.diffusion
+        self.encoding = cfg.obstacle_encoding  # stored in (or found once by) the policy config
+        self.max_obstacles = cfg.max_obstacles
+        self.egocentric = get_encoding(self.encoding).egocentric
         self.template = np.asarray(self.params.graph.template)
+        self.stats = {"replans": 0, "replans_none_safe": 0, "steps": 0, "filter_interventions": 0}
 
     def reset(self, scenes: Scenes) -> None:
         B = len(scenes)
         self.scenes = scenes
-        self.env_state = environment_state(scenes.obstacles, scenes.mask, scenes.goal, self.encoding)
+        if not self.egocentric:  # world-frame encodings do not change during an episode
+            self.env_state = environment_state(
+                scenes.obstacles, scenes.mask, scenes.goal, self.encoding, self.max_obstacles
+            )
+        else:
+            self.env_state = np.zeros((B, get_encoding(self.encoding).dim(self.max_obstacles)), np.float32)
+        self.env_history = np.zeros((B, self.n_obs, self.env_state.shape[1]), np.float32)
         self.history = np.zeros((B, self.n_obs, 7), np.float32)
         self.started = np.zeros(B, dtype=bool)
         self.queue = np.zeros((B, self.n_act, 2))
@@ -144,22 +221,35 @@ class DiffusionController:
         """New action chunks (len(idx), n_action_steps, 2) for episodes idx."""
         n, K = len(idx), self.K
         obs = {
-            "observation.state": torch.from_numpy(np.repeat(self.history[idx], K, axis=0)),
-            "observation.environment_state": torch.from_numpy(
-                np.repeat(np.repeat(self.env_state[idx][:, None], self.n_obs, axis=1), K, axis=0)
-            ),
+            "observation.state": torch.from_numpy(self.history[idx]),
+            "observation.environment_state": torch.from_numpy(self.env_history[idx]),
         }
         batch = self.pre(obs)
-        # generate_actions' steps, keeping the whole predicted horizon for the adaptive check.
-        cond = self.model._prepare_global_conditioning(batch)
-        full = self.model.conditional_sample(n * K, global_cond=cond, noise=self._noise(n * K))
-        future = (
-            self.post(full).cpu().numpy().astype(np.float64)[:, self.n_obs - 1 :]
-        )  # from the current step
+        # the whole predicted horizon from the current step, K candidates per episode
+        chunks = self.policy.sample_action_chunks(batch, K, noise=self._noise(n * K))
+        cand = self.post(chunks.reshape(n * K, *chunks.shape[2:])).cpu().numpy().astype(np.float64)
+        cand = cand.reshape(n, K, *cand.shape[1:])
         self.replans += 1
+        self.stats["replans"] += n
+        if self.policy_safety:
+            if K == 1:
+                return cand[:, 0, : self.n_act]
+            goal_b, obstacles_b, _ = safety.decode_nearest(
+                self.env_history[idx, -1], get_encoding(self.encoding).slots(self.max_obstacles)
+            )
+            choice, info = safety.select_chunk(
+                cand,
+                obstacles_b,
+                goal_b,
+                self.template,
+                self.params.dt,
+                self.params.agent_radius,
+                self.policy.config.safety_margin,
+            )
+            self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
+            return cand[np.arange(n), choice, : self.n_act]
         if not self.adaptive:
-            return future[:, : self.n_act]
-        cand = future.reshape(n, K, *future.shape[1:])
+            return cand[:, 0, : self.n_act]
         choice, _ = select_safest(
             poses,
             cand,
@@ -174,11 +264,21 @@ class DiffusionController:
 
     def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
         obs = midpoint_state(state)
+        s = self.scenes
+        if self.egocentric:  # as the env observes it: recomputed at the current pose
+            env = environment_state(
+                s.obstacles[idx], s.mask[idx], s.goal[idx], self.encoding, self.max_obstacles, pose=state.pose
+            )
+        else:
+            env = self.env_state[idx]
         new = ~self.started[idx]
         if new.any():  # first observation fills the history, as LeRobot's populate_queues does
             self.history[idx[new]] = obs[new][:, None]
+            self.env_history[idx[new]] = env[new][:, None]
             self.started[idx[new]] = True
-        self.history[idx[~new]] = np.concatenate([self.history[idx[~new], 1:], obs[~new][:, None]], axis=1)
+        old = idx[~new]
+        self.history[old] = np.concatenate([self.history[old, 1:], obs[~new][:, None]], axis=1)
+        self.env_history[old] = np.concatenate([self.env_history[old, 1:], env[~new][:, None]], axis=1)
         need = self.queue_pos[idx] >= self.n_act
         if need.any():
             rows = idx[need]
@@ -186,4 +286,23 @@ class DiffusionController:
             self.queue_pos[rows] = 0
         a = self.queue[idx, self.queue_pos[idx]]
         self.queue_pos[idx] += 1
+        self.stats["steps"] += len(idx)
+        if self.filter == "cbf":
+            cfg = self.policy.config
+            _, obstacles_b, _ = safety.decode_nearest(
+                env, get_encoding(self.encoding).slots(self.max_obstacles)
+            )
+            a, changed = safety.cbf_filter(
+                a,
+                obstacles_b,
+                self.template,
+                self.params.agent_radius,
+                cfg.safety_margin,
+                cfg.cbf_rate,
+                np.asarray(cfg.action_low),
+                np.asarray(cfg.action_high),
+            )
+            self.stats["filter_interventions"] += int(changed.sum())
+            if cfg.replan_on_intervention:  # as select_action: replan at the next step
+                self.queue_pos[idx[changed]] = self.n_act
         return a

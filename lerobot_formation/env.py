@@ -17,7 +17,7 @@ A ``Dict`` (LeRobot maps ``agent_pos`` to ``observation.state`` and ``environmen
 | key | shape | content |
 |---|---|---|
 | agent_pos | (7,) | midpoint [x, y, cos phi, sin phi, x', y', omega] |
-| environment_state | (51,) "grid" / (66,) "grid+list" | 7x7 obstacle-radius grid (49), goal [x, y] (2), optionally the 5 obstacles [x, y, r] |
+| environment_state | (51,) "grid" / (66,) "grid+list" / (50,) "nearest" | see ``core/obstacle_grid.py``: the paper's 7x7 obstacle-radius grid (49) and goal [x, y] (2), optionally the 5 obstacles [x, y, r]; or ("nearest") the goal and the 12 nearest obstacles [x, y, r, present] in the midpoint's body frame |
 
 ## Rewards
 Progress toward the goal in metres per step, +1 on success, -1 on collision. (LeRobot reports the
@@ -33,11 +33,19 @@ obstacle). Truncated after 600 steps (60 s) by the ``TimeLimit`` of the registra
 
 ## Scenes
 ``reset(seed=s)`` gives the scene of seed s (``sample_scenes``); ``reset(options={"scene": {...}})``
-uses a given scene (scenes-file format); with ``scenes_file=...`` seeds index into that file.
+uses a given scene (scenes-file format); with ``scenes_file=...`` seed s is scene s of that file
+(0 <= s < number of scenes; a seed past the end raises ``ValueError``, it does not wrap around),
+and ``reset()`` without a seed picks one of its scenes at random.
+
+## Errors
+``step()`` before ``reset()`` or after the episode terminated (success or collision) raises
+``RuntimeError`` (call ``reset()``; LeRobot's ``FreezeAfterEpisodeEnd`` never steps a finished env).
+``options`` that is not a dict, a bad scene, a bad action and ``render_size`` outside [8, 2048]
+raise ``ValueError``.
 
 ## Info
 ``is_success``, ``is_collision``, ``formation_error``, ``clearance`` (smallest agent gap),
-``midpoint_clearance``, ``scene_seed``.
+``midpoint_clearance`` (both ``None`` in a scene with no obstacle), ``scene_seed``.
 
 ## Arguments
 ``gym.make("gym_formation/FormationNav-v0", render_mode="rgb_array", scenes_file=None,
@@ -57,8 +65,8 @@ from gymnasium import spaces
 
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.dynamics import FormationParams, FormationState
-from lerobot_formation.core.obstacle_grid import environment_state, environment_state_dim
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome
+from lerobot_formation.core.obstacle_grid import environment_state, environment_state_dim, get_encoding
+from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome, step_reward
 from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes, scenes_from_list
 from lerobot_formation.render import Renderer
 
@@ -74,7 +82,7 @@ def midpoint_state(state: FormationState) -> np.ndarray:
     )
 
 
-def observation_spaces(obstacle_encoding: str, max_obstacles: int = 5) -> spaces.Dict:
+def observation_spaces(obstacle_encoding: str, max_obstacles: int | None = None) -> spaces.Dict:
     d = environment_state_dim(obstacle_encoding, max_obstacles)
     return spaces.Dict(
         {
@@ -103,6 +111,23 @@ def scene_from_option(scene: Any, config: SceneConfig) -> Scenes:
     raise ValueError(f"options['scene'] must be a dict or Scenes, got {type(scene).__name__}")
 
 
+def scene_index(seed: int, n_scenes: int, scenes_file=None) -> int:
+    """Seed -> scene of a scenes file: seed s is scene s; ValueError past the end (no wrap-around)."""
+    seed = int(seed)
+    if not 0 <= seed < n_scenes:
+        raise ValueError(
+            f"seed {seed} is past the end of scenes file {scenes_file or ''} ({n_scenes} scenes, seeds 0..{n_scenes - 1}). "
+            "lerobot-eval resets its batches with seeds --seed + i for i < ceil(n_episodes / batch_size) * "
+            f"batch_size: pass --seed=0 and an --eval.batch_size that divides --eval.n_episodes <= {n_scenes}"
+        )
+    return seed
+
+
+def _finite_or_none(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
 class FormationEnv(gym.Env):
     """Single-team formation navigation; see the module docstring for the full specification."""
 
@@ -115,13 +140,20 @@ class FormationEnv(gym.Env):
         obstacle_encoding: str = "grid",
         params: FormationParams | None = None,
         scene_config: SceneConfig | None = None,
-        max_obstacles: int = 5,
+        max_obstacles: int | None = None,
         render_size: int = 256,
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
             )
+        if (
+            not isinstance(render_size, int | np.integer)
+            or isinstance(render_size, bool)
+            or not 8 <= render_size <= 2048
+        ):
+            raise ValueError(f"render_size must be an int in [8, 2048] pixels, got {render_size!r}")
+        self.scenes_file = scenes_file
         self.render_mode = render_mode
         self.params = params or FormationParams()
         self.scene_config = scene_config or SceneConfig()
@@ -135,44 +167,61 @@ class FormationEnv(gym.Env):
         self._renderer = Renderer(render_size) if render_mode == "rgb_array" else None
         self.scene: Scenes | None = None
         self.state: FormationState | None = None
+        self._ended: str | None = None  # "success" / "collision" once the episode has terminated
 
     # -- gym API ---------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"options must be a dict or None, got {type(options).__name__} {options!r:.80}")
+        if seed is not None and self.scenes is not None:
+            scene_index(seed, len(self.scenes), self.scenes_file)  # before seeding: a clear ValueError
         super().reset(seed=seed)
         options = options or {}
         if options.get("scene") is not None:
             self.scene = scene_from_option(options["scene"], self.scene_config)
         elif self.scenes is not None:
             idx = seed if seed is not None else int(self.np_random.integers(len(self.scenes)))
-            self.scene = self.scenes[idx % len(self.scenes)]
+            self.scene = self.scenes[scene_index(idx, len(self.scenes), self.scenes_file)]
         else:
             s = seed if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
             self.scene = sample_scenes([s], self.scene_config)
         self.state = dynamics.initial_state(self.scene.start, self.params)
+        self._egocentric = get_encoding(self.obstacle_encoding).egocentric
         self._env_state = environment_state(
-            self.scene.obstacles, self.scene.mask, self.scene.goal, self.obstacle_encoding, self.max_obstacles
+            self.scene.obstacles,
+            self.scene.mask,
+            self.scene.goal,
+            self.obstacle_encoding,
+            self.max_obstacles,
+            pose=self.state.pose,
         )
         self._path = [dynamics.agent_positions(self.state)[0]]
         self._steps = 0
+        self._ended = None
         outcome, clear, mid = step_outcome(self.state, self.scene.obstacles, self.scene.goal, self.params)
         return self._obs(), self._info(outcome, clear, mid)
 
     def step(self, action):
         if self.state is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended is not None:
+            raise RuntimeError(
+                f"the episode has ended ({self._ended} at step {self._steps}); call reset() before step()"
+            )
         a = np.asarray(action)
         if a.shape != (2,):
             raise ValueError(f"action must have shape (2,) [v, omega], got {a.shape}")
         a = dynamics.check_action(a[None], 1)
-        prev_dist = np.linalg.norm(self.state.pose[0, :2] - self.scene.goal[0])
+        prev_pose = self.state.pose
         self.state = dynamics.step(self.state, a, self.params)
         self._steps += 1
         self._path.append(dynamics.agent_positions(self.state)[0])
         outcome, clear, mid = step_outcome(self.state, self.scene.obstacles, self.scene.goal, self.params)
-        dist = np.linalg.norm(self.state.pose[0, :2] - self.scene.goal[0])
         o = int(outcome[0])
-        reward = float(prev_dist - dist) + (1.0 if o == SUCCESS else 0.0) - (1.0 if o == COLLISION else 0.0)
+        reward = float(step_reward(prev_pose, self.state.pose, self.scene.goal, outcome)[0])
         terminated = o in (SUCCESS, COLLISION)
+        if terminated:
+            self._ended = "success" if o == SUCCESS else "collision"
         return self._obs(), reward, terminated, False, self._info(outcome, clear, mid)
 
     def render(self):
@@ -191,6 +240,15 @@ class FormationEnv(gym.Env):
 
     # -- helpers ---------------------------------------------------------------------------------
     def _obs(self) -> dict[str, np.ndarray]:
+        if self._egocentric:  # the body-frame encoding moves with the team
+            self._env_state = environment_state(
+                self.scene.obstacles,
+                self.scene.mask,
+                self.scene.goal,
+                self.obstacle_encoding,
+                self.max_obstacles,
+                pose=self.state.pose,
+            )
         return {"agent_pos": midpoint_state(self.state)[0], "environment_state": self._env_state[0].copy()}
 
     def _info(self, outcome, clear, mid) -> dict[str, Any]:
@@ -199,7 +257,7 @@ class FormationEnv(gym.Env):
             "is_success": bool(outcome[0] == SUCCESS),
             "is_collision": bool(outcome[0] == COLLISION),
             "formation_error": float(dynamics.formation_error(pos, self.params.graph)[0]),
-            "clearance": float(clear[0].min()),
-            "midpoint_clearance": float(mid[0]),
+            "clearance": _finite_or_none(clear[0].min()),  # None: the scene has no obstacle
+            "midpoint_clearance": _finite_or_none(mid[0]),
             "scene_seed": int(self.scene.seeds[0]),
         }

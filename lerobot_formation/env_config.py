@@ -28,10 +28,35 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.configuration_formation_diffusion import config_error
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
 from lerobot_formation.env import STATE_DIM, FormationEnv
-from lerobot_formation.episode_metrics import FormationEpisodeMetrics
+from lerobot_formation.episode_metrics import FormationEpisodeMetrics, new_run_id
+from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
 
 ACTION_DIM = 2  # [v, omega]
+# A --dataset.root that does not exist, offline: one clear error at start-up, not a hub traceback.
+install_offline_dataset_root_check()
+
+
+def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
+    """Raise ``ValueError`` (logged) if the env's ``observation.environment_state`` does not have the
+    size of the policy's input (a dataset of one obstacle encoding, an env of another)."""
+    feature = (getattr(policy_cfg, "input_features", None) or {}).get(OBS_ENV_STATE)
+    if feature is None:
+        return
+    ours = environment_state_dim(env_cfg.obstacle_encoding)
+    theirs = tuple(feature.shape)
+    if theirs == (ours,):
+        return
+    wanted = getattr(policy_cfg, "obstacle_encoding", None)
+    if wanted is None:
+        wanted = next((e for e in ENCODINGS if (environment_state_dim(e),) == theirs), None)
+    hint = f"pass --env.obstacle_encoding={wanted}" if wanted else "no obstacle encoding of this env fits"
+    size = theirs[0] if len(theirs) == 1 else theirs
+    raise config_error(
+        f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' {ours} values, but the "
+        f"policy takes {size} (its dataset or checkpoint{f' uses {wanted!r}' if wanted else ''}): {hint}"
+    )
 
 
 @dataclass
@@ -43,15 +68,21 @@ class FormationEnvFactory:
         episode_length: control steps before truncation (``TimeLimit``; LeRobot reads
             ``_max_episode_steps`` from it).
         episode_metrics_path: JSON-lines file for per-episode formation metrics, or None.
+        run_id: run id of the JSON lines (one per ``create_envs`` call), None: the wrapper's own.
+        env_index: the sub-env's index, written on its JSON lines.
     """
 
     env_kwargs: dict[str, Any]
     episode_length: int
     episode_metrics_path: str | None = None
+    run_id: str | None = None
+    env_index: int = 0
 
     def __call__(self) -> gym.Env:
         env = TimeLimit(FormationEnv(**self.env_kwargs), max_episode_steps=self.episode_length)
-        env = FormationEpisodeMetrics(env, log_path=self.episode_metrics_path)
+        env = FormationEpisodeMetrics(
+            env, log_path=self.episode_metrics_path, run_id=self.run_id, env_index=self.env_index
+        )
         return FreezeAfterEpisodeEnd(env)
 
 
@@ -65,26 +96,48 @@ class FormationEnvConfig(EnvConfig):
         fps: control rate [Hz] (dt = 0.1 s); also the video frame rate.
         episode_length: control steps per episode before a timeout (SPEC: 600 = 60 s).
         obstacle_encoding: ``"grid"`` (the paper's 7x7 radius grid + goal, 51 values) or
-            ``"grid+list"`` (plus the 5 obstacles [x, y, r], 66 values). Must match the policy's
-            ``observation.environment_state`` shape.
-        scenes_file: JSON scenes file (``core.scene.save_scenes``); reset seed s picks scene
-            s mod len(file). None: the scene of seed s is sampled (``sample_scenes``).
+            ``"grid+list"`` (plus the 5 obstacles [x, y, r], 66 values) or ``"nearest"`` (goal and
+            the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count). Must
+            match the policy's ``obstacle_encoding``.
+        scene_preset: scene distribution of seeded resets (``core.scene.SCENE_PRESETS``: "paper",
+            "wide", "gates", "blockers", "dense", "goals").
+        scenes_file: JSON scenes file (``core.scene.save_scenes``); reset seed s picks scene s of the
+            file (a seed past its end is an error: run lerobot-eval with ``--seed=0`` and at most as many
+            episodes as the file holds). None: the scene of seed s is sampled (``sample_scenes``).
         render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
-        episode_metrics_path: if set, every finished episode appends its formation metrics as a
-            JSON line to this file (see ``lerobot_formation.episode_metrics``).
+        episode_metrics_path: if set, every finished episode appends its formation metrics (one
+            JSON line) to this file; see ``lerobot_formation.episode_metrics``.
         features: env observation/action features, keyed by the env's own keys; the
             ``environment_state`` shape follows ``obstacle_encoding``.
         features_map: env keys to LeRobot keys (``agent_pos`` -> ``observation.state``,
             ``environment_state`` -> ``observation.environment_state``).
     """
 
+    # Gym task name; the gym id is gym_formation/<task>.
     task: str | None = "FormationNav-v0"
+    # Control rate [Hz] (dt = 0.1 s); also the frame rate of the eval videos.
     fps: int = 10
+    # Control steps per episode before a timeout (600 = 60 s).
     episode_length: int = 600
+    # Obstacle observation: grid (the paper's 7x7 radius grid + goal, 51 values), grid+list (plus the 5
+    # obstacles [x, y, r], 66 values) or nearest (goal + 12 nearest obstacles in the team's frame, 50
+    # values). Must match the policy's observation.environment_state.
     obstacle_encoding: str = "grid"
+    # Scene distribution of seeded resets: paper, or a wider preset (core/scene.py SCENE_PRESETS).
+    scene_preset: str = "paper"
+    # JSON scenes file (core.scene.save_scenes); reset seed s plays scene s mod len(file). None: the
+    # scene of seed s is sampled.
     scenes_file: str | None = None
+    # Render mode of the sub-envs; lerobot-eval renders episodes to video with rgb_array.
     render_mode: str = "rgb_array"
+    # If set, each finished episode appends its formation metrics as a JSON line to this file.
     episode_metrics_path: str | None = None
+    # Parallel tasks of a multi-task benchmark (LeRobot's EnvConfig field; one task here).
+    max_parallel_tasks: int = 1
+    # Skip gymnasium's env checker when LeRobot makes the env (LeRobot's EnvConfig field).
+    disable_env_checker: bool = True
+    # Env observation/action features by the env's own keys; the environment_state shape follows
+    # obstacle_encoding (set in __post_init__).
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
@@ -92,6 +145,8 @@ class FormationEnvConfig(EnvConfig):
             "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(environment_state_dim("grid"),)),
         }
     )
+    # Env keys to LeRobot keys: agent_pos -> observation.state, environment_state ->
+    # observation.environment_state.
     features_map: dict[str, str] = field(
         default_factory=lambda: {
             ACTION: ACTION,
@@ -105,8 +160,17 @@ class FormationEnvConfig(EnvConfig):
             raise config_error(
                 f"env.obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
             )
+        if self.scene_preset not in SCENE_PRESETS:
+            raise config_error(
+                f"env.scene_preset must be one of {tuple(SCENE_PRESETS)}, got {self.scene_preset!r}"
+            )
         if self.episode_length < 1:
             raise config_error(f"env.episode_length must be >= 1, got {self.episode_length}")
+        if self.scenes_file is not None:
+            try:  # at start-up, not at the first evaluation
+                load_scenes(self.scenes_file, SCENE_PRESETS[self.scene_preset])
+            except ValueError as e:
+                raise config_error(f"env.scenes_file: {e}") from e
         self.features["environment_state"] = PolicyFeature(
             type=FeatureType.ENV, shape=(environment_state_dim(self.obstacle_encoding),)
         )
@@ -114,6 +178,16 @@ class FormationEnvConfig(EnvConfig):
     @property
     def package_name(self) -> str:
         return "lerobot_formation"
+
+    def get_env_processors(self):
+        """LeRobot's env processors (identity), after a start-up check: ``lerobot-train`` calls this once
+        it has built the policy and before the first training step (``lerobot-eval`` before the first
+        episode), so an env whose observation the policy cannot take (``--env.obstacle_encoding``) is
+        refused there, not at the first in-training evaluation (``check_policy_features``)."""
+        policy_cfg = caller_policy_config()
+        if policy_cfg is not None:
+            check_policy_features(self, policy_cfg)
+        return super().get_env_processors()
 
     @property
     def gym_id(self) -> str:
@@ -125,14 +199,17 @@ class FormationEnvConfig(EnvConfig):
             "render_mode": self.render_mode,
             "scenes_file": self.scenes_file,
             "obstacle_encoding": self.obstacle_encoding,
+            "scene_config": SCENE_PRESETS[self.scene_preset],
         }
 
-    def make_env_factory(self) -> FormationEnvFactory:
+    def make_env_factory(self, run_id: str | None = None, env_index: int = 0) -> FormationEnvFactory:
         """The picklable factory of one sub-env (see the module docstring for the wrapper stack)."""
         return FormationEnvFactory(
             env_kwargs=self.gym_kwargs,
             episode_length=self.episode_length,
             episode_metrics_path=self.episode_metrics_path,
+            run_id=run_id,
+            env_index=env_index,
         )
 
     def create_envs(
@@ -145,7 +222,8 @@ class FormationEnvConfig(EnvConfig):
         """
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
-        fns = [self.make_env_factory() for _ in range(n_envs)]
+        run_id = new_run_id()  # one per evaluation run, shared by its sub-envs and worker processes
+        fns = [self.make_env_factory(run_id, i) for i in range(n_envs)]
         if use_async_envs and n_envs > 1:
             vec = gym.vector.AsyncVectorEnv(fns, context="forkserver", autoreset_mode=AutoresetMode.SAME_STEP)
         else:

@@ -9,7 +9,11 @@ episode ends:
    one implementation (``core.metrics.episode_metrics``), plus ``outcome``, ``steps``,
    ``scene_seed`` and ``reset_seed``. A vector env carries it in ``info["final_info"]``;
    any Python caller of ``FormationEnvConfig.create_envs`` sees it;
-2. if ``log_path`` is set, appends the same record as one JSON line to that file (NaN -> null).
+2. if ``log_path`` is set, appends the same record as one JSON line to that file (NaN -> null),
+   with ``run_id`` (one per ``create_envs`` call: start time and pid, shared by its sub-envs and
+   their worker processes), ``env_index`` (the sub-env), ``episode_index`` (0, 1, ... per sub-env
+   within the run), ``wall_time`` and ``pid``, so appends of several runs to one file can be told
+   apart. Clearances are null in a scene with no obstacle (``core.metrics``).
    ``--env.episode_metrics_path=<file>`` turns this on for ``lerobot-eval`` and for the env
    evaluation inside ``lerobot-train``; join the lines with ``eval_info.json``'s
    ``per_task[*].metrics`` / per-episode ``seed`` through ``reset_seed``. Episodes LeRobot
@@ -39,17 +43,34 @@ from lerobot_formation.core.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TI
 INFO_KEY = "formation_metrics"
 
 
+def new_run_id() -> str:
+    """A run id for the JSONL lines: local start time and pid, e.g. ``20261201T120501-4242``, plus 4 random
+    hex digits against pid reuse."""
+    return f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}-{os.urandom(2).hex()}"
+
+
 class FormationEpisodeMetrics(gym.Wrapper):
     """Record one ``FormationEnv`` episode and report its formation metrics when it ends.
 
     Args:
         env: a ``FormationEnv``, usually under a ``TimeLimit`` (truncation counts as a timeout).
         log_path: JSON-lines file to append one record per finished episode to; None: no file.
+        run_id: written on every line (default: ``new_run_id()`` of this wrapper's creation).
+        env_index: the sub-env's index in its vector env, written on every line.
     """
 
-    def __init__(self, env: gym.Env, log_path: str | os.PathLike | None = None):
+    def __init__(
+        self,
+        env: gym.Env,
+        log_path: str | os.PathLike | None = None,
+        run_id: str | None = None,
+        env_index: int = 0,
+    ):
         super().__init__(env)
         self.log_path = Path(log_path) if log_path is not None else None
+        self.run_id = run_id or new_run_id()
+        self.env_index = int(env_index)
+        self.episodes_done = 0
         self._trace: dict[str, list] | None = None
         self._reset_seed: int | None = None
 
@@ -78,6 +99,8 @@ class FormationEpisodeMetrics(gym.Wrapper):
         self._record(state, info)
         if terminated or truncated:
             record = self._finish(info)
+            record["episode_index"] = self.episodes_done
+            self.episodes_done += 1
             info = {**info, INFO_KEY: record}
             if self.log_path is not None:
                 self._write(record)
@@ -128,7 +151,7 @@ class FormationEpisodeMetrics(gym.Wrapper):
 
     def _write(self, record: dict[str, Any]) -> None:
         line = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()}
-        line.update(wall_time=time.time(), pid=os.getpid())
+        line.update(run_id=self.run_id, env_index=self.env_index, wall_time=time.time(), pid=os.getpid())
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         # One write of one short line in append mode: lines from several worker processes do not
         # interleave on a local file system.

@@ -28,15 +28,20 @@ from __future__ import annotations
 
 import logging
 
+import numpy as np
 import torch
 from diffusers.training_utils import EMAModel
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel, DiffusionPolicy
-from lerobot.utils.constants import OBS_ENV_STATE
+from lerobot.policies.utils import populate_queues
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from safetensors import safe_open
 from torch import Tensor
 
 from lerobot_formation.configuration_formation_diffusion import ENV_STATE_DIMS, FormationDiffusionConfig
-from lerobot_formation.core.obstacle_grid import ENCODINGS
+from lerobot_formation.core import safety
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
+from lerobot_formation.lerobot_compat import global_conditioning
 
 EMA_PREFIX = "ema_diffusion."
 
@@ -78,6 +83,127 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 power=config.ema_power,
                 foreach=True,
             )
+
+    # -- inference: batched chunk sampling and the safety layer -------------------------------------
+    @property
+    def inference_model(self) -> DiffusionModel:
+        """The model inference uses: the EMA copy in eval mode (if kept), else the live one."""
+        return self.ema_diffusion if self.ema_diffusion is not None and not self.training else self.diffusion
+
+    @torch.inference_mode()
+    def sample_action_chunks(
+        self, batch: dict[str, Tensor], num_candidates: int = 1, noise: Tensor | None = None
+    ) -> Tensor:
+        """K candidate chunks per observation in one batched denoiser call.
+
+        ``batch`` holds normalised observation histories (B, n_obs_steps, ...), as the preprocessor and
+        the queues give them. Returns (B, K, horizon - n_obs_steps + 1, 2) normalised actions, from the
+        current step on (the first ``n_action_steps`` are what ``select_action`` executes). ``noise``
+        (B * K, horizon, 2), if given, is the initial noise, candidates of one observation adjacent.
+        """
+        model = self.inference_model
+        cond = global_conditioning(model, batch)  # (B, cond)
+        B, K = cond.shape[0], int(num_candidates)
+        if K > 1:
+            cond = cond.repeat_interleave(K, dim=0)
+        full = model.conditional_sample(B * K, global_cond=cond, noise=noise)
+        return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
+
+    def _action_scale(self) -> tuple[Tensor, Tensor]:
+        low = torch.tensor(self.config.action_low, dtype=torch.float32)
+        high = torch.tensor(self.config.action_high, dtype=torch.float32)
+        return low, high
+
+    def unnormalize_action(self, action: Tensor) -> Tensor:
+        """Normalised actions (..., 2) in [-1, 1] -> [v, omega] with the fixed bounds (MIN_MAX)."""
+        low, high = self._action_scale()
+        return (action.float().cpu() + 1) / 2 * (high - low) + low
+
+    def normalize_action(self, action: Tensor) -> Tensor:
+        low, high = self._action_scale()
+        return (action.float() - low) / (high - low) * 2 - 1
+
+    def _safety_geometry(self):
+        params = FormationParams()
+        return np.asarray(params.graph.template), params.dt, params.agent_radius
+
+    def choose_chunk(self, env_state: Tensor, chunks: Tensor) -> tuple[Tensor, dict]:
+        """Best-of-K (``core.safety.select_chunk``): env_state (B, D) raw ``nearest`` observation, chunks
+        (B, K, T, 2) normalised -> the kept chunks (B, T, 2) normalised and diagnostics."""
+        slots = get_encoding(self.config.obstacle_encoding).slots(self.config.max_obstacles)
+        goal, obstacles, _ = safety.decode_nearest(env_state.float().cpu().numpy(), slots)
+        raw = self.unnormalize_action(chunks).numpy().astype(np.float64)
+        template, dt, agent_radius = self._safety_geometry()
+        choice, info = safety.select_chunk(
+            raw, obstacles, goal, template, dt, agent_radius, self.config.safety_margin
+        )
+        pick = torch.from_numpy(choice).to(chunks.device)
+        return chunks[torch.arange(len(chunks), device=chunks.device), pick], info
+
+    def filter_action(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
+        """CBF filter (``core.safety.cbf_filter``) on normalised actions (B, 2) -> (filtered, changed)."""
+        slots = get_encoding(self.config.obstacle_encoding).slots(self.config.max_obstacles)
+        _, obstacles, _ = safety.decode_nearest(env_state.float().cpu().numpy(), slots)
+        template, _, agent_radius = self._safety_geometry()
+        raw = self.unnormalize_action(action).numpy().astype(np.float64)
+        out, changed = safety.cbf_filter(
+            raw,
+            obstacles,
+            template,
+            agent_radius,
+            self.config.safety_margin,
+            self.config.cbf_rate,
+            np.asarray(self.config.action_low),
+            np.asarray(self.config.action_high),
+        )
+        filtered = self.normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
+        return filtered, changed
+
+    def reset(self):
+        super().reset()
+        self.safety_stats = {"replans": 0, "replans_none_safe": 0, "steps": 0, "filter_interventions": 0}
+        self._plan: Tensor | None = None  # (B, n_action_steps, 2) normalised chunk of each episode
+        self._plan_pos: Tensor | None = None  # (B,) next action of each episode's chunk
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
+        """``DiffusionPolicy.select_action`` (same observation history), plus the safety layer when
+        ``num_candidates > 1`` or ``safety_filter != "none"``: best-of-K at every replan, the CBF filter
+        on every executed action, and (``replan_on_intervention``) a fresh plan for an episode whose
+        action the filter changed. Each episode of the batch keeps its own chunk and replans on its own,
+        as the batched engine does. Counts go to ``self.safety_stats``.
+        """
+        if not self.config.safety_layer:
+            return super().select_action(batch, noise=noise)
+        batch = {k: v for k, v in batch.items() if k != ACTION}
+        env_now = batch[OBS_ENV_STATE]
+        self._queues = populate_queues(self._queues, batch)
+        B, n_act = len(env_now), self.config.n_action_steps
+        if self._plan is None or len(self._plan) != B:
+            self._plan = torch.zeros(B, n_act, self.config.action_feature.shape[0], device=env_now.device)
+            self._plan_pos = torch.full((B,), n_act, dtype=torch.long)
+        need = torch.nonzero(self._plan_pos >= n_act).flatten()
+        if len(need):
+            stacked = {k: torch.stack(list(self._queues[k]), dim=1)[need] for k in batch if k in self._queues}
+            self._check_observation_sizes(stacked)
+            chunks = self.sample_action_chunks(stacked, self.config.num_candidates, noise=noise)
+            if self.config.num_candidates > 1:
+                chosen, info = self.choose_chunk(env_now[need], chunks)
+                self.safety_stats["replans_none_safe"] += int((~info["any_safe"]).sum())
+            else:
+                chosen = chunks[:, 0]
+            self.safety_stats["replans"] += len(need)
+            self._plan[need] = chosen[:, :n_act].to(self._plan.dtype)
+            self._plan_pos[need] = 0
+        action = self._plan[torch.arange(B), self._plan_pos]
+        self._plan_pos += 1
+        self.safety_stats["steps"] += B
+        if self.config.safety_filter == "cbf":
+            action, changed = self.filter_action(env_now, action)
+            self.safety_stats["filter_interventions"] += int(changed.sum())
+            if self.config.replan_on_intervention:  # the plan met a barrier: replan at the next step
+                self._plan_pos[torch.from_numpy(changed)] = n_act
+        return action
 
     def get_optim_params(self) -> dict:
         """The live diffusion model's parameters only (never the EMA copy)."""

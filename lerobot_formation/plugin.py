@@ -7,9 +7,50 @@ auto-import. Importing registers the env config ``formation``, the policy config
 preprocessor), and turns on the fast windowed reads of ``lerobot_formation.fast_reads``. The policy
 class and its processor factory are found by LeRobot's naming convention
 (``configuration_`` -> ``modeling_`` / ``processor_``).
+
+It also shortens one LeRobot warning (``quiet_torchcodec_warning``): on a machine without FFmpeg's
+shared libraries, every ``DatasetConfig`` / ``LeRobotDataset`` LeRobot makes tries ``import
+torchcodec`` and logs the whole ~35-line loading traceback, twice per ``lerobot-train`` run. This
+project's datasets have no videos, so the decoder never matters; the warning becomes one line.
 """
 
-import lerobot_formation.configuration_formation_diffusion  # noqa: F401
-import lerobot_formation.env_config  # noqa: F401
-import lerobot_formation.fast_reads  # noqa: F401  (fast windowed reads for low-dim datasets)
-import lerobot_formation.processor_formation_diffusion  # noqa: F401  (registers the processor step)
+import logging
+
+TORCHCODEC_NOTE = (
+    "torchcodec cannot be loaded (no FFmpeg 4-8 shared libraries found), so LeRobot decodes videos with "
+    "pyav; formation datasets have no videos. Details: python -c 'import torchcodec'. "
+    "To use torchcodec: apt-get install ffmpeg."
+)
+
+
+class _TorchcodecLoadWarning(logging.Filter):
+    """Replaces LeRobot's "'torchcodec' is installed but cannot be loaded" warning (which embeds the
+    full FFmpeg loading traceback) by ``TORCHCODEC_NOTE``, logged once per process."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.shown = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "'torchcodec' is installed but cannot be loaded" not in record.getMessage():
+            return True
+        if self.shown:
+            return False
+        self.shown = True
+        record.msg, record.args = TORCHCODEC_NOTE, ()
+        return True
+
+
+def quiet_torchcodec_warning() -> None:
+    """Install the filter on LeRobot's ``lerobot.utils.import_utils`` logger (idempotent)."""
+    logger = logging.getLogger("lerobot.utils.import_utils")
+    if not any(isinstance(f, _TorchcodecLoadWarning) for f in logger.filters):
+        logger.addFilter(_TorchcodecLoadWarning())
+
+
+quiet_torchcodec_warning()  # before the imports below, which load LeRobot's configs
+
+import lerobot_formation.configuration_formation_diffusion  # noqa: E402, F401
+import lerobot_formation.env_config  # noqa: E402, F401
+import lerobot_formation.fast_reads  # noqa: E402, F401  (fast windowed reads for low-dim datasets)
+import lerobot_formation.processor_formation_diffusion  # noqa: E402, F401  (registers the processor step)

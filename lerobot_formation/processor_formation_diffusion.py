@@ -27,6 +27,7 @@ from lerobot.processor import (
     PolicyProcessorPipeline,
     ProcessorStepRegistry,
 )
+from lerobot.utils.constants import ACTION
 from lerobot.utils.constants import OBS_ENV_STATE as ENV
 from lerobot.utils.constants import OBS_STATE as STATE
 
@@ -108,10 +109,16 @@ def make_formation_diffusion_pre_post_processors(
     Returns:
         (preprocessor, postprocessor).
     """
+    if getattr(config, "fixed_action_bounds", False) and dataset_stats is not None:
+        # the env's fixed bounds, so that the policy can unnormalise its own chunks (safety layer)
+        action_stats = dict(dataset_stats.get(ACTION, {}))
+        action_stats["min"] = torch.tensor(config.action_low, dtype=torch.float32)
+        action_stats["max"] = torch.tensor(config.action_high, dtype=torch.float32)
+        dataset_stats = {**dataset_stats, ACTION: action_stats}
     pre, post = make_diffusion_pre_post_processors(config, dataset_stats)
     if getattr(config, "egocentric_obstacles", False):
         steps = list(pre.steps)
         at = next(i for i, st in enumerate(steps) if isinstance(st, NormalizerProcessorStep))
-        steps.insert(at, EgocentricObstaclesProcessorStep(max_obstacles=config.max_obstacles))
+        steps.insert(at, EgocentricObstaclesProcessorStep(max_obstacles=config.max_obstacles or 5))
         pre.steps = steps
     return pre, post

@@ -3,7 +3,10 @@
 Same physics, observations, rewards and termination as ``FormationEnv`` (both call the core's
 ``dynamics.step``), with gymnasium's vector API and SAME_STEP autoreset: when a team's episode ends,
 the returned observation already belongs to its next episode and ``infos["final_obs"]`` /
-``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i.
+``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i;
+with ``scenes_file``, scene s + i of the file (a seed past its end raises ``ValueError``, as in
+``FormationEnv``), and an autoreset picks a scene of the file at random. Info ``clearance`` and
+``midpoint_clearance`` are NaN in a scene with no obstacle (``FormationEnv``: None).
 """
 
 from __future__ import annotations
@@ -14,10 +17,10 @@ from gymnasium.vector.utils import batch_space
 
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome
+from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
+from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome, step_reward
 from lerobot_formation.core.scene import FAR, SceneConfig, Scenes, load_scenes, sample_scenes
-from lerobot_formation.env import TASK, action_space, midpoint_state, observation_spaces
+from lerobot_formation.env import TASK, action_space, midpoint_state, observation_spaces, scene_index
 
 
 class FormationVectorEnv(VectorEnv):
@@ -30,7 +33,7 @@ class FormationVectorEnv(VectorEnv):
         obstacle_encoding: str = "grid",
         params: FormationParams | None = None,
         scene_config: SceneConfig | None = None,
-        max_obstacles: int = 5,
+        max_obstacles: int | None = None,
         max_episode_steps: int = 600,
     ):
         if num_envs < 1:
@@ -41,13 +44,14 @@ class FormationVectorEnv(VectorEnv):
         self.obstacle_encoding = obstacle_encoding
         self.max_obstacles = max_obstacles
         self.max_episode_steps = max_episode_steps
+        self.scenes_file = scenes_file
         self.file_scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.single_observation_space = observation_spaces(obstacle_encoding, max_obstacles)
         self.single_action_space = action_space(self.params)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.task = TASK
-        M = max(self.scene_config.n_obstacles[1], 1)
+        M = max(self.scene_config.max_obstacles, 1)
         if self.file_scenes is not None:
             M = max(M, self.file_scenes.obstacles.shape[1])
         self._M = M
@@ -56,7 +60,8 @@ class FormationVectorEnv(VectorEnv):
 
     def _scenes_for(self, seeds: np.ndarray) -> Scenes:
         if self.file_scenes is not None:
-            return self.file_scenes[np.asarray(seeds) % len(self.file_scenes)]
+            n = len(self.file_scenes)
+            return self.file_scenes[[scene_index(s, n, self.scenes_file) for s in np.asarray(seeds).ravel()]]
         return sample_scenes(seeds, self.scene_config)
 
     def _load(self, idx: np.ndarray, new: Scenes) -> None:
@@ -77,7 +82,7 @@ class FormationVectorEnv(VectorEnv):
         )
         self.state.set(idx, dynamics.initial_state(new.start, self.params))
         self._env_state[idx] = environment_state(
-            obs, mask, new.goal, self.obstacle_encoding, self.max_obstacles
+            obs, mask, new.goal, self.obstacle_encoding, self.max_obstacles, pose=self.state.pose[idx]
         )
         self._steps[idx] = 0
 
@@ -93,7 +98,9 @@ class FormationVectorEnv(VectorEnv):
             if seeds.shape != (B,):
                 raise ValueError(f"seed must be an int or {B} ints, got shape {seeds.shape}")
         else:
-            seeds = self.np_random.integers(0, 2**31 - 1, size=B)
+            seeds = self.np_random.integers(
+                0, len(self.file_scenes) if self.file_scenes is not None else 2**31 - 1, size=B
+            )
         options = options or {}
         new = options.get("scenes")
         if new is None:
@@ -121,12 +128,11 @@ class FormationVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         a = dynamics.check_action(actions, self.num_envs)
         goal = self.scenes.goal
-        prev_dist = np.linalg.norm(self.state.pose[:, :2] - goal, axis=-1)
+        prev_pose = self.state.pose
         self.state = dynamics.step(self.state, a, self.params)
         self._steps += 1
         outcome, clear, mid = step_outcome(self.state, self.scenes.obstacles, goal, self.params)
-        dist = np.linalg.norm(self.state.pose[:, :2] - goal, axis=-1)
-        reward = prev_dist - dist + (outcome == SUCCESS) - (outcome == COLLISION)
+        reward = step_reward(prev_pose, self.state.pose, goal, outcome)
         terminated = (outcome == SUCCESS) | (outcome == COLLISION)
         truncated = (self._steps >= self.max_episode_steps) & ~terminated
         obs = self._obs()
@@ -138,12 +144,18 @@ class FormationVectorEnv(VectorEnv):
             infos["final_info"] = {k: v.copy() for k, v in infos.items()}
             infos["_final_obs"] = done.copy()
             infos["_final_info"] = done.copy()
-            seeds = self.np_random.integers(0, 2**31 - 1, size=len(idx))
+            high = len(self.file_scenes) if self.file_scenes is not None else 2**31 - 1
+            seeds = self.np_random.integers(0, high, size=len(idx))
             self._load(idx, self._scenes_for(seeds))
             obs = self._obs()
         return obs, reward.astype(np.float64), terminated, truncated, infos
 
     def _obs(self) -> dict[str, np.ndarray]:
+        if get_encoding(self.obstacle_encoding).egocentric:  # the body-frame encoding moves with the team
+            s = self.scenes
+            self._env_state = environment_state(
+                s.obstacles, s.mask, s.goal, self.obstacle_encoding, self.max_obstacles, pose=self.state.pose
+            )
         return {"agent_pos": midpoint_state(self.state), "environment_state": self._env_state.copy()}
 
     def _info(self, outcome, clear, mid) -> dict[str, np.ndarray]:
@@ -152,7 +164,7 @@ class FormationVectorEnv(VectorEnv):
             "is_success": outcome == SUCCESS,
             "is_collision": outcome == COLLISION,
             "formation_error": dynamics.formation_error(pos, self.params.graph),
-            "clearance": clear.min(axis=1),
-            "midpoint_clearance": mid,
+            "clearance": np.where(np.isfinite(c := clear.min(axis=1)), c, np.nan),  # NaN: no obstacle
+            "midpoint_clearance": np.where(np.isfinite(mid), mid, np.nan),
             "scene_seed": self.scenes.seeds.copy(),
         }

@@ -81,8 +81,8 @@ def test_reset_options_scene_and_scenes_file(tmp_path):
     env = FormationEnv(scenes_file=str(tmp_path / "s.json"))
     env.reset(seed=1)
     np.testing.assert_allclose(env.scene.obstacles[env.scene.mask], sc[1].obstacles[sc[1].mask])
-    env.reset(seed=2)  # seeds index modulo the file
-    np.testing.assert_allclose(env.scene.obstacles[env.scene.mask], sc[0].obstacles[sc[0].mask])
+    with pytest.raises(ValueError, match="seed 2 is past the end of scenes file"):  # no wrap-around
+        env.reset(seed=2)
     env2 = FormationEnv()
     _, info = env2.reset(options={"scene": {"obstacles": [[3, 3, 0.5]], "goal": [4, 6]}})
     assert info["is_success"] is False

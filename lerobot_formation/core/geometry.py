@@ -4,6 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+# Padded obstacle rows sit at (1e6, 1e6) with radius 0 (core.scene.FAR), so a clearance this large
+# means "no obstacle": scenes keep start and goal within 50 m of the origin.
+NO_OBSTACLE = 1.0e5  # [m]
+
+
+def no_obstacle_as_inf(clearance: np.ndarray) -> np.ndarray:
+    """Clearances with padding values (``>= NO_OBSTACLE``: the scene has no obstacle) set to +inf,
+    the distance to the nearest of no obstacles. Metrics turn inf into NaN (null in JSON)."""
+    clearance = np.asarray(clearance, dtype=np.float64)
+    return np.where(clearance >= NO_OBSTACLE, np.inf, clearance)
+
 
 def point_clearance(points: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
     """Distance from points (B, ..., 2) to the nearest obstacle surface, obstacles (B, M, 3) -> (B, ...).

@@ -14,6 +14,9 @@ midpoint positions ``p_0 .. p_n`` (``poses[..., :2]``), actions ``a_t = [v_t, om
   the nearest obstacle surface (``midpoint_clearance``).
 - ``formation_min_clearance``  min over t = 0..n of the smallest agent-disc gap to any obstacle
   (``agent_clearance``), the whole formation's minimum.
+  The three clearances are NaN (``null`` in results.json, skipped by ``summarize``) in a scene with
+  no obstacle: the distance to the nearest of no obstacles is not a number to average (records hold
+  +inf there, or the padding distance ``>= geometry.NO_OBSTACLE`` of older records).
 - ``mean_control``     mean_{t=0..n-1} ||a_t||
 - ``control_smoothness``  mean_{t=1..n-1} ||a_t - a_{t-1}|| / dt (needs n >= 2).
 - ``energy``           sum_{t=0..n-1} ||a_t||^2 dt
@@ -41,6 +44,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from lerobot_formation.core.geometry import NO_OBSTACLE
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
 
 FLAG_KEYS = ("success", "collision", "timeout")
@@ -113,6 +117,12 @@ def _masked_extreme(x: np.ndarray, m: np.ndarray, fn) -> np.ndarray:
     return np.where(m.any(axis=1), out, np.nan)
 
 
+def _obstacle_clearance(x: np.ndarray) -> np.ndarray:
+    """Clearances with "no obstacle" (+inf or padding ``>= NO_OBSTACLE``) as NaN."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(np.isinf(x) | (x >= NO_OBSTACLE), np.nan, x)
+
+
 def _take_at(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """x[b, idx[b]], NaN where idx[b] < 0."""
     ok = idx >= 0
@@ -171,9 +181,12 @@ def episode_metrics(
         out["path_optimality"] = np.where(length > 0, straight / length, np.nan)
     out["tracking_deviation"] = _masked_mean(_segment_distance(p, start, goal), pose_ok)
 
-    out["min_clearance"] = _masked_extreme(records.midpoint_clearance, pose_ok, np.min)
-    out["mean_clearance"] = _masked_mean(records.midpoint_clearance, pose_ok)
-    out["formation_min_clearance"] = _masked_extreme(records.agent_clearance, pose_ok, np.min)
+    mid_clear = _obstacle_clearance(records.midpoint_clearance)
+    out["min_clearance"] = _masked_extreme(mid_clear, pose_ok, np.min)
+    out["mean_clearance"] = _masked_mean(mid_clear, pose_ok)
+    out["formation_min_clearance"] = _masked_extreme(
+        _obstacle_clearance(records.agent_clearance), pose_ok, np.min
+    )
 
     norm_a = np.linalg.norm(a, axis=-1)
     out["mean_control"] = _masked_mean(norm_a, act_ok)

@@ -14,6 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 _SHIFTS = [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)]
+# Cells per side of the grid: 600 at 0.2 m covers 120 m, more than scenes can span (core.scene keeps
+# start and goal within MAX_COORDINATE = 50 m of the origin). Beyond it the wavefront would take hours
+# and terabytes (a goal 1e5 m away: 1.8 TiB), so it is refused.
+MAX_GRID_CELLS = 600
 
 
 @dataclass
@@ -71,6 +75,12 @@ def cost_to_go(
     lo, hi = bounds
     lo = min(lo, float(goal.min()) - 2.0)
     hi = max(hi, float(goal.max()) + 2.0)
+    if not (np.isfinite(lo) and np.isfinite(hi)) or (hi - lo) / resolution >= MAX_GRID_CELLS:
+        raise ValueError(
+            f"cost_to_go: goals {np.asarray(goal).min():.4g}..{np.asarray(goal).max():.4g} m need a grid over "
+            f"[{lo:.4g}, {hi:.4g}] m, more than {MAX_GRID_CELLS} cells of {resolution:g} m per side; keep goals "
+            "within 50 m of the origin (core.scene.MAX_COORDINATE)"
+        )
     n = int(np.ceil((hi - lo) / resolution)) + 1
     axis = lo + resolution * np.arange(n)
     X, Y = np.meshgrid(axis, axis, indexing="ij")

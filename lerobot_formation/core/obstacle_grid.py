@@ -1,23 +1,35 @@
-"""The planner's obstacle encoding (paper Sec. III, SPEC "What the planner sees").
+"""The planner's obstacle encodings: what ``observation.environment_state`` holds (SPEC "What the
+planner sees"). One registry, ``ENCODING_REGISTRY``; a policy config stores the encoding's name.
 
-7x7 grid of 1 m cells flattened to 49 values. The obstacle with centre c goes to cell
-(i, j) = floor(c) - (1, 1) and the cell stores its radius. With centres in [1.5, 6] the indices
-are 0..5; centres outside the grid are dropped (clipped would lie). When two centres share a cell the
-cell keeps the larger radius: the grid is a conservative occupancy hint, and the larger obstacle is
-the one that constrains the path more.
+``grid`` (the paper's, Sec. III): a 7x7 grid of 1 m cells flattened to 49 values, then the goal
+[x, y]: 51 values. The obstacle with centre c goes to cell (i, j) = floor(c) - (1, 1) and the cell
+stores its radius. With centres in [1.5, 6] the indices are 0..5; centres outside the grid are
+dropped (clipped would lie). When two centres share a cell the cell keeps the larger radius: the grid
+is a conservative occupancy hint, and the larger obstacle is the one that constrains the path more.
 
-``environment_state`` appends the goal (2 values) to the grid: 51 values, the paper's encoding
-("grid"). The "grid+list" encoding also appends the exact obstacles [x, y, r], sorted by x then y
-and zero-padded to ``max_obstacles`` rows: 51 + 3 * max_obstacles values. The grid alone cannot say
-where in its 1 m cell an obstacle sits; the list can.
+``grid+list``: the grid, the goal, then the exact obstacles [x, y, r], sorted by x then y and
+zero-padded to ``max_obstacles`` rows (default 5): 51 + 3 max_obstacles values. A scene with more
+obstacles than rows is refused (the list would silently drop some).
+
+``nearest`` (egocentric, any number of obstacles): the goal in the midpoint's body frame (x right,
+y along the heading), then the ``max_obstacles`` (default 12) obstacles nearest to the midpoint by
+surface distance |c - p| - r, each as [x_b, y_b, r, present] in the body frame, nearest first;
+empty slots are zeros (present = 0): 2 + 4 max_obstacles values. A scene with more obstacles runs:
+the nearest ones are observed, as a range sensor would. It depends on the midpoint pose, so it is
+recomputed every step.
+
+Adding an encoding: write its ``encode`` and ``names`` and add one ``register(ObstacleEncoding(...))``
+line at the bottom of this file.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 
 GRID_SIZE = 7
-ENCODINGS = ("grid", "grid+list")
 
 
 def obstacle_grid(obstacles: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -32,29 +44,142 @@ def obstacle_grid(obstacles: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return grid.astype(np.float32)
 
 
-def environment_state_dim(encoding: str = "grid", max_obstacles: int = 5) -> int:
-    if encoding not in ENCODINGS:
-        raise ValueError(f"obstacle encoding must be one of {ENCODINGS}, got {encoding!r}")
-    return GRID_SIZE * GRID_SIZE + 2 + (3 * max_obstacles if encoding == "grid+list" else 0)
+def world_to_body(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """World points (B, ..., 2) into the body frames of poses (B, 3): x right, y along the heading.
+
+    The inverse of ``dynamics.rotate_body`` plus the translation: body = R(phi - pi/2)^T (p - p_m).
+    """
+    B = len(pose)
+    shape = (B,) + (1,) * (points.ndim - 2)
+    a = pose[:, 2] - np.pi / 2
+    c, s = np.cos(a).reshape(shape), np.sin(a).reshape(shape)
+    dx = points[..., 0] - pose[:, 0].reshape(shape)
+    dy = points[..., 1] - pose[:, 1].reshape(shape)
+    return np.stack([dx * c + dy * s, -dx * s + dy * c], axis=-1)
+
+
+def _grid_names(_: int) -> list[str]:
+    return [f"grid_{i}_{j}" for i in range(GRID_SIZE) for j in range(GRID_SIZE)] + ["goal_x", "goal_y"]
+
+
+def _encode_grid(obstacles, mask, goal, pose, max_obstacles) -> np.ndarray:
+    return np.concatenate([obstacle_grid(obstacles, mask), goal.astype(np.float32)], axis=1)
+
+
+def _grid_list_names(max_obstacles: int) -> list[str]:
+    return _grid_names(0) + [f"obstacle_{k}_{c}" for k in range(max_obstacles) for c in ("x", "y", "r")]
+
+
+def _encode_grid_list(obstacles, mask, goal, pose, max_obstacles) -> np.ndarray:
+    B, M, _ = obstacles.shape
+    count = mask.sum(axis=1)
+    if int(count.max(initial=0)) > max_obstacles:
+        b = int(np.argmax(count))
+        raise ValueError(
+            f"scene {b} has {int(count[b])} obstacles, more than the {max_obstacles} rows of the "
+            f"'grid+list' encoding (max_obstacles={max_obstacles}); use the 'nearest' encoding for "
+            "scenes with more obstacles"
+        )
+    key = np.where(mask, obstacles[..., 0] * 1e3 + obstacles[..., 1], np.inf)
+    order = np.argsort(key, axis=1, kind="stable")
+    sorted_obs = np.take_along_axis(np.where(mask[..., None], obstacles, 0.0), order[..., None], axis=1)
+    lst = np.zeros((B, max_obstacles, 3))
+    m = min(M, max_obstacles)
+    lst[:, :m] = sorted_obs[:, :m]
+    return np.concatenate(
+        [_encode_grid(obstacles, mask, goal, pose, 0), lst.reshape(B, -1).astype(np.float32)], axis=1
+    )
+
+
+def _nearest_names(max_obstacles: int) -> list[str]:
+    return ["goal_bx", "goal_by"] + [
+        f"near_{k}_{c}" for k in range(max_obstacles) for c in ("bx", "by", "r", "present")
+    ]
+
+
+def _encode_nearest(obstacles, mask, goal, pose, max_obstacles) -> np.ndarray:
+    if pose is None:
+        raise ValueError("the 'nearest' encoding is egocentric: environment_state needs the midpoint pose")
+    B, M, _ = obstacles.shape
+    goal_b = world_to_body(goal[:, None, :], pose)[:, 0]  # (B, 2)
+    centres = world_to_body(obstacles[..., :2], pose)  # (B, M, 2)
+    surface = np.where(mask, np.linalg.norm(centres, axis=-1) - obstacles[..., 2], np.inf)
+    order = np.argsort(surface, axis=1, kind="stable")[:, :max_obstacles]
+    m = order.shape[1]
+    rows = np.zeros((B, max_obstacles, 4))
+    take = lambda a: np.take_along_axis(a, order, axis=1)  # noqa: E731
+    present = take(mask)
+    rows[:, :m, 0] = take(centres[..., 0])
+    rows[:, :m, 1] = take(centres[..., 1])
+    rows[:, :m, 2] = take(obstacles[..., 2])
+    rows[:, :m, 3] = 1.0
+    rows[:, :m] *= present[..., None]
+    return np.concatenate([goal_b, rows.reshape(B, -1)], axis=1).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class ObstacleEncoding:
+    """One way to write obstacles and goal into ``observation.environment_state``.
+
+    Attributes:
+        name: registry key, stored in env and policy configs.
+        default_slots: obstacle rows when ``max_obstacles`` is not given (0: no rows).
+        per_slot: values per obstacle row.
+        fixed: values before the rows (grid and goal).
+        egocentric: depends on the midpoint pose, so the env recomputes it every step.
+        encode: (obstacles (B, M, 3), mask (B, M), goal (B, 2), pose (B, 3) | None, slots) -> (B, D).
+        names: slots -> the D feature names.
+    """
+
+    name: str
+    default_slots: int
+    per_slot: int
+    fixed: int
+    egocentric: bool
+    encode: Callable[..., np.ndarray]
+    names: Callable[[int], list[str]]
+
+    def slots(self, max_obstacles: int | None) -> int:
+        return self.default_slots if max_obstacles is None or not self.per_slot else int(max_obstacles)
+
+    def dim(self, max_obstacles: int | None = None) -> int:
+        return self.fixed + self.per_slot * self.slots(max_obstacles)
+
+
+ENCODING_REGISTRY: dict[str, ObstacleEncoding] = {}
+
+
+def register(encoding: ObstacleEncoding) -> ObstacleEncoding:
+    ENCODING_REGISTRY[encoding.name] = encoding
+    return encoding
+
+
+def get_encoding(name: str) -> ObstacleEncoding:
+    if name not in ENCODING_REGISTRY:
+        raise ValueError(f"obstacle encoding must be one of {tuple(ENCODING_REGISTRY)}, got {name!r}")
+    return ENCODING_REGISTRY[name]
+
+
+def environment_state_dim(encoding: str = "grid", max_obstacles: int | None = None) -> int:
+    return get_encoding(encoding).dim(max_obstacles)
 
 
 def environment_state(
-    obstacles: np.ndarray, mask: np.ndarray, goal: np.ndarray, encoding: str = "grid", max_obstacles: int = 5
+    obstacles: np.ndarray,
+    mask: np.ndarray,
+    goal: np.ndarray,
+    encoding: str = "grid",
+    max_obstacles: int | None = None,
+    pose: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The ``environment_state`` observation, (B, 51) for "grid" or (B, 51 + 3 max_obstacles) float32."""
-    environment_state_dim(encoding, max_obstacles)
-    parts = [obstacle_grid(obstacles, mask), goal.astype(np.float32)]
-    if encoding == "grid+list":
-        B, M, _ = obstacles.shape
-        if int(mask.sum(axis=1).max(initial=0)) > max_obstacles:
-            raise ValueError(
-                f"a scene has {int(mask.sum(axis=1).max())} obstacles, more than {max_obstacles=}"
-            )
-        key = np.where(mask, obstacles[..., 0] * 1e3 + obstacles[..., 1], np.inf)
-        order = np.argsort(key, axis=1, kind="stable")
-        sorted_obs = np.take_along_axis(np.where(mask[..., None], obstacles, 0.0), order[..., None], axis=1)
-        lst = np.zeros((B, max_obstacles, 3))
-        m = min(M, max_obstacles)
-        lst[:, :m] = sorted_obs[:, :m]
-        parts.append(lst.reshape(B, -1).astype(np.float32))
-    return np.concatenate(parts, axis=1)
+    """The ``environment_state`` observation (B, D) float32 of ``encoding`` (see the module docstring)."""
+    enc = get_encoding(encoding)
+    return enc.encode(obstacles, mask, goal, pose, enc.slots(max_obstacles))
+
+
+register(ObstacleEncoding("grid", 0, 0, GRID_SIZE * GRID_SIZE + 2, False, _encode_grid, _grid_names))
+register(
+    ObstacleEncoding("grid+list", 5, 3, GRID_SIZE * GRID_SIZE + 2, False, _encode_grid_list, _grid_list_names)
+)
+register(ObstacleEncoding("nearest", 12, 4, 2, True, _encode_nearest, _nearest_names))
+ENCODINGS = tuple(ENCODING_REGISTRY)

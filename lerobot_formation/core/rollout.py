@@ -27,7 +27,7 @@ from lerobot_formation.core.dynamics import (
     initial_state,
     step,
 )
-from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance
+from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
 from lerobot_formation.core.pac import PACConfig, PathAwareController
 from lerobot_formation.core.scene import Scenes
 
@@ -61,14 +61,28 @@ class PACController:
 def step_outcome(
     state: FormationState, obstacles: np.ndarray, goal: np.ndarray, params: FormationParams
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(outcome (B,), agent clearances (B, N), midpoint clearance (B,)) after a step."""
-    clear = agent_clearances(agent_positions(state), obstacles, params.agent_radius)
-    mid = midpoint_clearance(state.pose, obstacles)
+    """(outcome (B,), agent clearances (B, N), midpoint clearance (B,)) after a step; clearances are
+    +inf in a scene with no obstacle (``geometry.no_obstacle_as_inf``)."""
+    clear = no_obstacle_as_inf(agent_clearances(agent_positions(state), obstacles, params.agent_radius))
+    mid = no_obstacle_as_inf(midpoint_clearance(state.pose, obstacles))
     outcome = np.zeros(len(goal), dtype=np.int64)
     reached = np.linalg.norm(state.pose[:, :2] - goal, axis=-1) <= params.goal_tolerance
     outcome[reached] = SUCCESS
     outcome[(clear < 0).any(axis=1)] = COLLISION
     return outcome, clear, mid
+
+
+def goal_distance(pose: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """Midpoint-to-goal distance, poses (B, 3) and goals (B, 2) -> (B,). Written out (not a BLAS norm)
+    so that a team's value does not depend on the batch it is in."""
+    dx, dy = pose[:, 0] - goal[:, 0], pose[:, 1] - goal[:, 1]
+    return np.sqrt(dx * dx + dy * dy)
+
+
+def step_reward(prev_pose: np.ndarray, pose: np.ndarray, goal: np.ndarray, outcome: np.ndarray) -> np.ndarray:
+    """The envs' reward (B,): progress toward the goal in metres, +1 on success, -1 on collision."""
+    progress = goal_distance(prev_pose, goal) - goal_distance(pose, goal)
+    return progress + (outcome == SUCCESS) - (outcome == COLLISION)
 
 
 @dataclass
@@ -82,8 +96,8 @@ class EpisodeRecords:
         formation_error: (B, T+1) e_d.
         follower_velocity_error: (B, T) mean over followers of ||v_i - v_i*||, v_i* the velocity of
             the follower's template slot.
-        agent_clearance: (B, T+1) smallest agent-disc gap to any obstacle.
-        midpoint_clearance: (B, T+1) midpoint to nearest obstacle surface.
+        agent_clearance: (B, T+1) smallest agent-disc gap to any obstacle (+inf: no obstacle).
+        midpoint_clearance: (B, T+1) midpoint to nearest obstacle surface (+inf: no obstacle).
         outcome: (B,) SUCCESS, COLLISION or TIMEOUT.
         steps: (B,) control steps taken.
     """
@@ -179,5 +193,7 @@ def _record(rec: EpisodeRecords, idx, t: int, state: FormationState, obstacles: 
     rec.poses[idx, t] = state.pose
     rec.positions[idx, t] = pos
     rec.formation_error[idx, t] = formation_error(pos, params.graph)
-    rec.agent_clearance[idx, t] = agent_clearances(pos, obstacles, params.agent_radius).min(axis=1)
-    rec.midpoint_clearance[idx, t] = midpoint_clearance(state.pose, obstacles)
+    rec.agent_clearance[idx, t] = no_obstacle_as_inf(
+        agent_clearances(pos, obstacles, params.agent_radius).min(axis=1)
+    )
+    rec.midpoint_clearance[idx, t] = no_obstacle_as_inf(midpoint_clearance(state.pose, obstacles))

@@ -12,7 +12,13 @@ is the scene. The validity check (``scene_validity``) runs on all candidates of 
 
 Scenes files are JSON: ``{"scenes": [{"obstacles": [[x, y, r], ...], "goal": [x, y],
 "start": [x, y, phi]}, ...]}``; ``start`` is optional (default: the paper's start, midpoint at the
-origin facing +y).
+origin facing +y). Loading checks every scene and raises ``ValueError`` naming the scene: only these
+three keys; numbers only (int or float; not bool, str or null); finite values, positive radii,
+obstacle values within ``MAX_OBSTACLE_VALUE``; start
+and goal within ``MAX_COORDINATE`` of the origin and the goal within ``MAX_GOAL_DISTANCE`` of the
+start (the grids of the passage check and of the controllers' cost-to-go stay small: a team covers
+at most v_max * max_steps * dt = 36 m in an episode); no obstacle over the start formation or the
+goal; and a passage from the start to the goal (``passage_exists``).
 """
 
 from __future__ import annotations
@@ -29,6 +35,12 @@ PAPER_START = (0.0, 0.0, np.pi / 2)  # midpoint pose [x, y, phi] of the paper's 
 # Seed ranges of the evaluation protocols (disjoint, like diffusion_policy's train/test seeds).
 DATASET_SEED_START = 0
 UNSEEN_SEED_START = 1_000_000
+MAX_GOAL_DISTANCE = 50.0  # [m] farthest goal from the start a scene may have
+MAX_COORDINATE = 50.0  # [m] start and goal coordinates within [-MAX_COORDINATE, MAX_COORDINATE]
+MAX_OBSTACLE_VALUE = (
+    1000.0  # [m] obstacle x, y and r within [-1000, 1000] (no overflow, no padding look-alike)
+)
+SCENE_KEYS = ("obstacles", "goal", "start")  # the keys of a scene in a scenes file
 
 
 @dataclass(frozen=True)
@@ -47,17 +59,78 @@ class SceneConfig:
     start_margin: float = 0.2  # [m] clearance each start agent must keep
     grid_resolution: float = 0.1  # [m] passage check
     chunk: int = 64  # candidates drawn per rng call
+    # Wider layouts (None / 0 everywhere: the paper's layout above, drawn exactly as before).
+    goal_distance: tuple[float, float] | None = None  # [m] goal at this distance from the start ...
+    goal_bearing: tuple[float, float] = (0.0, 2 * np.pi)  # [rad] ... in a world direction from this range
+    heading_offset: tuple[float, float] = (0.0, 0.0)  # [rad] start heading = goal bearing + offset
+    lateral: float = 2.5  # [m] obstacle centres within this distance of the start-goal line
+    gate_prob: float = 0.0  # chance of a wall of 4 obstacles across the line with one narrow gap
+    gate_gap: tuple[float, float] = (1.3, 1.7)  # [m] surface gap of the gate (the square needs 1.2)
+    blocker_prob: float = 0.0  # chance of an obstacle centred on the straight line
+    blocker_radius: tuple[float, float] = (0.5, 1.0)  # [m]
+    paper_prob: float = 0.0  # chance that a candidate uses the paper's layout instead
 
     def __post_init__(self) -> None:
         lo, hi = self.n_obstacles
         if not 0 <= lo <= hi:
             raise ValueError(f"n_obstacles must be a range 0 <= lo <= hi, got {self.n_obstacles}")
+        for name in ("gate_prob", "blocker_prob", "paper_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1], got {getattr(self, name)}")
+        if self.goal_distance is not None and not 0 < self.goal_distance[0] <= self.goal_distance[1]:
+            raise ValueError(f"goal_distance must satisfy 0 < lo <= hi, got {self.goal_distance}")
+        far = max(
+            self.goal_distance[1] if self.goal_distance else 0.0,
+            float(np.hypot(self.goal[0] - self.start[0], self.goal[1] - self.start[1])),
+        )
+        if far > MAX_GOAL_DISTANCE:
+            raise ValueError(
+                f"goals at most {MAX_GOAL_DISTANCE:g} m from the start are supported, got {far:g} m"
+            )
         if not 0 < self.radius[0] <= self.radius[1]:
             raise ValueError(f"radius range must satisfy 0 < lo <= hi, got {self.radius}")
         if not self.centre_low < self.centre_high:
             raise ValueError(
                 f"centre range must satisfy low < high, got {self.centre_low}, {self.centre_high}"
             )
+
+    @property
+    def wide(self) -> bool:
+        """False for the paper's layout (fixed goal and start, centres in a square)."""
+        return self.goal_distance is not None or self.gate_prob > 0 or self.blocker_prob > 0
+
+    @property
+    def max_obstacles(self) -> int:
+        """Obstacle slots a scene of this distribution can need."""
+        return self.n_obstacles[1] + (4 if self.gate_prob > 0 else 0) + (1 if self.blocker_prob > 0 else 0)
+
+
+# Named scene distributions (``--scene-preset`` of the generator, ``<preset>:N`` scene sets of the bench).
+# "paper" is SPEC's; the others are what a user meets beyond it: other goals and start headings,
+# 0-10 obstacles of radius 0.2-1.0 along the way, narrow gates, obstacles straddling the straight line.
+_OTHER_GOALS = dict(goal_distance=(5.0, 9.0), heading_offset=(-np.pi / 2, np.pi / 2))
+SCENE_PRESETS: dict[str, SceneConfig] = {
+    "paper": SceneConfig(),
+    "goals": SceneConfig(**_OTHER_GOALS),
+    "dense": SceneConfig(n_obstacles=(8, 10), radius=(0.2, 1.0), **_OTHER_GOALS),
+    "gates": SceneConfig(n_obstacles=(0, 3), radius=(0.2, 1.0), gate_prob=1.0, **_OTHER_GOALS),
+    "blockers": SceneConfig(n_obstacles=(0, 4), radius=(0.2, 1.0), blocker_prob=1.0, **_OTHER_GOALS),
+    "wide": SceneConfig(
+        n_obstacles=(0, 10),
+        radius=(0.2, 1.0),
+        gate_prob=0.25,
+        blocker_prob=0.35,
+        paper_prob=0.4,
+        **_OTHER_GOALS,
+    ),
+}
+HARD_PRESETS = ("gates", "blockers", "dense", "goals")
+
+
+def scene_preset(name: str) -> SceneConfig:
+    if name not in SCENE_PRESETS:
+        raise ValueError(f"scene preset must be one of {tuple(SCENE_PRESETS)}, got {name!r}")
+    return SCENE_PRESETS[name]
 
 
 @dataclass(frozen=True)
@@ -126,42 +199,66 @@ def _pad(obstacles: np.ndarray, M: int) -> np.ndarray:
     return np.concatenate([obstacles, pad], axis=1)
 
 
+def _is_number(v) -> bool:
+    """int or float (NumPy's too), not bool: JSON's true/false must not pass as 1/0."""
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool | np.bool_)
+
+
+def _numbers(value, form: str, what: str, b: int) -> np.ndarray:
+    """``value`` as floats; ValueError naming scene b unless it is a list of numbers like ``form``."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    n = form.count(",") + 1
+    if not isinstance(value, list | tuple) or len(value) != n or not all(_is_number(v) for v in value):
+        raise ValueError(f"scene {b}: {what} must be {form} (numbers), got {value!r:.120}")
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except OverflowError as e:  # an int beyond float range
+        raise ValueError(f"scene {b}: {what} holds a number out of range: {value!r:.120}") from e
+
+
 def scenes_from_list(items: list[dict], config: SceneConfig | None = None, check: bool = True) -> Scenes:
-    """Build Scenes from dicts ``{"obstacles": [[x, y, r], ...], "goal": [x, y], "start"?: [x, y, phi]}``."""
+    """Build Scenes from dicts ``{"obstacles": [[x, y, r], ...], "goal": [x, y], "start"?: [x, y, phi]}``.
+
+    Every malformed input raises ``ValueError`` naming the scene (wrong keys, types or shapes); with
+    ``check`` (default) also every impossible scene (``check_scenes``)."""
     config = config or SceneConfig()
-    if not isinstance(items, list) or not items:
+    if not isinstance(items, list | tuple) or not items:
         raise ValueError(f"expected a non-empty list of scenes, got {type(items).__name__} {items!r:.80}")
-    M = max(1, max(len(s.get("obstacles", [])) if isinstance(s, dict) else 0 for s in items))
+    parsed = []
+    for b, s in enumerate(items):
+        if not isinstance(s, dict) or "obstacles" not in s or "goal" not in s:
+            raise ValueError(f"scene {b} must be a dict with keys 'obstacles' and 'goal', got {s!r:.120}")
+        unknown = sorted(str(k) for k in s if k not in SCENE_KEYS)
+        if unknown:
+            raise ValueError(
+                f"scene {b}: unknown key {unknown[0]!r}; allowed keys: {', '.join(map(repr, SCENE_KEYS))}"
+            )
+        raw = s["obstacles"]
+        if isinstance(raw, np.ndarray):
+            raw = raw.tolist()
+        if not isinstance(raw, list | tuple):
+            raise ValueError(f"scene {b}: obstacles must be a list [[x, y, r], ...], got {raw!r:.120}")
+        obs = [
+            _numbers(o, "[x, y, r]", f"obstacles must be [[x, y, r], ...]; obstacle {m}", b)
+            for m, o in enumerate(raw)
+        ]
+        goal = _numbers(s["goal"], "[x, y]", "goal", b)
+        start = _numbers(s["start"], "[x, y, phi]", "start", b) if "start" in s else None
+        parsed.append((obs, goal, start))
+    M = max(1, max(len(obs) for obs, _, _ in parsed))
     B = len(items)
     obstacles = np.zeros((B, M, 3))
     obstacles[..., :2] = FAR
     mask = np.zeros((B, M), dtype=bool)
     goal = np.zeros((B, 2))
     start = np.tile(np.asarray(config.start, dtype=np.float64), (B, 1))
-    for b, s in enumerate(items):
-        if not isinstance(s, dict) or "obstacles" not in s or "goal" not in s:
-            raise ValueError(f"scene {b} must be a dict with keys 'obstacles' and 'goal', got {s!r:.120}")
-        try:
-            obs = np.asarray(s["obstacles"], dtype=np.float64)
-        except (TypeError, ValueError) as e:
-            raise ValueError(
-                f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}"
-            ) from e
-        if obs.size:
-            if obs.ndim != 2 or obs.shape[1] != 3:
-                raise ValueError(
-                    f"scene {b}: obstacles must be [[x, y, r], ...], got {s['obstacles']!r:.120}"
-                )
-            obstacles[b, : len(obs)] = obs
+    for b, (obs, g, st) in enumerate(parsed):
+        if obs:
+            obstacles[b, : len(obs)] = np.stack(obs)
             mask[b, : len(obs)] = True
-        g = np.asarray(s["goal"], dtype=np.float64)
-        if g.shape != (2,):
-            raise ValueError(f"scene {b}: goal must be [x, y], got {s['goal']!r}")
         goal[b] = g
-        if "start" in s:
-            st = np.asarray(s["start"], dtype=np.float64)
-            if st.shape != (3,):
-                raise ValueError(f"scene {b}: start must be [x, y, phi], got {s['start']!r}")
+        if st is not None:
             start[b] = st
     scenes = Scenes(obstacles, mask, goal, start)
     if check:
@@ -170,8 +267,9 @@ def scenes_from_list(items: list[dict], config: SceneConfig | None = None, check
 
 
 def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
-    """Raise ValueError naming the first impossible scene: NaN, negative radius, obstacle over the
-    start formation, or a goal inside an obstacle."""
+    """Raise ValueError naming the first impossible scene: NaN, negative radius, start or goal out of
+    range (``MAX_COORDINATE``, ``MAX_GOAL_DISTANCE``), obstacle over the start formation, a goal
+    inside an obstacle, or no passage from the start to the goal (``passage_exists``)."""
     config = config or SceneConfig()
     for name in ("obstacles", "goal", "start"):
         arr = getattr(scenes, name)
@@ -184,6 +282,29 @@ def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
     if neg.any():
         b, m = np.argwhere(neg)[0]
         raise ValueError(f"scene {b}: obstacle {m} has a non-positive radius {r[b, m]}")
+    huge = (np.abs(scenes.obstacles) > MAX_OBSTACLE_VALUE).any(axis=-1) & scenes.mask
+    if huge.any():
+        b, m = np.argwhere(huge)[0]
+        raise ValueError(
+            f"scene {b}: obstacle {m} {scenes.obstacles[b, m].tolist()} has a value beyond "
+            f"{MAX_OBSTACLE_VALUE:g} m (x, y and r must lie within [-{MAX_OBSTACLE_VALUE:g}, {MAX_OBSTACLE_VALUE:g}])"
+        )
+    dist = np.linalg.norm(scenes.goal - scenes.start[:, :2], axis=1)
+    if (dist > MAX_GOAL_DISTANCE).any():
+        b = int(np.flatnonzero(dist > MAX_GOAL_DISTANCE)[0])
+        raise ValueError(
+            f"scene {b}: goal {scenes.goal[b].tolist()} is {dist[b]:.1f} m from the start "
+            f"{scenes.start[b, :2].tolist()}; at most {MAX_GOAL_DISTANCE:g} m is supported (a team covers "
+            "at most v_max * max_steps * dt = 36 m in an episode)"
+        )
+    for name, arr in (("start", scenes.start[:, :2]), ("goal", scenes.goal)):
+        out = (np.abs(arr) > MAX_COORDINATE).any(axis=1)
+        if out.any():
+            b = int(np.flatnonzero(out)[0])
+            raise ValueError(
+                f"scene {b}: {name} {arr[b].tolist()} lies outside the supported workspace "
+                f"[-{MAX_COORDINATE:g}, {MAX_COORDINATE:g}] m x [-{MAX_COORDINATE:g}, {MAX_COORDINATE:g}] m"
+            )
     from lerobot_formation.core.formation_graph import FormationGraph
 
     tmpl = np.asarray(FormationGraph().template)
@@ -202,6 +323,15 @@ def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
         b, m = np.argwhere(inside)[0]
         raise ValueError(
             f"scene {b}: goal {scenes.goal[b].tolist()} lies inside obstacle {m} {scenes.obstacles[b, m].tolist()}"
+        )
+    walled = ~passage_exists(scenes, config)
+    if walled.any():
+        b = int(np.flatnonzero(walled)[0])
+        inflate = config.half_width + config.agent_radius
+        raise ValueError(
+            f"scene {b}: no passage from the start {scenes.start[b, :2].tolist()} to the goal "
+            f"{scenes.goal[b].tolist()}: the obstacles, inflated by the formation's half-width plus the "
+            f"agent radius ({inflate:g} m), wall the goal off (or cover the start or the goal)"
         )
 
 
@@ -259,6 +389,19 @@ def passage_exists(scenes: Scenes, config: SceneConfig) -> np.ndarray:
     lo = min(-2.5, float(np.min(scenes.start[:, :2])) - 2.5, float(np.min(scenes.goal)) - 2.5)
     hi = max(8.5, float(np.max(scenes.start[:, :2])) + 2.5, float(np.max(scenes.goal)) + 2.5)
     n = int(np.ceil((hi - lo) / res)) + 1
+    chunk = max(1, _PASSAGE_CELLS // (n * n))  # bounded memory; the same grid for every chunk
+    if len(scenes) > chunk:
+        return np.concatenate(
+            [_flood_fill(scenes[i : i + chunk], config, lo, n) for i in range(0, len(scenes), chunk)]
+        )
+    return _flood_fill(scenes, config, lo, n)
+
+
+_PASSAGE_CELLS = 1 << 24  # grid cells of one flood fill batch (a few 16 MB boolean arrays)
+
+
+def _flood_fill(scenes: Scenes, config: SceneConfig, lo: float, n: int) -> np.ndarray:
+    res = config.grid_resolution
     axis = lo + res * np.arange(n)
     X, Y = np.meshgrid(axis, axis, indexing="ij")  # (n, n)
     inflate = config.half_width + config.agent_radius
@@ -320,16 +463,96 @@ class SamplingReport:
         }
 
 
-def _draw_candidates(rng: np.random.Generator, config: SceneConfig) -> tuple[np.ndarray, np.ndarray]:
+def _draw_candidates(
+    rng: np.random.Generator, config: SceneConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """C candidate scenes: obstacles (C, M, 3), mask (C, M), goal (C, 2), start (C, 3)."""
     C = config.chunk
-    M = config.n_obstacles[1]
-    count = rng.integers(config.n_obstacles[0], config.n_obstacles[1] + 1, size=C)
-    r = rng.uniform(config.radius[0], config.radius[1], size=(C, M))
-    xy = rng.uniform(config.centre_low, config.centre_high, size=(C, M, 2))
-    mask = np.arange(M)[None, :] < count[:, None]
-    obstacles = np.concatenate([xy, r[..., None]], axis=-1)
+    goal = np.tile(np.asarray(config.goal, dtype=np.float64), (C, 1))
+    start = np.tile(np.asarray(config.start, dtype=np.float64), (C, 1))
+    if not config.wide:  # the paper's layout; these draws define the paper dataset's scenes
+        M = config.n_obstacles[1]
+        count = rng.integers(config.n_obstacles[0], config.n_obstacles[1] + 1, size=C)
+        r = rng.uniform(config.radius[0], config.radius[1], size=(C, M))
+        xy = rng.uniform(config.centre_low, config.centre_high, size=(C, M, 2))
+        mask = np.arange(M)[None, :] < count[:, None]
+        obstacles = np.concatenate([xy, r[..., None]], axis=-1)
+        obstacles[~mask] = (FAR, FAR, 0.0)
+        return obstacles, mask, goal, start
+    return _draw_wide(rng, config, goal, start)
+
+
+def _draw_wide(rng: np.random.Generator, config: SceneConfig, goal: np.ndarray, start: np.ndarray):
+    """Candidates of a wide preset: goal at a distance and bearing, obstacles along the start-goal line,
+    optional gate and blocker, or (``paper_prob``) the paper's layout."""
+    C, M = config.chunk, config.max_obstacles
+    n_lo, n_hi = config.n_obstacles
+    paper = rng.random(C) < config.paper_prob
+    dist = rng.uniform(*config.goal_distance, size=C)
+    bearing = rng.uniform(*config.goal_bearing, size=C)
+    offset = rng.uniform(*config.heading_offset, size=C)
+    count = rng.integers(n_lo, n_hi + 1, size=C)
+    along = rng.uniform(0.15, 0.95, size=(C, n_hi))
+    across = rng.uniform(-config.lateral, config.lateral, size=(C, n_hi))
+    r = rng.uniform(config.radius[0], config.radius[1], size=(C, n_hi))
+    gate = rng.random(C) < config.gate_prob
+    gate_at = rng.uniform(0.35, 0.7, size=C)
+    gate_gap = rng.uniform(*config.gate_gap, size=C)
+    gate_shift = rng.uniform(-0.8, 0.8, size=C)
+    gate_r = rng.uniform(0.35, 0.6, size=C)
+    blocker = rng.random(C) < config.blocker_prob
+    blocker_at = rng.uniform(0.3, 0.7, size=C)
+    blocker_shift = rng.uniform(-0.3, 0.3, size=C)
+    blocker_r = rng.uniform(*config.blocker_radius, size=C)
+    # the paper's layout for the chosen candidates (same count and ranges as SceneConfig's defaults)
+    p_count = rng.integers(3, 6, size=C)
+    p_r = rng.uniform(0.3, 0.8, size=(C, 5))
+    p_xy = rng.uniform(1.5, 6.0, size=(C, 5, 2))
+
+    s0 = start[:, :2]
+    g = s0 + dist[:, None] * np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)
+    u = np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)  # along the line
+    n = np.stack([-u[:, 1], u[:, 0]], axis=-1)  # across it
+    obstacles = np.zeros((C, M, 3))
+    obstacles[..., :2] = FAR
+    mask = np.zeros((C, M), dtype=bool)
+    k = np.arange(n_hi)[None, :] < count[:, None]
+    obstacles[:, :n_hi, :2] = (
+        s0[:, None] + along[..., None] * dist[:, None, None] * u[:, None] + across[..., None] * n[:, None]
+    )
+    obstacles[:, :n_hi, 2] = r
+    mask[:, :n_hi] = k
+    col = n_hi
+    if config.gate_prob > 0:
+        # a wall of two touching obstacles on each side of a gap of surface width gate_gap
+        centre = s0 + (gate_at * dist)[:, None] * u + gate_shift[:, None] * n
+        for j, side in enumerate((-1.0, -1.0, 1.0, 1.0)):
+            ring = 1 + (j % 2) * 2  # 1st or 2nd obstacle out from the gap
+            off = side * (gate_gap / 2 + ring * gate_r)
+            obstacles[:, col, :2] = centre + off[:, None] * n
+            obstacles[:, col, 2] = gate_r
+            mask[:, col] = gate
+            col += 1
+    if config.blocker_prob > 0:
+        obstacles[:, col, :2] = s0 + (blocker_at * dist)[:, None] * u + blocker_shift[:, None] * n
+        obstacles[:, col, 2] = blocker_r
+        mask[:, col] = blocker
+        col += 1
+    # paper-layout candidates: the paper's goal, start and obstacle square
+    goal = np.where(paper[:, None], goal, g)
+    heading = np.where(paper, start[:, 2], bearing + offset)
+    start = np.concatenate([start[:, :2], heading[:, None]], axis=1)
+    pm = np.arange(5)[None, :] < p_count[:, None]
+    paper_obs = np.zeros((C, M, 3))
+    paper_obs[..., :2] = FAR
+    paper_obs[:, :5, :2] = p_xy
+    paper_obs[:, :5, 2] = p_r
+    paper_mask = np.zeros((C, M), dtype=bool)
+    paper_mask[:, :5] = pm
+    obstacles = np.where(paper[:, None, None], paper_obs, obstacles)
+    mask = np.where(paper[:, None], paper_mask, mask)
     obstacles[~mask] = (FAR, FAR, 0.0)
-    return obstacles, mask
+    return obstacles, mask, goal, start
 
 
 def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingReport | None = None) -> Scenes:
@@ -344,10 +567,12 @@ def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingRepo
         raise ValueError(f"seeds must be a non-empty 1-D sequence, got shape {seeds.shape}")
     if (seeds < 0).any():
         raise ValueError(f"seeds must be non-negative, got {seeds[seeds < 0][:5].tolist()}")
-    B, M = len(seeds), config.n_obstacles[1]
+    B, M = len(seeds), config.max_obstacles
     rngs = [np.random.default_rng(int(s)) for s in seeds]
     out_obs = np.zeros((B, M, 3))
     out_mask = np.zeros((B, M), dtype=bool)
+    out_goal = np.tile(np.asarray(config.goal, dtype=np.float64), (B, 1))
+    out_start = np.tile(np.asarray(config.start, dtype=np.float64), (B, 1))
     pending = np.arange(B)
     report = report if report is not None else SamplingReport()
     for _ in range(1000):
@@ -355,12 +580,7 @@ def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingRepo
         obs = np.concatenate([d[0] for d in draws])  # (P*C, M, 3)
         mask = np.concatenate([d[1] for d in draws])
         P, C = len(pending), config.chunk
-        cand = Scenes(
-            obs,
-            mask,
-            np.tile(np.asarray(config.goal, dtype=np.float64), (P * C, 1)),
-            np.tile(np.asarray(config.start, dtype=np.float64), (P * C, 1)),
-        )
+        cand = Scenes(obs, mask, np.concatenate([d[2] for d in draws]), np.concatenate([d[3] for d in draws]))
         valid, reason = _validity_first(cand, config, P, C)
         still = []
         for k, b in enumerate(pending):
@@ -375,6 +595,8 @@ def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingRepo
                 report.accepted += 1
                 out_obs[b] = obs[k * C + v[0]]
                 out_mask[b] = mask[k * C + v[0]]
+                out_goal[b] = cand.goal[k * C + v[0]]
+                out_start[b] = cand.start[k * C + v[0]]
             else:
                 still.append(b)
         pending = np.asarray(still, dtype=np.int64)
@@ -384,13 +606,7 @@ def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingRepo
         raise RuntimeError(
             f"no valid scene found for seeds {seeds[pending][:5].tolist()}: impossible SceneConfig?"
         )
-    return Scenes(
-        out_obs,
-        out_mask,
-        np.tile(np.asarray(config.goal, dtype=np.float64), (B, 1)),
-        np.tile(np.asarray(config.start, dtype=np.float64), (B, 1)),
-        seeds.copy(),
-    )
+    return Scenes(out_obs, out_mask, out_goal, out_start, seeds.copy())
 
 
 def _validity_first(cand: Scenes, config: SceneConfig, P: int, C: int) -> tuple[np.ndarray, np.ndarray]:
@@ -420,7 +636,7 @@ def _validity_first(cand: Scenes, config: SceneConfig, P: int, C: int) -> tuple[
 
 
 def load_scenes(path: str | os.PathLike, config: SceneConfig | None = None) -> Scenes:
-    """Read a scenes JSON file; errors name the file and the problem."""
+    """Read a scenes JSON file; every problem is a ``ValueError`` naming the file (and the scene)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -428,6 +644,12 @@ def load_scenes(path: str | os.PathLike, config: SceneConfig | None = None) -> S
         raise ValueError(f"scenes file {path} does not exist") from e
     except json.JSONDecodeError as e:
         raise ValueError(f"scenes file {path} is not valid JSON: {e}") from e
+    except UnicodeDecodeError as e:
+        raise ValueError(f"scenes file {path} is not UTF-8 text: {e}") from e
+    except RecursionError as e:
+        raise ValueError(f"scenes file {path} nests its JSON too deeply") from e
+    except OSError as e:  # a folder, no permission, ...
+        raise ValueError(f"scenes file {path} cannot be read: {e}") from e
     if not isinstance(data, dict) or "scenes" not in data:
         raise ValueError(f"scenes file {path} must hold an object with key 'scenes', got {str(data)[:80]!r}")
     try:

@@ -1,7 +1,12 @@
-"""Matplotlib figures of batched rollouts (EpisodeRecords + Scenes)."""
+"""Matplotlib figures of batched rollouts (EpisodeRecords + Scenes), in the spirit of the paper's Fig. 3-4.
+
+Every panel has labelled axes with units. A scene is named by its seed, or by its index in the scene
+set when it has none (seed -1: scenes given by hand or read from a scenes file), see ``scene_label``.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -9,104 +14,385 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from lerobot_formation.core.dynamics import FormationParams  # noqa: E402
 from lerobot_formation.core.formation_graph import FormationGraph  # noqa: E402
-from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords  # noqa: E402
+from lerobot_formation.core.geometry import agent_clearances  # noqa: E402
+from lerobot_formation.core.metrics import wilson_interval  # noqa: E402
+from lerobot_formation.core.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TIMEOUT, EpisodeRecords  # noqa: E402
 from lerobot_formation.core.scene import Scenes  # noqa: E402
 
-AGENT_STYLE = [("L1", "tab:blue"), ("L2", "tab:cyan"), ("F1", "tab:orange"), ("F2", "tab:red")]
+AGENT_COLORS = ("tab:blue", "tab:cyan", "tab:orange", "tab:purple")
+OUTCOME_COLORS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
+MAX_TRAJECTORY_PANELS = 6
+MAX_FAILURE_PANELS = 9
 
 
-def _draw_episode(ax, rec: EpisodeRecords, scenes: Scenes, b: int, graph: FormationGraph, snapshots: int = 6):
-    for (x, y, r), m in zip(scenes.obstacles[b], scenes.mask[b], strict=True):
-        if m:
-            ax.add_patch(plt.Circle((x, y), r, color="0.55", zorder=1))
-    ax.add_patch(plt.Circle(tuple(scenes.goal[b]), 0.3, color="tab:green", alpha=0.3, zorder=1))
-    ax.plot(*scenes.goal[b], "*", color="tab:green", ms=12, zorder=3)
-    ep = rec.episode(b)
-    pos = ep["positions"]
-    for a in range(pos.shape[1]):
-        name, color = AGENT_STYLE[a % len(AGENT_STYLE)]
-        ax.plot(pos[:, a, 0], pos[:, a, 1], color=color, lw=1.2, label=name if a < 4 else None, zorder=2)
-    for t in np.linspace(0, len(pos) - 1, snapshots).astype(int):
-        for i, j in zip(graph.edge_i, graph.edge_j, strict=True):
-            ax.plot(pos[t, [i, j], 0], pos[t, [i, j], 1], color="k", lw=0.6, alpha=0.6, zorder=2)
-        ax.scatter(pos[t, :, 0], pos[t, :, 1], s=8, color="k", zorder=3)
-    ax.set_aspect("equal")
-    ax.set_xlim(-2, 8)
-    ax.set_ylim(-2, 8)
+def scene_label(scenes: Scenes, b: int) -> str:
+    """``"seed 1000003"``, or ``"scene 12"`` (index in the scene set) for a scene without a seed."""
     seed = int(scenes.seeds[b])
-    ax.set_title(
-        f"seed {seed}: {OUTCOME_NAMES[int(rec.outcome[b])]}, {int(rec.steps[b]) * rec.dt:.1f} s", fontsize=9
-    )
+    return f"seed {seed}" if seed >= 0 else f"scene {b}"
 
 
-def plot_trajectories(
-    rec: EpisodeRecords, scenes: Scenes, indices, path: str | Path, title: str = "", graph=None
-) -> Path:
-    """Trajectories of all agents with formation snapshots, one panel per episode."""
-    graph = graph or FormationGraph()
-    indices = list(indices)
-    fig, axs = plt.subplots(1, max(len(indices), 1), figsize=(4.2 * max(len(indices), 1), 4.2), squeeze=False)
-    for ax, b in zip(axs[0], indices, strict=False):
-        _draw_episode(ax, rec, scenes, b, graph)
-    axs[0][0].legend(fontsize=7, loc="lower right")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+def _grid(n: int, max_cols: int = 3) -> tuple[int, int]:
+    cols = max(1, min(max_cols, n))
+    return int(np.ceil(max(n, 1) / cols)), cols
+
+
+def _save(fig, path: str | Path, dpi: int = 110) -> Path:
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return Path(path)
 
 
-def plot_formation_errors(rec: EpisodeRecords, indices, path: str | Path, title: str = "") -> Path:
-    """Formation error e_d and followers' velocity error over time for the given episodes."""
-    fig, axs = plt.subplots(1, 2, figsize=(10, 3.6))
+def collision_point(
+    rec: EpisodeRecords, scenes: Scenes, b: int, agent_radius: float = 0.1
+) -> tuple[int, np.ndarray] | None:
+    """(agent index, contact point (2,) [m]) of a collided episode, None for any other outcome.
+
+    The agent is the one whose clearance is negative at the last step (the most negative if several
+    overlap an obstacle); the point is on that obstacle's surface, towards the agent's centre.
+    """
+    if int(rec.outcome[b]) != COLLISION:
+        return None
+    pos = rec.positions[b, int(rec.steps[b])]  # (N, 2)
+    obstacles = scenes.obstacles[b]
+    clear = agent_clearances(pos[None], obstacles[None], agent_radius)[0]  # (N,)
+    agent = int(np.argmin(clear))
+    gaps = np.linalg.norm(pos[agent] - obstacles[:, :2], axis=-1) - obstacles[:, 2]
+    gaps[~scenes.mask[b]] = np.inf
+    x, y, r = obstacles[int(np.argmin(gaps))]
+    away = pos[agent] - (x, y)
+    norm = np.linalg.norm(away)
+    point = np.array([x, y]) + (r * away / norm if norm > 0 else 0.0)
+    return agent, point
+
+
+def _limits(rec: EpisodeRecords, scenes: Scenes, indices: Sequence[int], margin: float = 0.6):
+    """Square axis limits [m] that hold the trajectories, real obstacles, start and goal of ``indices``."""
+    pts = [scenes.goal[list(indices)], scenes.start[list(indices), :2]]
+    for b in indices:
+        ob = scenes.obstacles[b][scenes.mask[b]]
+        pts += [ob[:, :2] - ob[:, 2:], ob[:, :2] + ob[:, 2:]]
+        pos = rec.positions[b, : int(rec.steps[b]) + 1].reshape(-1, 2)
+        pts.append(pos[np.isfinite(pos).all(axis=1)])
+    pts = np.concatenate(pts)
+    lo, hi = pts.min(axis=0) - margin, pts.max(axis=0) + margin
+    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
+    return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
+
+
+def _draw_episode(
+    ax,
+    rec: EpisodeRecords,
+    scenes: Scenes,
+    b: int,
+    graph: FormationGraph,
+    snapshots: int = 6,
+    limits=None,
+    params: FormationParams | None = None,
+    title: str | None = None,
+) -> None:
+    """Obstacles, goal (disc: the goal tolerance), every agent's path, formation snapshots and, for a
+    collision, the contact point and the agent that hit; for a timeout, the final midpoint."""
+    params = params or FormationParams()
+    agent_radius = params.agent_radius
+    for (x, y, r), m in zip(scenes.obstacles[b], scenes.mask[b], strict=True):
+        if m:
+            ax.add_patch(plt.Circle((x, y), r, color="0.6", zorder=1))
+    ax.add_patch(
+        plt.Circle(tuple(scenes.goal[b]), params.goal_tolerance, color="tab:green", alpha=0.25, zorder=1)
+    )
+    ax.plot(*scenes.goal[b], "*", color="tab:green", ms=11, zorder=3)
+    pos = rec.episode(b)["positions"]  # (T_b + 1, N, 2)
+    for a in range(pos.shape[1]):
+        ax.plot(pos[:, a, 0], pos[:, a, 1], color=AGENT_COLORS[a % len(AGENT_COLORS)], lw=1.2, zorder=2)
+    for t in np.unique(np.linspace(0, len(pos) - 1, snapshots).astype(int)):
+        for i, j in zip(graph.edge_i, graph.edge_j, strict=True):
+            ax.plot(pos[t, [i, j], 0], pos[t, [i, j], 1], color="k", lw=0.6, alpha=0.6, zorder=2)
+        ax.scatter(pos[t, :, 0], pos[t, :, 1], s=7, color="k", zorder=3)
+    outcome = OUTCOME_NAMES[int(rec.outcome[b])]
+    detail = outcome
+    hit = collision_point(rec, scenes, b, agent_radius)
+    if hit is not None:
+        agent, point = hit
+        name = graph.agents[agent]
+        ax.add_patch(
+            plt.Circle(tuple(pos[-1, agent]), agent_radius, fill=False, ec="tab:red", lw=1.5, zorder=4)
+        )
+        ax.plot(*point, "X", color="tab:red", mec="k", mew=0.8, ms=11, zorder=5)
+        ax.annotate(
+            name, point, xytext=(6, 6), textcoords="offset points", color="tab:red", weight="bold", zorder=5
+        )
+        detail = f"collision ({name})"
+    elif outcome == "timeout":
+        ax.plot(*rec.poses[b, int(rec.steps[b]), :2], "s", color="tab:orange", mec="k", ms=7, zorder=5)
+    ax.set_aspect("equal")
+    xlim, ylim = limits or _limits(rec, scenes, [b])
+    ax.set(xlim=xlim, ylim=ylim, xlabel="x [m]", ylabel="y [m]")
+    ax.tick_params(labelsize=7)
+    head = title if title is not None else scene_label(scenes, b)
+    ax.set_title(f"{head}: {detail}, {int(rec.steps[b]) * rec.dt:.1f} s", fontsize=9)
+
+
+PANEL = 3.7  # [in] side of one scene panel
+
+
+def _panels(rows: int, cols: int):
+    """A figure of rows x cols scene panels, at least 6.5 in wide so that titles and legend fit."""
+    size = (max(PANEL * cols, 6.5), PANEL * rows + 0.9)
+    return plt.subplots(rows, cols, figsize=size, squeeze=False)
+
+
+def _finish_panels(fig, graph: FormationGraph, title: str, extra: Sequence = ()) -> None:
+    """Shared legend (agents, snapshots, obstacle, goal, ``extra`` markers) below the panels, title above."""
+    handles = [
+        Line2D([], [], color=AGENT_COLORS[a % len(AGENT_COLORS)], label=name)
+        for a, name in enumerate(graph.agents)
+    ]
+    handles += [
+        Line2D([], [], color="k", lw=0.6, marker=".", label="formation snapshot"),
+        Patch(color="0.6", label="obstacle"),
+        Line2D([], [], color="tab:green", marker="*", ls="", ms=10, label="goal"),
+        *extra,
+    ]
+    width, height = fig.get_size_inches()
+    per_line = max(2, int(width / 1.3))
+    lines = int(np.ceil(len(handles) / per_line))
+    ncol = int(np.ceil(len(handles) / lines))
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout(rect=(0, 0.25 * lines / height, 1, 1))
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+COLLISION_MARK = Line2D([], [], color="tab:red", marker="X", mec="k", ls="", ms=9, label="collision point")
+TIMEOUT_MARK = Line2D(
+    [], [], color="tab:orange", marker="s", mec="k", ls="", ms=6, label="timeout: final midpoint"
+)
+
+
+def _marks(outcomes: np.ndarray) -> list:
+    """Legend entries for the failure markers that appear in the panels."""
+    return [m for m, o in ((COLLISION_MARK, COLLISION), (TIMEOUT_MARK, TIMEOUT)) if (outcomes == o).any()]
+
+
+def plot_trajectories(
+    rec: EpisodeRecords,
+    scenes: Scenes,
+    indices,
+    path: str | Path,
+    title: str = "",
+    graph: FormationGraph | None = None,
+    params: FormationParams | None = None,
+) -> Path:
+    """Trajectories of all agents with formation snapshots: one panel per episode, up to 6."""
+    params = params or FormationParams()
+    graph = graph or params.graph
+    indices = list(indices)[:MAX_TRAJECTORY_PANELS]
+    rows, cols = _grid(len(indices))
+    fig, axs = _panels(rows, cols)
+    for k, ax in enumerate(axs.ravel()):
+        if k < len(indices):
+            _draw_episode(ax, rec, scenes, indices[k], graph, params=params)
+        else:
+            ax.axis("off")
+    head = f"{title}: " if title else ""
+    _finish_panels(fig, graph, f"{head}{_plural(len(indices), 'episode')}", _marks(rec.outcome[indices]))
+    return _save(fig, path)
+
+
+def plot_formation_errors(
+    rec: EpisodeRecords, indices, path: str | Path, title: str = "", scenes: Scenes | None = None
+) -> Path:
+    """Formation error e_d and the followers' velocity error over time for the given episodes."""
+    fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
     for b in indices:
         ep = rec.episode(b)
         t = np.arange(len(ep["formation_error"])) * rec.dt
-        axs[0].plot(t, ep["formation_error"], lw=1, label=f"episode {b}")
-        axs[1].plot(t[1:], ep["follower_velocity_error"], lw=1, label=f"episode {b}")
-    axs[0].set(xlabel="time [s]", ylabel="formation error $e_d$ [m]", yscale="log")
-    axs[1].set(xlabel="time [s]", ylabel="follower velocity error [m/s]", yscale="log")
+        label = scene_label(scenes, b) if scenes is not None else f"episode {b}"
+        axs[0].plot(t, ep["formation_error"], lw=1, label=label)
+        axs[1].plot(t[1:], ep["follower_velocity_error"], lw=1, label=label)
+    axs[0].set(xlabel="time [s]", ylabel="formation error $e_d$ [m]", yscale="log", title="formation error")
+    axs[1].set(
+        xlabel="time [s]",
+        ylabel="follower velocity error [m/s]",
+        yscale="log",
+        title="follower velocity error",
+    )
     for ax in axs:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
-def plot_final_error_histogram(rec: EpisodeRecords, path: str | Path, n: int = 50, title: str = "") -> Path:
-    """Histogram of the final formation and follower-velocity errors over up to n successful runs."""
-    ok = np.flatnonzero(rec.outcome == 1)[:n]
-    fe = [rec.episode(b)["formation_error"][-1] for b in ok]
-    ve = [rec.episode(b)["follower_velocity_error"][-1] for b in ok if rec.steps[b] > 0]
-    fig, axs = plt.subplots(1, 2, figsize=(9, 3.4))
-    axs[0].hist(fe, bins=20, color="tab:blue")
-    axs[0].set(xlabel="final formation error [m]", ylabel="episodes")
-    axs[1].hist(ve, bins=20, color="tab:orange")
-    axs[1].set(xlabel="final follower velocity error [m/s]")
-    fig.suptitle(f"{title} ({len(ok)} successful runs)")
+def plot_final_error_histogram(
+    rec: EpisodeRecords, path: str | Path, n: int | None = None, title: str = ""
+) -> Path:
+    """Histograms of the final formation and follower-velocity errors of the successful runs.
+
+    Uses every successful run (the first ``n`` if given); the title gives the number actually used.
+    """
+    ok = np.flatnonzero(rec.outcome == SUCCESS)[:n]
+    fe = np.array([rec.episode(b)["formation_error"][-1] for b in ok])
+    ve = np.array([rec.episode(b)["follower_velocity_error"][-1] for b in ok if rec.steps[b] > 0])
+    fig, axs = plt.subplots(1, 2, figsize=(9, 3.6))
+    for ax, values, color, xlabel in (
+        (axs[0], fe, "tab:blue", "final formation error $e_d$ [m]"),
+        (axs[1], ve, "tab:orange", "final follower velocity error [m/s]"),
+    ):
+        if len(values):
+            ax.hist(values, bins=int(np.clip(len(values) // 3, 5, 20)), color=color)
+        else:
+            ax.text(0.5, 0.5, "no successful run", ha="center", va="center", transform=ax.transAxes)
+        ax.set(xlabel=xlabel, ylabel="episodes")
+        ax.xaxis.set_major_locator(MaxNLocator(5))
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(alpha=0.3)
+    head = f"{title}: " if title else ""
+    fig.suptitle(f"{head}final errors of {len(ok)} successful runs (of {len(rec)} episodes)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
-def plot_failures(rec: EpisodeRecords, scenes: Scenes, path: str | Path, title: str = "", graph=None) -> Path:
-    """A 3x3 grid of failure cases (collisions and timeouts)."""
-    graph = graph or FormationGraph()
-    bad = np.flatnonzero(rec.outcome != 1)[:9]
-    fig, axs = plt.subplots(3, 3, figsize=(10, 10), squeeze=False)
+def plot_failures(
+    rec: EpisodeRecords,
+    scenes: Scenes,
+    path: str | Path,
+    title: str = "",
+    graph: FormationGraph | None = None,
+    params: FormationParams | None = None,
+) -> Path:
+    """Failure cases (collisions, timeouts), up to 9, in a grid sized to their number.
+
+    A collision is marked with a red X at the contact point, the colliding agent's disc circled and
+    named; a timeout with an orange square at the final midpoint.
+    """
+    params = params or FormationParams()
+    graph = graph or params.graph
+    all_bad = np.flatnonzero(rec.outcome != SUCCESS)
+    bad = all_bad[:MAX_FAILURE_PANELS]
+    rows, cols = _grid(len(bad))
+    fig, axs = _panels(rows, cols)
     for k, ax in enumerate(axs.ravel()):
         if k < len(bad):
-            _draw_episode(ax, rec, scenes, bad[k], graph, snapshots=3)
+            _draw_episode(ax, rec, scenes, bad[k], graph, snapshots=3, params=params)
         else:
             ax.axis("off")
-    fig.suptitle(f"{title}: {len(bad)} failure cases shown")
+    if not len(bad):
+        axs[0][0].text(0.5, 0.5, "no failures", ha="center", va="center", transform=axs[0][0].transAxes)
+    n_coll = int(np.sum(rec.outcome[all_bad] == COLLISION))
+    head = f"{title}: " if title else ""
+    _finish_panels(
+        fig,
+        graph,
+        f"{head}{len(bad)} of {_plural(len(all_bad), 'failure')} shown ({_plural(n_coll, 'collision')}, "
+        f"{_plural(len(all_bad) - n_coll, 'timeout')}; {len(rec)} episodes)",
+        _marks(rec.outcome[bad]),
+    )
+    return _save(fig, path, dpi=100)
+
+
+def comparison_scenes(records: Mapping[str, EpisodeRecords], k: int = 3) -> list[int]:
+    """k scene indices for a side-by-side figure: scenes where the controllers' outcomes differ first
+    (at most k - 1 of them, so that at least one ordinary scene is shown), then the first scenes."""
+    outcomes = np.stack([r.outcome for r in records.values()])  # (C, B)
+    differ = np.flatnonzero((outcomes != outcomes[:1]).any(axis=0))[: max(k - 1, 0)].tolist()
+    rest = [b for b in range(outcomes.shape[1]) if b not in differ]
+    return sorted([*differ, *rest[: k - len(differ)]])
+
+
+def plot_controller_comparison(
+    records: Mapping[str, EpisodeRecords],
+    scenes: Scenes,
+    indices,
+    path: str | Path,
+    title: str = "",
+    graph: FormationGraph | None = None,
+    params: FormationParams | None = None,
+) -> Path:
+    """All controllers side by side on the same scenes: one row per scene, one column per controller."""
+    params = params or FormationParams()
+    graph = graph or params.graph
+    indices, names = list(indices), list(records)
+    fig, axs = _panels(len(indices), len(names))
+    for row, b in enumerate(indices):
+        limits = _limits_across(records, scenes, b)
+        for col, name in enumerate(names):
+            _draw_episode(
+                axs[row][col],
+                records[name],
+                scenes,
+                b,
+                graph,
+                limits=limits,
+                params=params,
+                title=f"{name}, {scene_label(scenes, b)}",
+            )
+    shown = np.concatenate([records[n].outcome[indices] for n in names])
+    head = f"{title}: " if title else ""
+    _finish_panels(
+        fig, graph, f"{head}{len(names)} controllers on the same {len(indices)} scenes", _marks(shown)
+    )
+    return _save(fig, path, dpi=100)
+
+
+def _limits_across(records: Mapping[str, EpisodeRecords], scenes: Scenes, b: int):
+    """One square view of scene b that holds every controller's trajectory."""
+    boxes = np.array([np.ravel(_limits(r, scenes, [b])) for r in records.values()])  # (C, 4)
+    lo, hi = boxes[:, [0, 2]].min(axis=0), boxes[:, [1, 3]].max(axis=0)
+    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
+    return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
+
+
+def plot_success_rates(
+    counts: Mapping[str, Mapping[str, tuple[int, int]]], path: str | Path, title: str = ""
+) -> Path:
+    """Success rate per controller and scene set, bars with Wilson 95 % intervals.
+
+    Args:
+        counts: ``{scene set: {controller: (successes, episodes)}}``.
+    """
+    sets = list(counts)
+    names = list(dict.fromkeys(c for s in sets for c in counts[s]))
+    width = 0.8 / max(len(sets), 1)
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.5 * len(names) * max(len(sets), 1) + 1.5), 4.2))
+    for k, s in enumerate(sets):
+        xs, rates, lows, highs, texts = [], [], [], [], []
+        for i, name in enumerate(names):
+            if name not in counts[s]:
+                continue
+            succ, n = counts[s][name]
+            lo, hi = wilson_interval(int(succ), int(n))
+            rate = succ / n if n else 0.0
+            xs.append(i + (k - (len(sets) - 1) / 2) * width)
+            rates.append(100 * rate)
+            lows.append(100 * (rate - lo))
+            highs.append(100 * (hi - rate))
+            texts.append(f"{100 * rate:.0f} %\n{succ}/{n}")
+        n_set = {counts[s][c][1] for c in counts[s]}
+        label = f"{s} ({n_set.pop()} episodes)" if len(n_set) == 1 else s
+        ax.bar(xs, rates, width * 0.95, yerr=[lows, highs], capsize=4, label=label, color=f"C{k}", alpha=0.85)
+        for x, r, up, t in zip(xs, rates, highs, texts, strict=True):
+            if r >= 20:  # inside the bar, at its foot, clear of the error bar
+                ax.text(x, 2, t, ha="center", va="bottom", fontsize=7, color="white", weight="bold")
+            else:  # above the error bar
+                ax.text(x, r + up + 2, t, ha="center", va="bottom", fontsize=7)
+    ax.set_xticks(range(len(names)), names)
+    ax.set(xlabel="controller", ylabel="success rate [%]", ylim=(0, 122))
+    ax.set_yticks(range(0, 101, 20))
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper center", ncol=len(sets), frameon=False)
+    ax.set_title(
+        f"{title}: success with Wilson 95 % intervals" if title else "success with Wilson 95 % intervals"
+    )
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)

@@ -27,7 +27,7 @@ def chain(exc: BaseException | None) -> str:
 
 def parse(name: str, *args: str) -> TrainPipelineConfig:
     with draccus.config_type("json"):
-        return draccus.parse(TrainPipelineConfig, CONFIGS / f"{name}.json", args=["--dataset.root=/x", *args])
+        return draccus.parse(TrainPipelineConfig, CONFIGS / f"{name}.json", args=["--dataset.root=/tmp", *args])
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -40,7 +40,7 @@ def test_config_file_parses(name, tmp_path):
     assert p.horizon % 2 ** len(p.down_dims) == 0
     assert p.normalization_mapping["ENV"] is NormalizationMode.IDENTITY
     assert p.use_ema and p.ema_power == 0.75
-    assert cfg.dataset.root == "/x"
+    assert cfg.dataset.root == "/tmp"
     cfg.validate()  # sets the optimizer and scheduler from the policy presets, as lerobot-train does
     assert isinstance(cfg.optimizer, AdamWConfig)
     assert isinstance(cfg.scheduler, DiffuserSchedulerConfig)

@@ -1,0 +1,155 @@
+"""The learned planner's safety layer: best-of-K chunk selection and a control-barrier-function filter.
+
+Everything here works in the midpoint's body frame (x right, y along the heading; the midpoint at the
+origin, pose ``BODY_POSE``), which is what the egocentric ``nearest`` encoding observes, so the layer
+needs nothing but the policy's own observation: no privileged state. The followers are assumed to sit
+on their square slots (the formation template); they track them within ~0.1 m, which ``margin``
+covers.
+
+``select_chunk`` (best-of-K, the "safest" rule of adaptive sampling):
+  1. roll each candidate chunk's whole horizon through the midpoint unicycle and place the rigid
+     formation footprint (all four agents) at every step (``footprint.sequence_clearance``);
+  2. discard candidates that come within ``margin`` of an obstacle;
+  3. among the rest keep the one with the most progress toward the goal, |g| - |g - p_end|
+     (clearance alone would steer away from everything, the goal included);
+  4. if none is safe, keep the one with the largest predicted clearance (the filter then brakes).
+
+``cbf_filter`` (the per-step filter): with agent i at body offset b_i, obstacle j at c_j with radius
+r_j and h_ij = |p_i - c_j| - r_j - agent_radius - margin, the unicycle moves agent i at
+p_i' = v e_y + omega (-b_iy, b_ix) (the team rotates about the midpoint). With n_ij the unit vector
+from c_j to p_i, the barrier condition dh_ij/dt >= -alpha h_ij is linear in u = [v, omega]:
+
+    n_ij . e_y v + n_ij . (-b_iy, b_ix) omega >= -alpha h_ij.
+
+The filter solves min (u - u_nom)^T W (u - u_nom) subject to these rows and the action box, W the
+inverse squared action ranges. The QP is two-dimensional, so it is solved exactly: its optimum is
+u_nom, a projection onto one constraint line, or a vertex of two; all are enumerated (batched) and
+the feasible one of least cost is kept. u = (0, 0) satisfies every row when the team is currently
+safe (h >= 0), so the QP is then always feasible: stopping is the fallback. If the team is already
+inside the margin, the candidate of least violation is taken.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lerobot_formation.core.footprint import sequence_clearance
+from lerobot_formation.core.scene import FAR
+
+BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
+
+
+def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``nearest`` encoding (B, 2 + 4 slots) -> goal (B, 2), obstacles (B, slots, 3), mask (B, slots)
+    in the body frame; empty slots far away with radius 0."""
+    env_state = np.asarray(env_state, dtype=np.float64)
+    if env_state.ndim != 2 or env_state.shape[1] != 2 + 4 * slots:
+        raise ValueError(
+            f"the 'nearest' encoding with {slots} slots has {2 + 4 * slots} values, got shape {env_state.shape}"
+        )
+    goal = env_state[:, :2]
+    rows = env_state[:, 2:].reshape(len(env_state), slots, 4)
+    mask = rows[..., 3] > 0.5
+    obstacles = np.where(mask[..., None], rows[..., :3], np.array([FAR, FAR, 0.0]))
+    return goal, obstacles, mask
+
+
+def select_chunk(
+    candidates: np.ndarray,
+    obstacles: np.ndarray,
+    goal: np.ndarray,
+    template: np.ndarray,
+    dt: float,
+    agent_radius: float,
+    margin: float,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Index (B,) of the kept chunk among candidates (B, K, T, 2) [v, omega], and diagnostics.
+
+    ``obstacles`` (B, M, 3) and ``goal`` (B, 2) are in the body frame.
+    """
+    B, K = candidates.shape[:2]
+    pose = np.broadcast_to(BODY_POSE, (B, 3))
+    clear, end = sequence_clearance(pose, candidates, obstacles, template, dt, agent_radius)
+    dist0 = np.linalg.norm(goal, axis=-1)
+    progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
+    safe = clear >= margin
+    best = np.argmax(np.where(safe, progress, -np.inf), axis=1)
+    fallback = np.argmax(clear, axis=1)
+    any_safe = safe.any(axis=1)
+    choice = np.where(any_safe, best, fallback)
+    return choice, {"clearance": clear, "progress": progress, "safe": safe, "any_safe": any_safe}
+
+
+def barrier_rows(
+    obstacles: np.ndarray, template: np.ndarray, agent_radius: float, margin: float, rate: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CBF rows A u >= b of every agent-obstacle pair: A (B, N*M, 2), b (B, N*M), h (B, N*M)."""
+    B, M, _ = obstacles.shape
+    d = template[None, :, None, :] - obstacles[:, None, :, :2]  # (B, N, M, 2), from obstacle to agent
+    dist = np.maximum(np.linalg.norm(d, axis=-1), 1e-9)
+    n = d / dist[..., None]
+    h = dist - obstacles[:, None, :, 2] - agent_radius - margin
+    bx, by = template[:, 0][None, :, None], template[:, 1][None, :, None]
+    a_v = n[..., 1]
+    a_w = -n[..., 0] * by + n[..., 1] * bx
+    A = np.stack([a_v, a_w], axis=-1).reshape(B, -1, 2)
+    h = h.reshape(B, -1)
+    return A, -rate * h, h
+
+
+def cbf_filter(
+    action: np.ndarray,
+    obstacles: np.ndarray,
+    template: np.ndarray,
+    agent_radius: float,
+    margin: float,
+    rate: float,
+    low: np.ndarray,
+    high: np.ndarray,
+    max_rows: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Filtered actions (B, 2) and whether the filter changed them (B,) (see the module docstring).
+
+    Only the ``max_rows`` most critical agent-obstacle pairs (smallest h) enter the QP; a pair with
+    alpha h above the largest |A u| any action can reach can never be active.
+    """
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    u0 = np.clip(np.asarray(action, dtype=np.float64), low, high)  # the env clips to the box anyway
+    B = len(u0)
+    A, b, h = barrier_rows(obstacles, template, agent_radius, margin, rate)
+    R = min(max_rows, A.shape[1])
+    idx = np.argsort(h, axis=1)[:, :R]
+    A = np.take_along_axis(A, idx[..., None], axis=1)
+    b = np.take_along_axis(b, idx, axis=1)
+    box_A = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    box_b = np.stack([low[0], -high[0], low[1], -high[1]])
+    A = np.concatenate([A, np.broadcast_to(box_A, (B, 4, 2))], axis=1)  # (B, L, 2)
+    b = np.concatenate([b, np.broadcast_to(box_b, (B, 4))], axis=1)  # (B, L)
+    L = A.shape[1]
+    w_inv = (high - low) ** 2  # W^-1: the metric is in units of the action ranges
+    # candidates: u0, its projection onto every line, every vertex of two lines
+    Aw = A * w_inv
+    t = (b - np.einsum("bld,bd->bl", A, u0)) / np.maximum(np.einsum("bld,bld->bl", A, Aw), 1e-12)
+    proj = u0[:, None, :] + t[..., None] * Aw  # (B, L, 2)
+    i, j = np.triu_indices(L, k=1)
+    a1, a2, b1, b2 = A[:, i], A[:, j], b[:, i], b[:, j]
+    det = a1[..., 0] * a2[..., 1] - a1[..., 1] * a2[..., 0]
+    ok = np.abs(det) > 1e-9
+    det = np.where(ok, det, 1.0)
+    vx = (b1 * a2[..., 1] - b2 * a1[..., 1]) / det
+    vy = (a1[..., 0] * b2 - a2[..., 0] * b1) / det
+    vert = np.stack([vx, vy], axis=-1)
+    vert = np.where(ok[..., None], vert, u0[:, None, :])
+    cand = np.concatenate([u0[:, None, :], proj, vert], axis=1)  # (B, C, 2)
+    slack = np.einsum("bld,bcd->bcl", A, cand) - b[:, None, :]  # (B, C, L), >= 0 where satisfied
+    violation = np.maximum(-slack, 0.0).max(axis=-1)  # (B, C)
+    cost = (((cand - u0[:, None, :]) ** 2) / w_inv).sum(-1)
+    feasible = violation <= 1e-9
+    score = np.where(feasible, cost, np.inf)
+    best = np.argmin(score, axis=1)
+    least_bad = np.argmin(violation + 1e-6 * cost, axis=1)
+    pick = np.where(feasible.any(axis=1), best, least_bad)
+    out = cand[np.arange(B), pick]
+    out = np.clip(out, low, high)
+    changed = np.abs(out - u0).max(axis=-1) > 1e-6
+    return np.where(changed[:, None], out, u0), changed

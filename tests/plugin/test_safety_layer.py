@@ -1,0 +1,156 @@
+"""The safety layer inside ``formation_diffusion`` (config fields num_candidates / safety_filter)."""
+
+import numpy as np
+import pytest
+import torch
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
+from plugin_helpers import HORIZON, N_OBS, formation_features, tiny_config
+
+from lerobot_formation.core.obstacle_grid import environment_state
+from lerobot_formation.core.scene import FAR
+from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+
+
+def nearest_config(**overrides):
+    inputs, outputs = formation_features(env_dim=50)
+    kw = dict(
+        input_features=inputs, output_features=outputs, obstacle_encoding="nearest", fixed_action_bounds=True
+    )
+    kw.update(overrides)
+    return tiny_config(**kw)
+
+
+def _env_state(obstacles, pose=(0.0, 0.0, np.pi / 2), goal=(0.0, 8.0)):
+    obs = np.array([obstacles if obstacles else [[FAR, FAR, 0.0]]], dtype=np.float64)
+    mask = obs[..., 2] > 0
+    return torch.from_numpy(
+        environment_state(obs, mask, np.array([goal]), "nearest", pose=np.array([pose]))
+    ).float()
+
+
+def _batch(env):
+    return {OBS_STATE: torch.zeros(len(env), 7), OBS_ENV_STATE: env}
+
+
+def test_safety_layer_needs_egocentric_encoding_and_fixed_bounds():
+    with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):
+        tiny_config(num_candidates=4).validate_features()  # grid encoding (51 values)
+    with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):
+        nearest_config(safety_filter="cbf", fixed_action_bounds=False).validate_features()
+    with pytest.raises(ValueError, match="safety_filter must be one of"):
+        nearest_config(safety_filter="qp")
+    with pytest.raises(ValueError, match="obstacle_encoding='nearest'"):
+        inputs, outputs = formation_features(env_dim=51)
+        tiny_config(
+            input_features=inputs, output_features=outputs, obstacle_encoding="nearest"
+        ).validate_features()
+    cfg = tiny_config()
+    cfg.validate_features()
+    assert cfg.obstacle_encoding == "grid"  # found once from the size, then stored
+
+
+def test_one_candidate_without_filter_equals_standard_sampling():
+    torch.manual_seed(0)
+    policy = FormationDiffusionPolicy(nearest_config()).eval()
+    env = _env_state([[0.5, 2.0, 0.4]])
+    stacked = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in _batch(env).items()}
+    noise = torch.randn(1, HORIZON, 2, generator=torch.Generator().manual_seed(3))
+    chunks = policy.sample_action_chunks(stacked, 1, noise=noise)
+    stock = policy.ema_diffusion.generate_actions(stacked, noise=noise)
+    torch.testing.assert_close(chunks[:, 0, : stock.shape[1]], stock, rtol=0, atol=0)
+    # the same through select_action: the CBF filter with nothing nearby leaves every action as is
+    a = FormationDiffusionPolicy(nearest_config()).eval()
+    b = FormationDiffusionPolicy(nearest_config(safety_filter="cbf")).eval()
+    b.load_state_dict(a.state_dict())
+    empty = _env_state([])
+    for _ in range(3):
+        torch.testing.assert_close(
+            b.select_action(_batch(empty), noise=noise.clone()),
+            a.select_action(_batch(empty), noise=noise.clone()),
+        )
+    assert b.safety_stats["filter_interventions"] == 0 and b.safety_stats["steps"] == 3
+
+
+def test_select_action_with_candidates_and_filter_counts_its_interventions():
+    torch.manual_seed(0)
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=4, safety_filter="cbf")).eval()
+    env = _env_state([[0.5, 0.55, 0.2], [-0.5, 0.6, 0.2]])  # right in front of both leaders
+    for _ in range(10):
+        a = policy.select_action(_batch(env))
+        assert a.shape == (1, 2)
+        v, w = policy.unnormalize_action(a)[0].tolist()
+        # the barriers of L2 (h = 0.15) and L1 (h = 0.2) at rate 2: -dh/dt = v +- 0.5 omega <= 2 h
+        assert v + 0.5 * w <= 0.3 + 1e-5 and v - 0.5 * w <= 0.4 + 1e-5
+    st = policy.safety_stats
+    assert st["steps"] == 10 and st["filter_interventions"] >= 1
+    assert st["replans"] > 2  # each intervention asks for a fresh plan at the next step
+    calm = FormationDiffusionPolicy(
+        nearest_config(num_candidates=4, safety_filter="cbf", replan_on_intervention=False)
+    ).eval()
+    for _ in range(10):
+        calm.select_action(_batch(env))
+    assert calm.safety_stats["replans"] == 2  # 10 steps, chunks of 8
+
+
+def test_action_normalisation_round_trips_the_fixed_bounds():
+    policy = FormationDiffusionPolicy(nearest_config())
+    raw = torch.tensor([[0.0, -1.5], [0.6, 1.5], [0.3, 0.0]])
+    norm = policy.normalize_action(raw)
+    torch.testing.assert_close(norm, torch.tensor([[-1.0, -1.0], [1.0, 1.0], [0.0, 0.0]]))
+    torch.testing.assert_close(policy.unnormalize_action(norm), raw)
+
+
+def _checkpoint(tmp_path, **overrides):
+    """A tiny untrained 'nearest' policy saved with its processors, as lerobot-train saves one."""
+    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+
+    torch.manual_seed(0)
+    cfg = nearest_config(**overrides)
+    policy = FormationDiffusionPolicy(cfg)
+    stats = {
+        OBS_STATE: {
+            "min": torch.tensor([-3.0, -3, -1, -1, -0.6, -0.6, -1.5]),
+            "max": torch.tensor([9.0, 9, 1, 1, 0.6, 0.6, 1.5]),
+        },
+        "action": {"min": torch.zeros(2), "max": torch.ones(2)},  # replaced by the fixed bounds
+    }
+    pre, post = make_formation_diffusion_pre_post_processors(cfg, stats)
+    policy.save_pretrained(tmp_path)
+    pre.save_pretrained(tmp_path)
+    post.save_pretrained(tmp_path)
+    return tmp_path
+
+
+def test_engine_and_select_action_run_the_same_safety_layer(tmp_path):
+    """One episode, same noise: the engine's controller and the policy's select_action (the path of
+    lerobot-eval) give the same actions, replans and filter interventions."""
+    from lerobot_formation.core.dynamics import FormationParams, initial_state, step
+    from lerobot_formation.core.scene import scenes_from_list
+    from lerobot_formation.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.env import midpoint_state
+
+    path = _checkpoint(tmp_path, num_candidates=3, safety_filter="cbf")
+    scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
+    params = FormationParams()
+    engine = DiffusionController(path, candidates=3, safety_filter="cbf", seed=7, params=params)
+    engine.reset(scene)
+    policy, pre, post = load_policy(path)
+    policy.reset()
+    gen = torch.Generator().manual_seed(7)  # the engine's noise, drawn in the same order
+    state = initial_state(scene.start, params)
+    for _ in range(30):
+        a_engine = engine.act(state, np.array([0]))
+        obs = {
+            OBS_STATE: torch.from_numpy(midpoint_state(state)),
+            OBS_ENV_STATE: torch.from_numpy(
+                environment_state(scene.obstacles, scene.mask, scene.goal, "nearest", pose=state.pose)
+            ),
+        }
+        replan = policy._plan_pos is None or bool(policy._plan_pos[0] >= policy.config.n_action_steps)
+        noise = torch.randn((3, HORIZON, 2), generator=gen) if replan else None
+        a_policy = post(policy.select_action(pre(obs), noise=noise)).numpy()
+        np.testing.assert_allclose(a_policy, a_engine, atol=1e-5)
+        state = step(state, a_engine, params)
+    for key in ("replans", "steps", "filter_interventions", "replans_none_safe"):
+        assert engine.stats[key] == policy.safety_stats[key], key
+    assert engine.stats["replans"] >= 4 and engine.stats["filter_interventions"] >= 1
