@@ -27,7 +27,9 @@ def chain(exc: BaseException | None) -> str:
 
 def parse(name: str, *args: str) -> TrainPipelineConfig:
     with draccus.config_type("json"):
-        return draccus.parse(TrainPipelineConfig, CONFIGS / f"{name}.json", args=["--dataset.root=/tmp", *args])
+        return draccus.parse(
+            TrainPipelineConfig, CONFIGS / f"{name}.json", args=["--dataset.root=/tmp", *args]
+        )
 
 
 @pytest.mark.parametrize("name", NAMES)
