@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.core.dynamics import initial_state
+from lerobot_formation.core.metrics import wilson_interval
 from lerobot_formation.core.mppi import MPPIConfig, MPPIController
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
 from lerobot_formation.core.scene import UNSEEN_SEED_START, sample_scenes
@@ -63,16 +64,6 @@ class _TimedController:
         return a
 
 
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return 0.0, 1.0
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return float(c - h), float(c + h)
-
-
 def evaluate(cfg: MPPIConfig, seeds: np.ndarray) -> dict:
     scenes = sample_scenes(seeds)
     ctl = _TimedController(MPPIController(cfg))
@@ -89,7 +80,7 @@ def evaluate(cfg: MPPIConfig, seeds: np.ndarray) -> dict:
         "collision": int((rec.outcome == COLLISION).sum()),
         "timeout": int((rec.outcome == TIMEOUT).sum()),
         "success_rate": k / n,
-        "success_ci95": wilson(k, n),
+        "success_ci95": wilson_interval(k, n),
         "mean_steps_success": float(rec.steps[succ].mean()) if k else None,
         "min_formation_clearance": float(min_clear.min()),
         "mean_min_formation_clearance": float(min_clear.mean()),

@@ -33,7 +33,15 @@ import numpy as np
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.footprint import sequence_clearance
 from lerobot_formation.core.rollout import COLLISION, rollout
-from lerobot_formation.core.scene import SCENE_PRESETS, Scenes, sample_scenes, save_scenes, scene_preset
+from lerobot_formation.core.scene import (
+    SCENE_PRESETS,
+    SceneConfig,
+    Scenes,
+    passage_exists,
+    sample_scenes,
+    save_scenes,
+    scene_preset,
+)
 
 DAGGER_SEED_START = 3_000_000  # disjoint from the dataset (0...) and the evaluation seeds (1_000_000...)
 
@@ -86,6 +94,9 @@ def dagger_scenes(
     )
     far = np.linalg.norm(start[:, :2] - branch.goal, axis=-1) > 3 * params.goal_tolerance
     keep = (clear[:, 0] >= min_clearance) & far
+    if keep.any():  # and a passage must remain from there (the scenes file's own load-time check)
+        idx = np.flatnonzero(keep)
+        keep[idx] = passage_exists(branch[idx], SceneConfig())
     branch = branch[np.flatnonzero(keep)]
     summary = {
         "rollouts": rollouts,

@@ -51,9 +51,17 @@ import numpy as np
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state, get_encoding
 from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACController, rollout
-from lerobot_formation.core.scene import SCENE_PRESETS, SceneConfig, Scenes, load_scenes, sample_scenes
+from lerobot_formation.core.scene import (
+    SCENE_PRESETS,
+    SceneConfig,
+    Scenes,
+    load_scenes,
+    sample_scenes,
+    scenes_from_frames,  # noqa: F401 (re-export: it lived here)
+)
 from lerobot_formation.core.scene import scene_preset as scene_preset_config
 from lerobot_formation.env import TASK
+from lerobot_formation.lerobot_compat import save_episode_buffer, skip_noop_image_embedding
 
 FPS = 10
 MAX_OBSTACLES = 5
@@ -129,59 +137,15 @@ def episode_frames(
     }
 
 
-def scenes_from_frames(
-    obstacles: np.ndarray, goal: np.ndarray, start: np.ndarray, seeds: np.ndarray
-) -> Scenes:
-    """Rebuild Scenes from the per-episode ``scene.*`` values, (B, 3 slots), (B, 2), (B, 3), (B,)."""
-    from lerobot_formation.core.scene import FAR
-
-    obs = np.asarray(obstacles, dtype=np.float64).reshape(len(goal), -1, 3)
-    mask = obs[..., 2] > 0
-    obs[~mask] = (FAR, FAR, 0.0)
-    return Scenes(obs, mask, np.asarray(goal, np.float64), np.asarray(start, np.float64), np.asarray(seeds))
-
-
 def write_episode(ds, frames: dict[str, np.ndarray], fast: bool = True) -> None:
     """Write one episode through LeRobot's writer. ``fast`` hands ``save_episode`` a pre-built episode
-    buffer (its public ``episode_data`` argument) instead of a per-frame ``add_frame`` loop; the
-    frames are identical either way."""
-    n = len(frames["action"])
-    if not fast:
-        for t in range(n):
-            frame = {k: (v[t] if k != "scene.seed" else v[t]) for k, v in frames.items()}
-            frame["task"] = TASK
-            ds.add_frame(frame)
-        ds.save_episode()
+    buffer (``lerobot_compat.save_episode_buffer``) instead of a per-frame ``add_frame`` loop; the
+    frames are identical either way. On an untested LeRobot version the loop runs."""
+    if fast and save_episode_buffer(ds, frames, TASK):
         return
-    buf = {
-        "size": n,
-        "task": [TASK] * n,
-        "episode_index": ds.meta.total_episodes,
-        "frame_index": np.arange(n),
-        "timestamp": np.arange(n) / ds.meta.fps,  # float64 like add_frame; cast on write
-        "index": [],
-        "task_index": [],
-    }
-    buf.update(frames)
-    ds.save_episode(episode_data=buf)
-
-
-@contextlib.contextmanager
-def skip_noop_image_embedding(features: dict):
-    """LeRobot's writer runs ``embed_images`` (a row-by-row ``datasets.map``, ~1 ms per frame) on every
-    episode; for a dataset with no image or video feature it changes nothing but costs most of the
-    write time. Skip it only in that case; the parquet bytes are the same (tested)."""
-    from lerobot.datasets import dataset_writer
-
-    if any(ft["dtype"] in ("image", "video") for ft in features.values()):
-        yield
-        return
-    original = dataset_writer.embed_images
-    dataset_writer.embed_images = lambda ds: ds
-    try:
-        yield
-    finally:
-        dataset_writer.embed_images = original
+    for t in range(len(frames["action"])):
+        ds.add_frame({**{k: v[t] for k, v in frames.items()}, "task": TASK})
+    ds.save_episode()
 
 
 def simulate_batch(
@@ -448,6 +412,7 @@ def generate(
     progress: bool = True,
     workers: int = 1,
     scene_preset: str = "paper",
+    min_scene_slots: int = 0,
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict."""
     import datasets as hf_datasets
@@ -476,7 +441,7 @@ def generate(
             )
     # scene.obstacles keeps every obstacle of every scene: as many rows as the distribution can need
     scene_slots = scene_config.max_obstacles if scenes_file is None else scenes_file.obstacles.shape[1]
-    scene_slots = max(scene_slots, MAX_OBSTACLES)
+    scene_slots = max(scene_slots, MAX_OBSTACLES, min_scene_slots)
     t0 = time.perf_counter()
     bar = None
     if progress:
@@ -714,6 +679,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "core/obstacle_grid.py; must match the policy trained on it",
     )
     ap.add_argument(
+        "--scene-slots",
+        type=int,
+        default=0,
+        help="at least this many obstacle rows in scene.obstacles (to merge with a dataset of a wider "
+        "preset, e.g. 15 for 'wide'); default: as many as the scenes need",
+    )
+    ap.add_argument(
         "--scene-preset",
         default="paper",
         choices=tuple(SCENE_PRESETS),
@@ -815,6 +787,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             progress=not args.no_progress and sys.stderr.isatty(),  # no bars in logs
             workers=args.workers,
             scene_preset=args.scene_preset,
+            min_scene_slots=args.scene_slots,
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -47,6 +47,7 @@ from lerobot_formation.core.scene import (
     load_scenes,
     sample_scenes,
     scene_preset,
+    scenes_from_frames,
 )
 from lerobot_formation.evaluation import evaluate
 
@@ -175,8 +176,6 @@ def dataset_scenes(root: str | Path, n: int) -> Scenes:
     """Scenes of the first n episodes of a dataset made by ``generate_pac_dataset``."""
     import pyarrow.parquet as pq
 
-    from datasets_scripts.generate_pac_dataset import scenes_from_frames
-
     files = sorted(Path(root).glob("data/*/*.parquet"))
     if not files:
         raise ValueError(f"--dataset.root {root} holds no data/*/*.parquet files")
@@ -284,7 +283,9 @@ def _fmt(mean, std, digits=3):
 
 
 def three_way_table(results: dict, label: str) -> str:
-    cols = [c for c in ("mppi", "diffusion", "diffusion-adaptive", "pac") if c in results]
+    cols = [
+        c for c in ("mppi", *[n for n in CONTROLLERS if n.startswith("diffusion")], "pac") if c in results
+    ]
     head = "| Metric | " + " | ".join(f"{c} (ours) | {c} (paper)" for c in cols) + " |"
     lines = [f"### Three-way comparison on {label}", "", head, "|---" * (1 + 2 * len(cols)) + "|"]
     for key, (title, paper) in PAPER_THREE_WAY.items():
@@ -294,11 +295,11 @@ def three_way_table(results: dict, label: str) -> str:
             if key == "success_rate":
                 lo, hi = r["success_ci95"]
                 row.append(f"{100 * r['success_rate']:.1f} [{100 * lo:.0f}, {100 * hi:.0f}]")
-                row.append(f"{paper[c]:.1f}")
+                row.append(f"{paper[c]:.1f}" if c in paper else "—")
             else:
                 m = r.get(key) or {}
                 row.append(_fmt(m.get("mean"), m.get("std")))
-                p = paper.get(c) if c != "diffusion-adaptive" else None
+                p = paper.get(c) if c in ("mppi", "diffusion", "pac") else None
                 row.append(_fmt(*p) if p else "—")
         lines.append("| " + " | ".join(row) + " |")
     for key, title in EXTRA_ROWS.items():
@@ -317,7 +318,10 @@ def three_way_table(results: dict, label: str) -> str:
     return "\n".join(lines)
 
 
-def adaptive_table(by_set: dict[str, dict]) -> str:
+def adaptive_table(by_set: dict[str, dict], specs: dict[str, str] | None = None) -> str:
+    """Success of every diffusion controller per scene set; ``specs`` maps a set to its --scenes value
+    (the paper's numbers are shown only for the paper's protocols)."""
+    specs = specs or {}
     lines = [
         "### Standard vs adaptive diffusion policy",
         "",
@@ -325,15 +329,19 @@ def adaptive_table(by_set: dict[str, dict]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for set_name, results in by_set.items():
-        for c in ("diffusion", "diffusion-adaptive"):
+        for c in [n for n in CONTROLLERS if n.startswith("diffusion")]:
             if c not in results:
                 continue
             r = results[c]
             lo, hi = r["success_ci95"]
-            paper = PAPER_ADAPTIVE.get(("unseen" if set_name == "random" else set_name, c))
+            spec = specs.get(set_name, "")
+            paper_protocol = spec.split(":")[0] in ("random", "dataset", "")
+            key = "unseen" if set_name == "random" else set_name
+            paper = PAPER_ADAPTIVE.get((key, c)) if paper_protocol else None
+            title = SET_TITLES.get(set_name, set_name + " scenes") if paper_protocol else f"{spec} (unseen)"
             lines.append(
-                f"| {SET_TITLES.get(set_name, set_name + ' scenes')} | "
-                f"{'Standard' if c == 'diffusion' else 'Adaptive'} | {100 * r['success_rate']:.1f} "
+                f"| {title} | "
+                f"{'Standard' if c == 'diffusion' else c} | {100 * r['success_rate']:.1f} "
                 f"[{100 * lo:.0f}, {100 * hi:.0f}] | {r['collisions']} | {r['timeouts']} | "
                 f"{paper if paper is not None else '—'} |"
             )
@@ -487,7 +495,7 @@ def write_results(
     tables = [three_way_table(results.get(label, {}), f"{label} scenes ({args.scenes})")]
     sets = {k: v for k, v in results.items() if any(c.startswith("diffusion") for c in v)}
     if sets:
-        tables.append(adaptive_table(sets))
+        tables.append(adaptive_table(sets, {label: args.scenes, "unseen": args.unseen or ""}))
     if error is not None:
         tables.append(f"**Incomplete run**: {error}\n")
     (out / "tables.md").write_text("\n".join(tables))

@@ -1,7 +1,8 @@
-"""The README's main job: evaluates the pretrained default against MPPI and PAC on the dataset
-protocol (100 scenes of its training dataset, shipped with the model) and on 100 unseen scenes,
-then writes the paper's tables and figures to outputs/demo. Extra arguments are passed on to
-``lerobot-formation-bench``."""
+"""The README's main job: evaluates the pretrained default (standard sampling and its best-of-10
+safety layer) against MPPI and PAC on 50 unseen scenes of the paper's layout, and the diffusion
+controllers on 20 unseen hard scenes (gates, blockers, dense, other goals), then writes the tables
+and figures to outputs/demo. Extra arguments are passed on to ``lerobot-formation-bench`` (later
+ones win: ``--scenes random:100 --unseen hard:100`` is the full protocol)."""
 
 from __future__ import annotations
 
@@ -10,17 +11,17 @@ from pathlib import Path
 
 from lerobot_formation.bench import main as bench_main
 
-PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "formation_diffusion_cpu"
+PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "formation_diffusion_safe"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if PRETRAINED.is_dir():
         defaults = [
-            "--controllers", "pac,mppi,diffusion,diffusion-adaptive",
+            "--controllers", "pac,mppi,diffusion,diffusion-bestof",
             "--policy.path", str(PRETRAINED),
-            "--scenes", "dataset:100",
-            "--unseen", "random:100",
+            "--scenes", "random:50",
+            "--unseen", "hard:20",
             "--out", "outputs/demo",
         ]  # fmt: skip
     else:

@@ -190,7 +190,13 @@ class DiffusionController:
         self.max_obstacles = cfg.max_obstacles
         self.egocentric = get_encoding(self.encoding).egocentric
         self.template = np.asarray(self.params.graph.template)
-        self.stats = {"replans": 0, "replans_none_safe": 0, "steps": 0, "filter_interventions": 0}
+        self.stats = {
+            "replans": 0,
+            "replans_none_safe": 0,
+            "escapes": 0,
+            "steps": 0,
+            "filter_interventions": 0,
+        }
 
     def reset(self, scenes: Scenes) -> None:
         B = len(scenes)
@@ -237,7 +243,7 @@ class DiffusionController:
             goal_b, obstacles_b, _ = safety.decode_nearest(
                 self.env_history[idx, -1], get_encoding(self.encoding).slots(self.max_obstacles)
             )
-            choice, info = safety.select_chunk(
+            chosen, info = safety.select_chunk(
                 cand,
                 obstacles_b,
                 goal_b,
@@ -247,7 +253,8 @@ class DiffusionController:
                 self.policy.config.safety_margin,
             )
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
-            return cand[np.arange(n), choice, : self.n_act]
+            self.stats["escapes"] += int(info["escaped"].sum())
+            return chosen[:, : self.n_act]
         if not self.adaptive:
             return cand[:, 0, : self.n_act]
         choice, _ = select_safest(

@@ -187,14 +187,7 @@ class FormationEnv(gym.Env):
             self.scene = sample_scenes([s], self.scene_config)
         self.state = dynamics.initial_state(self.scene.start, self.params)
         self._egocentric = get_encoding(self.obstacle_encoding).egocentric
-        self._env_state = environment_state(
-            self.scene.obstacles,
-            self.scene.mask,
-            self.scene.goal,
-            self.obstacle_encoding,
-            self.max_obstacles,
-            pose=self.state.pose,
-        )
+        self._env_state = None  # encoded by _obs(): once per scene, or every step if egocentric
         self._path = [dynamics.agent_positions(self.state)[0]]
         self._steps = 0
         self._ended = None
@@ -240,7 +233,7 @@ class FormationEnv(gym.Env):
 
     # -- helpers ---------------------------------------------------------------------------------
     def _obs(self) -> dict[str, np.ndarray]:
-        if self._egocentric:  # the body-frame encoding moves with the team
+        if self._env_state is None or self._egocentric:  # the body-frame encoding moves with the team
             self._env_state = environment_state(
                 self.scene.obstacles,
                 self.scene.mask,

@@ -5,8 +5,9 @@ and drops every other ``info`` key, so a plugin cannot add columns to ``eval_inf
 ``FormationEpisodeMetrics`` wraps one ``FormationEnv`` (under its ``TimeLimit``) and, when an
 episode ends:
 
-1. adds ``info["formation_metrics"]``: the SPEC "Metrics" of the episode, computed by the project's
-   one implementation (``core.metrics.episode_metrics``), plus ``outcome``, ``steps``,
+1. adds ``info["formation_metrics"]``: the SPEC "Metrics" of the episode, recorded and computed by
+   the engine's own code (``core.rollout.frame_record`` / ``step_record``, then
+   ``core.metrics.episode_metrics``), plus ``outcome``, ``steps``,
    ``scene_seed`` and ``reset_seed``. A vector env carries it in ``info["final_info"]``;
    any Python caller of ``FormationEnvConfig.create_envs`` sees it;
 2. if ``log_path`` is set, appends the same record as one JSON line to that file (NaN -> null),
@@ -36,9 +37,16 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from lerobot_formation.core import dynamics
 from lerobot_formation.core.metrics import episode_metrics
-from lerobot_formation.core.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TIMEOUT, EpisodeRecords
+from lerobot_formation.core.rollout import (
+    COLLISION,
+    OUTCOME_NAMES,
+    SUCCESS,
+    TIMEOUT,
+    EpisodeRecords,
+    frame_record,
+    step_record,
+)
 
 INFO_KEY = "formation_metrics"
 
@@ -71,32 +79,27 @@ class FormationEpisodeMetrics(gym.Wrapper):
         self.run_id = run_id or new_run_id()
         self.env_index = int(env_index)
         self.episodes_done = 0
-        self._trace: dict[str, list] | None = None
+        self._frames: list[dict[str, np.ndarray]] | None = None  # frame_record of steps 0..n
+        self._steps: list[dict[str, np.ndarray]] = []  # step_record of steps 1..n
         self._reset_seed: int | None = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
         self._reset_seed = None if seed is None else int(seed)
         base = self.env.unwrapped
-        self._trace = {k: [] for k in ("poses", "positions", "fe", "fve", "agent", "mid", "actions")}
-        self._record(base.state, info)
+        self._frames = [frame_record(base.state, base.scene.obstacles, base.params)]
+        self._steps = []
         return obs, info
 
     def step(self, action):
-        if self._trace is None:
+        if self._frames is None:
             raise RuntimeError("call reset() before step()")
         base = self.env.unwrapped
         prev_pose = base.state.pose.copy()
         obs, reward, terminated, truncated, info = self.env.step(action)
-        params = base.params
-        state = base.state
-        self._trace["actions"].append(dynamics.clip_action(np.asarray(action, np.float64)[None], params)[0])
-        desired_vel = (
-            dynamics.desired_follower_positions(state.pose, params.graph)
-            - dynamics.desired_follower_positions(prev_pose, params.graph)
-        ) / params.dt  # (1, F, 2) [m/s]
-        self._trace["fve"].append(float(np.linalg.norm(state.follower_vel - desired_vel, axis=-1).mean()))
-        self._record(state, info)
+        action = np.asarray(action, np.float64)[None]
+        self._steps.append(step_record(prev_pose, base.state, action, base.params))
+        self._frames.append(frame_record(base.state, base.scene.obstacles, base.params))
         if terminated or truncated:
             record = self._finish(info)
             record["episode_index"] = self.episodes_done
@@ -107,40 +110,19 @@ class FormationEpisodeMetrics(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
     # -- helpers ---------------------------------------------------------------------------------
-    def _record(self, state: dynamics.FormationState, info: dict[str, Any]) -> None:
-        t = self._trace
-        t["poses"].append(state.pose[0].copy())
-        t["positions"].append(dynamics.agent_positions(state)[0])
-        t["fe"].append(info["formation_error"])
-        t["agent"].append(info["clearance"])
-        t["mid"].append(info["midpoint_clearance"])
-
     def _finish(self, info: dict[str, Any]) -> dict[str, Any]:
-        t = self._trace
         if info["is_collision"]:
             outcome = COLLISION
         elif info["is_success"]:
             outcome = SUCCESS
         else:
             outcome = TIMEOUT
-        n = len(t["actions"])
         base = self.env.unwrapped
-        rec = EpisodeRecords(
-            poses=np.asarray(t["poses"])[None],
-            actions=np.asarray(t["actions"]).reshape(1, n, 2),
-            positions=np.asarray(t["positions"])[None],
-            formation_error=np.asarray(t["fe"], np.float64)[None],
-            follower_velocity_error=np.asarray(t["fve"], np.float64).reshape(1, n),
-            agent_clearance=np.asarray(t["agent"], np.float64)[None],
-            midpoint_clearance=np.asarray(t["mid"], np.float64)[None],
-            outcome=np.array([outcome]),
-            steps=np.array([n]),
-            dt=base.params.dt,
-        )
+        rec = EpisodeRecords.single(self._frames, self._steps, outcome, base.params.dt)
         metrics = episode_metrics(rec, base.scene.start, base.scene.goal)
         record: dict[str, Any] = {
             "outcome": OUTCOME_NAMES[outcome],
-            "steps": n,
+            "steps": len(self._steps),
             "scene_seed": int(info["scene_seed"]),
             "reset_seed": self._reset_seed,
         }

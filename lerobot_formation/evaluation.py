@@ -7,10 +7,8 @@ controller call per control step, then computes the per-episode records. It is t
 
 from __future__ import annotations
 
-import numpy as np
-
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, Controller, EpisodeRecords, rollout
+from lerobot_formation.core.rollout import Controller, EpisodeRecords, rollout
 from lerobot_formation.core.scene import Scenes
 
 
@@ -32,23 +30,3 @@ def evaluate(
     finally:
         if bar is not None:
             bar.close()
-
-
-def basic_summary(rec: EpisodeRecords, scenes: Scenes) -> dict:
-    """Success/collision/timeout counts and a per-episode list."""
-    n = len(rec)
-    per_episode = [
-        {
-            "seed": int(scenes.seeds[b]),
-            "outcome": {SUCCESS: "success", COLLISION: "collision", TIMEOUT: "timeout"}[int(rec.outcome[b])],
-            "steps": int(rec.steps[b]),
-        }
-        for b in range(n)
-    ]
-    return {
-        "n_episodes": n,
-        "success_rate": float(np.mean(rec.outcome == SUCCESS)) if n else 0.0,
-        "collisions": int(np.sum(rec.outcome == COLLISION)),
-        "timeouts": int(np.sum(rec.outcome == TIMEOUT)),
-        "episodes": per_episode,
-    }

@@ -22,7 +22,9 @@ or depth feature, no image transforms):
   in-memory columns.
 
 Any other reader (videos, images, string columns) keeps LeRobot's path. The patch is applied when
-the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim).
+the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim), by
+``lerobot_compat.patch_dataset_reader``: on a LeRobot version other than the tested one it is not
+applied (one logged warning) and LeRobot's reader runs as shipped.
 DataLoader workers (``--num_workers>0``, spawned) never import the plugin themselves, so a pickled
 reader carries a small marker object of this module: unpickling it in a worker imports this module,
 which patches the worker's reader class too. The in-memory table is not pickled; each worker builds
@@ -36,9 +38,9 @@ import os
 import numpy as np
 import torch
 
+from lerobot_formation import lerobot_compat
+
 _ENABLED = os.environ.get("LEROBOT_FORMATION_FAST_READS", "1") != "0"
-_original = None
-_original_get_item = None
 
 
 def _column_tensor(table, key: str) -> torch.Tensor:
@@ -118,12 +120,12 @@ def _fast_get_item(self, idx) -> dict:
     table = self.__dict__.get("_formation_table")
     if table is None:
         if self.__dict__.get("_formation_slow") or not _fast_path_ok(self):
-            return _original_get_item(self, idx)
+            return lerobot_compat.stock_reader_method("get_item")(self, idx)
         try:
             table = self._formation_table = _LowDimTable(self)
         except (TypeError, KeyError, ValueError):  # an unusual column: LeRobot's own path
             self._formation_slow = True
-            return _original_get_item(self, idx)
+            return lerobot_compat.stock_reader_method("get_item")(self, idx)
     idx = int(idx)
     item = {key: col[idx] for key, col in table.columns.items()}
     if table.deltas:
@@ -147,7 +149,7 @@ def _fast_get_item(self, idx) -> dict:
 
 def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
     if len(self._meta.video_keys) > 0 or self.hf_dataset is None or self.hf_dataset._indices is not None:
-        return _original(self, query_indices)
+        return lerobot_compat.stock_reader_method("_query_hf_dataset")(self, query_indices)
     cache = self.__dict__.setdefault("_formation_columns", {})
     result: dict = {}
     for key, q_idx in query_indices.items():
@@ -155,7 +157,7 @@ def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
             try:
                 cache[key] = _column_tensor(self.hf_dataset.data, key)
             except Exception:  # an unusual column type: LeRobot's own path
-                return _original(self, query_indices)
+                return lerobot_compat.stock_reader_method("_query_hf_dataset")(self, query_indices)
         rel = (
             q_idx
             if self._absolute_to_relative_idx is None
@@ -166,31 +168,15 @@ def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
 
 
 def install() -> bool:
-    """Patch LeRobot's reader once; returns whether the fast path is active."""
-    global _original
+    """Patch LeRobot's reader once (``lerobot_compat.patch_dataset_reader``); returns whether the fast
+    path is active (not with LEROBOT_FORMATION_FAST_READS=0, nor on an untested LeRobot version)."""
     if not _ENABLED:
         return False
-    from lerobot.datasets.dataset_reader import DatasetReader
-
-    global _original_get_item
-    if _original is None:
-        _original = DatasetReader._query_hf_dataset
-        DatasetReader._query_hf_dataset = _fast_query_hf_dataset
-        _original_get_item = DatasetReader.get_item
-        DatasetReader.get_item = _fast_get_item
-        DatasetReader.__getstate__ = _getstate
-    return True
+    return lerobot_compat.patch_dataset_reader(_fast_get_item, _fast_query_hf_dataset, _getstate)
 
 
 def uninstall() -> None:
-    global _original, _original_get_item
-    if _original is not None:
-        from lerobot.datasets.dataset_reader import DatasetReader
-
-        DatasetReader._query_hf_dataset = _original
-        DatasetReader.get_item = _original_get_item
-        del DatasetReader.__getstate__
-        _original = _original_get_item = None
+    lerobot_compat.unpatch_dataset_reader()
 
 
 install()  # importing the plugin turns it on (unless LEROBOT_FORMATION_FAST_READS=0)

@@ -1,17 +1,37 @@
 """The one place that touches LeRobot internals (names that are not LeRobot's public API).
 
 Each use is checked against the LeRobot version it was written for (``TESTED``); on another version
-the stock behaviour is used where one exists, or a clear error names what changed.
+the stock behaviour is used where one exists (with one logged warning per use), or a clear error
+names what changed. The uses:
+
+- ``global_conditioning``: ``DiffusionModel._prepare_global_conditioning`` (batched candidate sampling);
+- ``caller_policy_config``: the caller's frame of ``make_env_pre_post_processors``;
+- ``install_offline_dataset_root_check``: wraps ``DatasetConfig.__post_init__``;
+- ``patch_dataset_reader``: replaces ``DatasetReader.get_item`` / ``_query_hf_dataset`` with the fast
+  low-dimensional reads of ``fast_reads.py``;
+- ``skip_noop_image_embedding``: skips ``dataset_writer.embed_images`` for datasets without images;
+- ``save_episode_buffer``: hands ``LeRobotDataset.save_episode`` a pre-built episode buffer (LeRobot's
+  internal layout) instead of one ``add_frame`` call per frame.
+
+``FormationDiffusionPolicy._load_as_safetensor`` (modeling_formation_diffusion.py) also overrides a
+private LeRobot method; it stays with the policy it belongs to.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-from torch import Tensor
+import numpy as np
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 TESTED = ("0.6.",)
 logger = logging.getLogger(__name__)
+_warned: set[str] = set()
 
 
 def lerobot_version() -> str:
@@ -22,6 +42,22 @@ def lerobot_version() -> str:
 
 def version_is_tested() -> bool:
     return lerobot_version().startswith(TESTED)
+
+
+def _untested(what: str) -> bool:
+    """True on a LeRobot version other than ``TESTED``: the caller then keeps LeRobot's stock
+    behaviour for ``what``, after one logged warning (per ``what`` and process)."""
+    if version_is_tested():
+        return False
+    if what not in _warned:
+        _warned.add(what)
+        logger.warning(
+            "LeRobot %s is not the tested version %s: %s is off, LeRobot's stock behaviour is used",
+            lerobot_version(),
+            "/".join(f"{v}x" for v in TESTED),
+            what,
+        )
+    return True
 
 
 def global_conditioning(model, batch: dict[str, Tensor]) -> Tensor:
@@ -89,3 +125,85 @@ def install_offline_dataset_root_check() -> None:
 
     post_init._formation_root_check = True  # type: ignore[attr-defined]
     DatasetConfig.__post_init__ = post_init
+
+
+# -- DatasetReader: fast low-dimensional reads (fast_reads.py) -------------------------------------
+_stock_reader: dict[str, Callable] = {}  # LeRobot's own DatasetReader methods while patched
+
+
+def patch_dataset_reader(get_item: Callable, query_hf_dataset: Callable, getstate: Callable) -> bool:
+    """Replace ``DatasetReader.get_item`` and ``_query_hf_dataset`` and give readers ``__getstate__``
+    (once; idempotent). Returns whether the patch is active: False on an untested LeRobot."""
+    if _untested("fast windowed reads (DatasetReader.get_item)"):
+        return False
+    from lerobot.datasets.dataset_reader import DatasetReader
+
+    if not _stock_reader:
+        _stock_reader["_query_hf_dataset"] = DatasetReader._query_hf_dataset
+        DatasetReader._query_hf_dataset = query_hf_dataset
+        _stock_reader["get_item"] = DatasetReader.get_item
+        DatasetReader.get_item = get_item
+        DatasetReader.__getstate__ = getstate
+    return True
+
+
+def stock_reader_method(name: str) -> Callable:
+    """LeRobot's own ``DatasetReader.<name>`` (``get_item`` or ``_query_hf_dataset``), patched or not."""
+    if name in _stock_reader:
+        return _stock_reader[name]
+    from lerobot.datasets.dataset_reader import DatasetReader
+
+    return getattr(DatasetReader, name)
+
+
+def unpatch_dataset_reader() -> None:
+    """Put LeRobot's own ``DatasetReader`` methods back (no-op when not patched)."""
+    if _stock_reader:
+        from lerobot.datasets.dataset_reader import DatasetReader
+
+        DatasetReader._query_hf_dataset = _stock_reader.pop("_query_hf_dataset")
+        DatasetReader.get_item = _stock_reader.pop("get_item")
+        del DatasetReader.__getstate__
+
+
+# -- dataset writer (datasets_scripts/generate_pac_dataset.py) --------------------------------------
+@contextlib.contextmanager
+def skip_noop_image_embedding(features: dict):
+    """LeRobot's writer runs ``embed_images`` (a row-by-row ``datasets.map``, ~1 ms per frame) on every
+    episode; for a dataset with no image or video feature it changes nothing but costs most of the
+    write time. Skip it only in that case; the parquet bytes are the same (tested)."""
+    if any(ft["dtype"] in ("image", "video") for ft in features.values()) or _untested(
+        "skipping the no-op embed_images"
+    ):
+        yield
+        return
+    from lerobot.datasets import dataset_writer
+
+    original = dataset_writer.embed_images
+    dataset_writer.embed_images = lambda ds: ds
+    try:
+        yield
+    finally:
+        dataset_writer.embed_images = original
+
+
+def save_episode_buffer(ds, frames: dict[str, np.ndarray], task: str) -> bool:
+    """Save one episode of ``frames`` (feature -> (n, ...) array) with ``ds.save_episode(episode_data=...)``
+    and a buffer built here in the layout ``add_frame`` builds (LeRobot's internal ``episode_buffer``);
+    the frames written are the same. Returns False, writing nothing, on an untested LeRobot: the caller
+    then takes the stock ``add_frame`` path."""
+    if _untested("pre-built episode buffers (save_episode(episode_data=...))"):
+        return False
+    n = len(frames["action"])
+    buf = {
+        "size": n,
+        "task": [task] * n,
+        "episode_index": ds.meta.total_episodes,
+        "frame_index": np.arange(n),
+        "timestamp": np.arange(n) / ds.meta.fps,  # float64 like add_frame; cast on write
+        "index": [],
+        "task_index": [],
+    }
+    buf.update(frames)
+    ds.save_episode(episode_data=buf)
+    return True

@@ -134,11 +134,10 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         goal, obstacles, _ = safety.decode_nearest(env_state.float().cpu().numpy(), slots)
         raw = self.unnormalize_action(chunks).numpy().astype(np.float64)
         template, dt, agent_radius = self._safety_geometry()
-        choice, info = safety.select_chunk(
+        chosen, info = safety.select_chunk(
             raw, obstacles, goal, template, dt, agent_radius, self.config.safety_margin
         )
-        pick = torch.from_numpy(choice).to(chunks.device)
-        return chunks[torch.arange(len(chunks), device=chunks.device), pick], info
+        return self.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
     def filter_action(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
         """CBF filter (``core.safety.cbf_filter``) on normalised actions (B, 2) -> (filtered, changed)."""
@@ -161,7 +160,13 @@ class FormationDiffusionPolicy(DiffusionPolicy):
 
     def reset(self):
         super().reset()
-        self.safety_stats = {"replans": 0, "replans_none_safe": 0, "steps": 0, "filter_interventions": 0}
+        self.safety_stats = {
+            "replans": 0,
+            "replans_none_safe": 0,
+            "escapes": 0,
+            "steps": 0,
+            "filter_interventions": 0,
+        }
         self._plan: Tensor | None = None  # (B, n_action_steps, 2) normalised chunk of each episode
         self._plan_pos: Tensor | None = None  # (B,) next action of each episode's chunk
 
@@ -190,6 +195,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             if self.config.num_candidates > 1:
                 chosen, info = self.choose_chunk(env_now[need], chunks)
                 self.safety_stats["replans_none_safe"] += int((~info["any_safe"]).sum())
+                self.safety_stats["escapes"] += int(info["escaped"].sum())
             else:
                 chosen = chunks[:, 0]
             self.safety_stats["replans"] += len(need)

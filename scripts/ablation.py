@@ -97,8 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, dict] = {}
     rows = row_specs(args)
     if args.rows:
-        keep = [k.strip() for k in args.rows.split(",")]
-        rows = [r for r in rows if any(k in r[0] for k in keep)]
+        keep = {k.strip() for k in args.rows.split(";")}
+        rows = [r for r in rows if r[0] in keep]
     for label, path, name, n_act in rows:
         results[label] = {}
         bundle = None
@@ -149,8 +149,9 @@ def main(argv: list[str] | None = None) -> int:
                 lines.append(f"| {label} | cannot run: {e['error']} | | | | | | | | |")
                 continue
             lo, hi = e["success_ci95"]
-            fi = e.get("filter_intervention_rate")
-            ns = e.get("replans_none_safe_rate")
+            name = next(r[2] for r in rows if r[0] == label)
+            fi = e.get("filter_intervention_rate") if name in ("diffusion-cbf", "diffusion-safe") else None
+            ns = e.get("replans_none_safe_rate") if name in ("diffusion-bestof", "diffusion-safe") else None
             lines.append(
                 f"| {label} | {100 * e['success_rate']:.0f} [{100 * lo:.0f}, {100 * hi:.0f}] | {e['collisions']} | "
                 f"{e['timeouts']} | {_mean(e, 'control_smoothness')} | {_mean(e, 'jerk')} | "

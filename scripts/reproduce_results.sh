@@ -44,3 +44,34 @@ $PY benchmarks/bench_eval_speed.py --policy.path $MODEL --episodes 100 --stock 1
 $PY benchmarks/bench_eval_speed.py --policy.path $MODEL --scenes dataset:100 --stock 100:sync --threads 1 \
   --out $OUT/eval_dataset | tee $OUT/eval_dataset.log
 $PY benchmarks/bench_replan_latency.py --policy.path $MODEL --threads 1 | tee $OUT/bench_replan_latency.log
+
+# The safe, general planner (issue 9): wide data, "nearest" encoding, safety layer, DAgger, ablation.
+# About 2.5 hours on 2 cores (generation 17 min, training 65 min, DAgger 15 min, ablations 45 min).
+$BIN/lerobot-formation-generate --episodes 5000 --scene-preset wide --obstacle-encoding nearest \
+  --root data/formation_wide --repo-id local/formation_wide --overwrite --no-progress | tee $OUT/generate_wide.log
+$BIN/lerobot-train --config_path=configs/formation_diffusion_safe.json --dataset.root=data/formation_wide \
+  --output_dir=outputs/train_safe 2>&1 | tee $OUT/train_safe.log
+SAFE=pretrained/formation_diffusion_safe
+$PY scripts/export_pretrained.py outputs/train_safe/checkpoints/032000/pretrained_model $SAFE \
+  --dataset.root data/formation_wide
+$PY -m datasets_scripts.dagger_scenes --policy.path outputs/train_safe/checkpoints/032000/pretrained_model \
+  --scene-preset wide --rollouts 300 --out data/dagger_scenes.json | tee $OUT/dagger_scenes.log
+N_DAGGER=$($PY -c "import json; print(len(json.load(open('data/dagger_scenes.json'))['scenes']))")
+$BIN/lerobot-formation-generate --scenes data/dagger_scenes.json --episodes "$N_DAGGER" --scene-slots 15 \
+  --obstacle-encoding nearest --root data/formation_dagger --repo-id local/formation_dagger --overwrite \
+  --no-progress | tee $OUT/generate_dagger.log
+$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger --new_root data/formation_wide_dagger \
+  --operation.type merge --operation.repo_ids "['local/formation_wide','local/formation_dagger']" \
+  --operation.roots "['data/formation_wide','data/formation_dagger']"
+$BIN/lerobot-train --policy.path=outputs/train_safe/checkpoints/032000/pretrained_model \
+  --dataset.repo_id=local/formation_wide_dagger --dataset.root=data/formation_wide_dagger \
+  --env.type=formation --env.obstacle_encoding=nearest --steps=4000 --batch_size=64 --num_workers=0 \
+  --policy.optimizer_lr=1.5e-4 --policy.scheduler_warmup_steps=200 --save_freq=2000 --env_eval_freq=0 \
+  --policy.push_to_hub=false --seed=1001 --output_dir=outputs/train_dagger 2>&1 | tee $OUT/train_dagger.log
+$PY scripts/export_pretrained.py outputs/train_dagger/checkpoints/004000/pretrained_model \
+  outputs/formation_diffusion_dagger --dataset.root data/formation_wide_dagger
+$PY scripts/ablation.py --new $SAFE --old $MODEL --sets random:100 --n-action-steps 4 --out outputs/ablation_random
+$PY scripts/ablation.py --new $SAFE --old $MODEL --sets hard:100 --out outputs/ablation_hard_a
+$PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger --sets random:100,hard:100 \
+  --rows "new + DAgger, standard;new + DAgger, best-of-10;new + DAgger, standard, 4 actions per replan" \
+  --n-action-steps 4 --out outputs/ablation_dagger

@@ -123,12 +123,35 @@ class FormationState:
 
 
 def rotate_body(offsets: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Body-frame offsets (..., 2) (x right, y along heading) to world frame; phi has shape (...)."""
+    """Body-frame offsets (..., 2) (x right, y along heading) to world frame; phi has shape (...).
+
+    The rotation by a = phi - pi/2: [x, y] = [bx cos a - by sin a, bx sin a + by cos a]. The team's
+    start (``initial_state``), the template slots (``desired_follower_positions``) and the scenes'
+    start check use it. ``body_to_world`` is the same rotation for the footprint hot paths; the two
+    round differently in the last bit (cos(phi - pi/2) is not sin(phi) in floating point), and the
+    recorded results depend on those bits, so both stay.
+    """
     a = phi - np.pi / 2
     c, s = np.cos(a), np.sin(a)
     x = offsets[..., 0] * c - offsets[..., 1] * s
     y = offsets[..., 0] * s + offsets[..., 1] * c
     return np.stack([x, y], axis=-1)
+
+
+def body_to_world(bx, by, x, y, phi, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """Body-frame points (bx, by) of teams at midpoint poses (x, y, phi) in the world, coordinates apart:
+
+        X = x + bx sin(phi) + by cos(phi),   Y = y - bx cos(phi) + by sin(phi)
+
+    (``rotate_body``'s rotation plus the translation). All arguments broadcast, e.g. template
+    columns (N, 1, 1) against poses (B, K) give agents (N, B, K). The footprint checks of PAC, MPPI
+    and candidate scoring use it; ``dtype=np.float32`` is MPPI's fast path (the trigonometry in
+    float64, then everything cast).
+    """
+    s = np.sin(phi).astype(dtype, copy=False)
+    c = np.cos(phi).astype(dtype, copy=False)
+    x, y, bx, by = (np.asarray(v).astype(dtype, copy=False) for v in (x, y, bx, by))
+    return x + bx * s + by * c, y - bx * c + by * s
 
 
 def leader_positions(pose: np.ndarray) -> np.ndarray:
@@ -193,13 +216,48 @@ def clip_action(action: np.ndarray, params: FormationParams) -> np.ndarray:
     )
 
 
-def step_midpoint(pose: np.ndarray, action: np.ndarray, dt: float) -> np.ndarray:
-    """Midpoint unicycle, explicit Euler (paper's discrete dynamics). (..., 3), (..., 2) -> (..., 3)."""
+def step_midpoint(pose: np.ndarray, action: np.ndarray, dt) -> np.ndarray:
+    """Midpoint unicycle, explicit Euler (paper's discrete dynamics). (..., 3), (..., 2) -> (..., 3).
+
+    ``dt`` [s] may be an array broadcasting against (...): ``step`` evaluates all its sub-step ends at
+    once, MPPI steps its samples with the control period.
+    """
     v, w = action[..., 0], action[..., 1]
     phi = pose[..., 2]
     return np.stack(
         [pose[..., 0] + v * np.cos(phi) * dt, pose[..., 1] + v * np.sin(phi) * dt, phi + w * dt], axis=-1
     )
+
+
+def rollout_poses(pose: np.ndarray, actions: np.ndarray, dt: float) -> np.ndarray:
+    """Midpoint poses after each action of candidate sequences, pose (B, 3), actions (B, C, T, 2) ->
+    (B, C, T, 3): ``step_midpoint`` repeated T times, written as cumulative sums (one array operation
+    per coordinate instead of a loop over T; the sums round differently from the loop)."""
+    B, C, T, _ = actions.shape
+    v, w = actions[..., 0], actions[..., 1]
+    phi = pose[:, 2][:, None, None] + np.cumsum(w, axis=-1) * dt  # heading after step k
+    phi_before = np.concatenate(
+        [np.broadcast_to(pose[:, 2][:, None, None], (B, C, 1)), phi[..., :-1]], axis=-1
+    )
+    x = pose[:, 0][:, None, None] + np.cumsum(v * np.cos(phi_before), axis=-1) * dt
+    y = pose[:, 1][:, None, None] + np.cumsum(v * np.sin(phi_before), axis=-1) * dt
+    return np.stack([x, y, phi], axis=-1)
+
+
+def constant_action_poses(pose: np.ndarray, action: np.ndarray, dt: float, horizon: int) -> np.ndarray:
+    """Midpoint poses after each of ``horizon`` steps holding one action, pose (B, 3), action (B, C, 2)
+    -> (B, C, T, 3): ``rollout_poses`` of a constant sequence, in closed form (phi_k = phi_0 + k omega
+    dt; PAC's footprint governor; it rounds differently from the cumulative sums)."""
+    B, C, _ = action.shape
+    v, w = action[..., 0], action[..., 1]
+    k = np.arange(1, horizon + 1)[None, None, :]
+    phi0 = pose[:, 2][:, None, None]
+    phi = phi0 + w[..., None] * dt * k  # (B, C, T): heading after k steps
+    # Euler positions: x_k = x_0 + v dt sum_{j<k} cos(phi_j)
+    phis = np.concatenate([np.broadcast_to(phi0, (B, C, 1)), phi[..., :-1]], axis=-1)
+    x = pose[:, 0][:, None, None] + v[..., None] * dt * np.cumsum(np.cos(phis), axis=-1)
+    y = pose[:, 1][:, None, None] + v[..., None] * dt * np.cumsum(np.sin(phis), axis=-1)
+    return np.stack([x, y, phi], axis=-1)
 
 
 class _FollowerLaw:
@@ -281,14 +339,7 @@ def step(state: FormationState, action: np.ndarray, params: FormationParams | No
     # Leader poses at every sub-step end tau_k = k h, k = 1..n: (n, B, 3).
     tau = (h * np.arange(1, n + 1))[:, None]
     v, w, phi0 = a[:, 0], a[:, 1], pose0[:, 2]
-    poses = np.stack(
-        [
-            pose0[:, 0] + v * np.cos(phi0) * tau,
-            pose0[:, 1] + v * np.sin(phi0) * tau,
-            phi0 + w * tau,
-        ],
-        axis=-1,
-    )
+    poses = step_midpoint(pose0, a, tau)
     leaders = leader_positions(poses)  # (n, B, 2, 2)
     # The law at sub-step k uses the leader positions at its start: tau_{k-1}.
     leaders_start = np.concatenate([leader_positions(pose0)[None], leaders[:-1]], axis=0)

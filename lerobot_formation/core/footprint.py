@@ -20,21 +20,28 @@ from __future__ import annotations
 
 import numpy as np
 
+from lerobot_formation.core.dynamics import body_to_world, rollout_poses
 from lerobot_formation.core.geometry import xy_clearance
 from lerobot_formation.core.navigation import CostToGo
 
+__all__ = ["rollout_poses", "select_safest", "sequence_clearance", "template_clearance"]
 
-def rollout_poses(pose: np.ndarray, actions: np.ndarray, dt: float) -> np.ndarray:
-    """Midpoint poses after each action, pose (B, 3), actions (B, C, T, 2) -> (B, C, T, 3) (Euler)."""
-    B, C, T, _ = actions.shape
-    v, w = actions[..., 0], actions[..., 1]
-    phi = pose[:, 2][:, None, None] + np.cumsum(w, axis=-1) * dt  # heading after step k
-    phi_before = np.concatenate(
-        [np.broadcast_to(pose[:, 2][:, None, None], (B, C, 1)), phi[..., :-1]], axis=-1
-    )
-    x = pose[:, 0][:, None, None] + np.cumsum(v * np.cos(phi_before), axis=-1) * dt
-    y = pose[:, 1][:, None, None] + np.cumsum(v * np.sin(phi_before), axis=-1) * dt
-    return np.stack([x, y, phi], axis=-1)
+
+def template_clearance(
+    poses: np.ndarray, obstacles: np.ndarray, template: np.ndarray, agent_radius: float, dtype=np.float64
+) -> np.ndarray:
+    """Smallest agent-disc clearance of the rigid formation template placed at midpoint poses
+    (B, ..., 3), obstacles (B, M, 3) -> (B, ...) float64: ``body_to_world`` + ``xy_clearance``.
+
+    The one footprint check of PAC's governor, MPPI's cost and candidate scoring (``dtype=np.float32``:
+    MPPI's fast path).
+    """
+    B, shape = poses.shape[0], poses.shape[:-1]
+    x, y, phi = (poses[..., k].reshape(B, -1) for k in range(3))  # (B, P)
+    column = (-1, 1, 1)  # template agents first: (N, 1, 1) against (B, P)
+    ax, ay = body_to_world(template[:, 0].reshape(column), template[:, 1].reshape(column), x, y, phi, dtype)
+    clear = xy_clearance(ax, ay, obstacles, dtype, min_axis=0)  # (B, P), nearest agent
+    return (clear.astype(np.float64, copy=False) - agent_radius).reshape(shape)
 
 
 def sequence_clearance(
@@ -46,14 +53,9 @@ def sequence_clearance(
     agent_radius: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of candidate sequences."""
-    B, C, T, _ = actions.shape
-    poses = rollout_poses(pose, actions, dt)
-    c, s = np.sin(poses[..., 2])[..., None], -np.cos(poses[..., 2])[..., None]  # rotation by phi - pi/2
-    bx, by = template[:, 0], template[:, 1]
-    ax = poses[..., 0][..., None] + bx * c - by * s  # (B, C, T, N)
-    ay = poses[..., 1][..., None] + bx * s + by * c
-    clear = xy_clearance(ax.reshape(B, -1), ay.reshape(B, -1), obstacles) - agent_radius
-    return clear.reshape(B, C, -1).min(axis=-1), poses[:, :, -1]
+    poses = rollout_poses(pose, actions, dt)  # (B, C, T, 3)
+    clear = template_clearance(poses, obstacles, template, agent_radius)
+    return clear.min(axis=-1), poses[:, :, -1]
 
 
 def select_safest(

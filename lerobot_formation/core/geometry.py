@@ -27,18 +27,47 @@ def point_clearance(points: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
     )
 
 
-def xy_clearance(x: np.ndarray, y: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
-    """Like ``point_clearance`` for coordinates given apart, x and y (B, P) -> (B, P). The hot path of
-    PAC's and MPPI's footprint checks: one obstacle slot at a time avoids (B, P, M, 2) temporaries."""
+def xy_clearance(
+    x: np.ndarray, y: np.ndarray, obstacles: np.ndarray, dtype=np.float64, min_axis: int | None = None
+) -> np.ndarray:
+    """Like ``point_clearance`` for coordinates given apart, x and y (..., B, P) -> (..., B, P). The hot
+    path of the footprint checks (PAC, MPPI, candidate scoring): one obstacle slot at a time avoids
+    (B, P, M, 2) temporaries.
+
+    ``min_axis``: the smallest clearance over this axis of x and y (e.g. the agents of a footprint),
+    taken on the squared distances before the square root: the same values as the minimum of the
+    result, for fewer square roots. ``dtype=np.float32``: MPPI's fast path (inputs cast first).
+    """
+    x, y = np.asarray(x).astype(dtype, copy=False), np.asarray(y).astype(dtype, copy=False)
+    obstacles = np.asarray(obstacles).astype(dtype, copy=False)
     out = None
     for m in range(obstacles.shape[1]):
-        dx = x - obstacles[:, m, 0][:, None]
-        dy = y - obstacles[:, m, 1][:, None]
-        gap = np.sqrt(dx * dx + dy * dy) - obstacles[:, m, 2][:, None]
+        d2 = _squared_distance(x, y, obstacles[:, m])
+        if min_axis is not None:
+            d2 = d2.min(axis=min_axis)
+        gap = np.sqrt(d2) - obstacles[:, m, 2][:, None]
         out = gap if out is None else np.minimum(out, gap, out=out)
     if out is None:
-        return np.full(x.shape, np.inf)
+        shape = x.shape if min_axis is None else np.delete(x.shape, min_axis)
+        return np.full(shape, np.inf)
     return out
+
+
+def obstacle_gaps(points: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+    """Distance from points (B, P, 2) to each obstacle's surface, obstacles (B, M, 3) -> (B, P, M)
+    (padded rows included: scene validity masks them itself)."""
+    x, y = points[..., 0], points[..., 1]
+    gaps = np.empty((*points.shape[:-1], obstacles.shape[1]))
+    for m in range(obstacles.shape[1]):
+        gaps[..., m] = np.sqrt(_squared_distance(x, y, obstacles[:, m])) - obstacles[:, m, 2][:, None]
+    return gaps
+
+
+def _squared_distance(x: np.ndarray, y: np.ndarray, obstacle: np.ndarray) -> np.ndarray:
+    """Squared distance from points x, y (..., B, P) to the centres of one obstacle slot (B, 3)."""
+    dx = x - obstacle[:, 0][:, None]
+    dy = y - obstacle[:, 1][:, None]
+    return dx * dx + dy * dy
 
 
 def agent_clearances(positions: np.ndarray, obstacles: np.ndarray, agent_radius: float = 0.1) -> np.ndarray:

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_formation.core.dynamics import FormationParams, FormationState, step_midpoint
+from lerobot_formation.core.footprint import template_clearance
 from lerobot_formation.core.navigation import CostToGo, cost_to_go
 from lerobot_formation.core.scene import Scenes
 
@@ -160,36 +161,13 @@ class MPPIController:
     def footprint_clearance(self, pose: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
         """Smallest agent-disc clearance of the rigid template at poses (B, K, 3) -> (B, K).
 
-        Same geometry as ``rotate_body`` + ``point_clearance`` (PAC's footprint), computed in float32
-        with a loop over the few obstacle slots: this is MPPI's hot path.
+        PAC's footprint (``footprint.template_clearance``), computed in float32 and over the obstacle
+        slots that some scene of the batch uses (padded ones are far away with r = 0): MPPI's hot path.
         """
-        f32 = np.float32
-        c = np.cos(pose[..., 2]).astype(f32)  # (B, K)
-        s = np.sin(pose[..., 2]).astype(f32)
-        px, py = pose[..., 0].astype(f32), pose[..., 1].astype(f32)
-        shape = (1,) * pose[..., 0].ndim
-        tx = self.template[:, 0].astype(f32).reshape(-1, *shape)  # (N, 1, 1)
-        ty = self.template[:, 1].astype(f32).reshape(-1, *shape)
-        # body (x right, y along the heading) -> world: rotation by phi - pi/2; agents first: (N, B, K)
-        ax = px + tx * s + ty * c
-        ay = py - tx * c + ty * s
-        obs = obstacles.astype(f32)
-        best = np.full(px.shape, np.inf, dtype=f32)
-        for m in range(obs.shape[1]):  # a few obstacle slots; padded ones are far away with r = 0
-            if not np.any(obs[:, m, 2] > 0):
-                continue
-            ox = obs[:, m, 0].reshape(-1, *shape[1:])  # (B, 1)
-            oy = obs[:, m, 1].reshape(-1, *shape[1:])
-            dx = ax - ox
-            dy = ay - oy
-            dx *= dx
-            dy *= dy
-            dx += dy
-            # min over agents before the sqrt: all agents share the obstacle's radius
-            d = np.sqrt(dx.min(axis=0))
-            d -= obs[:, m, 2].reshape(-1, *shape[1:])
-            np.minimum(best, d, out=best)
-        return best.astype(np.float64) - self.params.agent_radius
+        used = (np.asarray(obstacles)[:, :, 2].astype(np.float32) > 0).any(axis=0)
+        return template_clearance(
+            pose, obstacles[:, used], self.template, self.params.agent_radius, dtype=np.float32
+        )
 
     def _sample(self, U: np.ndarray) -> np.ndarray:
         """Clipped control samples (B, K, T, 2) around the nominals U (B, T, 2)."""

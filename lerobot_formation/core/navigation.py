@@ -20,6 +20,38 @@ _SHIFTS = [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)]
 MAX_GRID_CELLS = 600
 
 
+def grid_size(lo: float, hi: float, resolution: float) -> int:
+    """Cells per side of a square grid from ``lo`` to (at least) ``hi`` [m]."""
+    return int(np.ceil((hi - lo) / resolution)) + 1
+
+
+def grid_cell(xy: np.ndarray, origin: float, resolution: float, n: int) -> np.ndarray:
+    """Nearest cell (..., 2) int64 of points xy (..., 2) on the grid origin + resolution * [0, n)^2."""
+    return np.clip(np.round((xy - origin) / resolution).astype(np.int64), 0, n - 1)
+
+
+def inflated_cells(
+    obstacles: np.ndarray, present: np.ndarray, inflate: float, origin: float, resolution: float, n: int
+) -> np.ndarray:
+    """Grid cells (B, n, n) bool within r + ``inflate`` of an obstacle (B, M, 3) that is ``present``
+    (B, M); the walls of both grid wavefronts (this module's cost-to-go, ``scene.passage_exists``)."""
+    axis = origin + resolution * np.arange(n)
+    X, Y = np.meshgrid(axis, axis, indexing="ij")  # (n, n)
+    walls = np.zeros((len(obstacles), n, n), dtype=bool)
+    for m in range(obstacles.shape[1]):  # loop over the few obstacle slots, not scenes
+        ox, oy, r = (obstacles[:, m, k][:, None, None] for k in range(3))
+        walls |= ((X - ox) ** 2 + (Y - oy) ** 2 < (r + inflate) ** 2) & present[:, m][:, None, None]
+    return walls
+
+
+def neighbour_slices(dx: int, dy: int, n: int) -> tuple[tuple[slice, ...], tuple[slice, ...]]:
+    """Index pairs (src, dst) of (B, n, n) grids such that ``a[dst]`` cell (i, j) faces ``a[src]`` cell
+    (i + dx, j + dy): one wavefront relaxation toward a neighbour is one array operation."""
+    src = (slice(None), slice(max(dx, 0), n + min(dx, 0)), slice(max(dy, 0), n + min(dy, 0)))
+    dst = (slice(None), slice(max(-dx, 0), n + min(-dx, 0)), slice(max(-dy, 0), n + min(-dy, 0)))
+    return src, dst
+
+
 @dataclass
 class CostToGo:
     """Cost-to-go fields of B scenes on a common grid.
@@ -38,8 +70,7 @@ class CostToGo:
         return CostToGo(self.value[idx], self.origin, self.resolution)
 
     def cell(self, xy: np.ndarray) -> np.ndarray:
-        n = self.value.shape[-1]
-        return np.clip(np.round((xy - self.origin) / self.resolution).astype(np.int64), 0, n - 1)
+        return grid_cell(xy, self.origin, self.resolution, self.value.shape[-1])
 
     def carrot(self, xy: np.ndarray, n_cells: int) -> np.ndarray:
         """Follow steepest descent ``n_cells`` cells from each point xy (B, 2) -> target points (B, 2)."""
@@ -81,28 +112,22 @@ def cost_to_go(
             f"[{lo:.4g}, {hi:.4g}] m, more than {MAX_GRID_CELLS} cells of {resolution:g} m per side; keep goals "
             "within 50 m of the origin (core.scene.MAX_COORDINATE)"
         )
-    n = int(np.ceil((hi - lo) / resolution)) + 1
-    axis = lo + resolution * np.arange(n)
-    X, Y = np.meshgrid(axis, axis, indexing="ij")
+    n = grid_size(lo, hi, resolution)
     B = len(goal)
-    cost = np.ones((B, n, n))
-    for m in range(obstacles.shape[1]):  # few obstacle slots; padded ones have r = 0 and sit far away
-        ox, oy, r = (obstacles[:, m, k][:, None, None] for k in range(3))
-        inside = ((X - ox) ** 2 + (Y - oy) ** 2 < (r + inflate) ** 2) & (r > 0)
-        cost = np.where(inside, wall_cost, cost)
+    # few obstacle slots; padded ones have r = 0 and sit far away
+    walls = inflated_cells(obstacles, obstacles[..., 2] > 0, inflate, lo, resolution, n)
+    cost = np.where(walls, wall_cost, np.float64(1.0))
     value = np.full((B, n, n), np.inf)
-    gi = np.clip(np.round((goal - lo) / resolution).astype(np.int64), 0, n - 1)
+    gi = grid_cell(goal, lo, resolution, n)
     value[np.arange(B), gi[:, 0], gi[:, 1]] = 0.0
     step_len = [resolution * (np.sqrt(2.0) if dx and dy else 1.0) for dx, dy in _SHIFTS]
+    shifts = [neighbour_slices(dx, dy, n) for dx, dy in _SHIFTS]
     for it in range(8 * n):
         prev = value if it % 10 == 0 else None
         if prev is not None:
             prev = value.copy()
-        for (dx, dy), L in zip(_SHIFTS, step_len, strict=True):
-            src = value[:, max(dx, 0) : n + min(dx, 0), max(dy, 0) : n + min(dy, 0)]
-            c = cost[:, max(-dx, 0) : n + min(-dx, 0), max(-dy, 0) : n + min(-dy, 0)]
-            dst = value[:, max(-dx, 0) : n + min(-dx, 0), max(-dy, 0) : n + min(-dy, 0)]
-            np.minimum(dst, src + L * c, out=dst)
+        for (src, dst), L in zip(shifts, step_len, strict=True):
+            np.minimum(value[dst], value[src] + L * cost[dst], out=value[dst])
         if prev is not None and np.array_equal(prev, value):
             break
     return CostToGo(value, lo, resolution)

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.geometry import xy_clearance
+from lerobot_formation.core.dynamics import FormationParams, constant_action_poses
+from lerobot_formation.core.footprint import template_clearance
 from lerobot_formation.core.navigation import cost_to_go
 
 
@@ -123,24 +123,9 @@ class PathAwareController:
 
     def footprint_clearance(self, pose: np.ndarray, cand: np.ndarray) -> np.ndarray:
         """Minimum predicted agent clearance over the horizon for candidates cand (B, C, 2) -> (B, C)."""
-        dt = self.params.dt
-        B, C, _ = cand.shape
-        T = self.config.horizon
-        v, w = cand[..., 0], cand[..., 1]
-        k = np.arange(1, T + 1)[None, None, :]
-        phi0 = pose[:, 2][:, None, None]
-        phi = phi0 + w[..., None] * dt * k  # (B, C, T): heading after k steps
-        # Euler positions: x_k = x_0 + v dt sum_{j<k} cos(phi_j)
-        phis = np.concatenate([np.broadcast_to(phi0, (B, C, 1)), phi[..., :-1]], axis=-1)
-        x = pose[:, 0][:, None, None] + v[..., None] * dt * np.cumsum(np.cos(phis), axis=-1)
-        y = pose[:, 1][:, None, None] + v[..., None] * dt * np.cumsum(np.sin(phis), axis=-1)
-        # Template agents in the world: body (bx, by) -> rotate by phi - pi/2 (x right, y forward).
-        c, s = np.sin(phi)[..., None], -np.cos(phi)[..., None]  # cos(phi - pi/2), sin(phi - pi/2)
-        bx, by = self.template[:, 0], self.template[:, 1]
-        ax = x[..., None] + bx * c - by * s  # (B, C, T, N)
-        ay = y[..., None] + bx * s + by * c
-        clear = xy_clearance(ax.reshape(B, -1), ay.reshape(B, -1), self.obstacles) - self.params.agent_radius
-        return clear.reshape(B, C, -1).min(axis=-1)
+        poses = constant_action_poses(pose, cand, self.params.dt, self.config.horizon)  # (B, C, T, 3)
+        clear = template_clearance(poses, self.obstacles, self.template, self.params.agent_radius)
+        return clear.min(axis=-1)
 
     def command(self, pose: np.ndarray) -> np.ndarray:
         """[v, omega] for B midpoint poses (B, 3) -> (B, 2)."""

@@ -116,6 +116,23 @@ class EpisodeRecords:
     def __len__(self) -> int:
         return len(self.outcome)
 
+    def put(self, idx, t: int, values: dict[str, np.ndarray]) -> None:
+        """Write ``frame_record`` or ``step_record`` values of the episodes ``idx`` at time step t."""
+        for key, value in values.items():
+            getattr(self, key)[idx, t] = value
+
+    @staticmethod
+    def single(
+        frames: list[dict[str, np.ndarray]], steps: list[dict[str, np.ndarray]], outcome: int, dt: float
+    ) -> EpisodeRecords:
+        """One episode's records (B = 1) from its ``frame_record`` (n + 1) and ``step_record`` (n) values."""
+        values = {k: np.stack([f[k][0] for f in frames])[None] for k in frames[0]}
+        if steps:
+            values.update({k: np.stack([s[k][0] for s in steps])[None] for k in steps[0]})
+        else:
+            values.update(actions=np.zeros((1, 0, 2)), follower_velocity_error=np.zeros((1, 0)))
+        return EpisodeRecords(**values, outcome=np.array([outcome]), steps=np.array([len(steps)]), dt=dt)
+
     def episode(self, b: int) -> dict[str, np.ndarray]:
         n = int(self.steps[b])
         return {
@@ -157,20 +174,15 @@ def rollout(
     )
     state = initial_state(scenes.start, params)
     controller.reset(scenes)
-    _record(rec, slice(None), 0, state, scenes.obstacles, params)
+    rec.put(slice(None), 0, frame_record(state, scenes.obstacles, params))
     live = np.arange(B)
     for t in range(T):
         obs, goal = scenes.obstacles[live], scenes.goal[live]
         a = check_action(controller.act(state, live), len(live))
         prev = state
         state = step(state, a, params)
-        rec.actions[live, t] = clip_action(a, params)
-        _record(rec, live, t + 1, state, obs, params)
-        v_des = (
-            desired_follower_positions(state.pose, params.graph)
-            - desired_follower_positions(prev.pose, params.graph)
-        ) / params.dt
-        rec.follower_velocity_error[live, t] = np.linalg.norm(state.follower_vel - v_des, axis=-1).mean(-1)
+        rec.put(live, t, step_record(prev.pose, state, a, params))
+        rec.put(live, t + 1, frame_record(state, obs, params))
         outcome, _, _ = step_outcome(state, obs, goal, params)
         ended = outcome != RUNNING
         rec.outcome[live[ended]] = outcome[ended]
@@ -188,12 +200,34 @@ def rollout(
     return rec
 
 
-def _record(rec: EpisodeRecords, idx, t: int, state: FormationState, obstacles: np.ndarray, params) -> None:
+def frame_record(
+    state: FormationState, obstacles: np.ndarray, params: FormationParams
+) -> dict[str, np.ndarray]:
+    """What ``EpisodeRecords`` keeps of B teams at one time step: poses (B, 3), positions (B, N, 2),
+    formation_error, agent_clearance and midpoint_clearance (B,) (+inf: no obstacle)."""
     pos = agent_positions(state)
-    rec.poses[idx, t] = state.pose
-    rec.positions[idx, t] = pos
-    rec.formation_error[idx, t] = formation_error(pos, params.graph)
-    rec.agent_clearance[idx, t] = no_obstacle_as_inf(
-        agent_clearances(pos, obstacles, params.agent_radius).min(axis=1)
-    )
-    rec.midpoint_clearance[idx, t] = no_obstacle_as_inf(midpoint_clearance(state.pose, obstacles))
+    return {
+        "poses": state.pose,
+        "positions": pos,
+        "formation_error": formation_error(pos, params.graph),
+        "agent_clearance": no_obstacle_as_inf(
+            agent_clearances(pos, obstacles, params.agent_radius).min(axis=1)
+        ),
+        "midpoint_clearance": no_obstacle_as_inf(midpoint_clearance(state.pose, obstacles)),
+    }
+
+
+def step_record(
+    prev_pose: np.ndarray, state: FormationState, action: np.ndarray, params: FormationParams
+) -> dict[str, np.ndarray]:
+    """What ``EpisodeRecords`` keeps of B teams' control step from ``prev_pose`` (B, 3) to ``state``
+    with ``action`` (B, 2): the applied (clipped) actions and the follower velocity error (B,), the
+    mean over followers of ||v_i - v_i*||, v_i* the velocity of the follower's template slot."""
+    v_des = (
+        desired_follower_positions(state.pose, params.graph)
+        - desired_follower_positions(prev_pose, params.graph)
+    ) / params.dt  # (B, F, 2) [m/s]
+    return {
+        "actions": clip_action(action, params),
+        "follower_velocity_error": np.linalg.norm(state.follower_vel - v_des, axis=-1).mean(-1),
+    }

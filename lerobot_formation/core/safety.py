@@ -9,10 +9,14 @@ covers.
 ``select_chunk`` (best-of-K, the "safest" rule of adaptive sampling):
   1. roll each candidate chunk's whole horizon through the midpoint unicycle and place the rigid
      formation footprint (all four agents) at every step (``footprint.sequence_clearance``);
-  2. discard candidates that come within ``margin`` of an obstacle;
-  3. among the rest keep the one with the most progress toward the goal, |g| - |g - p_end|
-     (clearance alone would steer away from everything, the goal included);
-  4. if none is safe, keep the one with the largest predicted clearance (the filter then brakes).
+  2. discard candidates that come within ``margin`` of an obstacle (when the team is already inside
+     the margin, those that come closer than it is now, minus 2 cm);
+  3. among the rest keep the one with the most progress toward the goal: the decrease of a grid
+     cost-to-go around the observed obstacles (``cost_to_go_progress``; straight-line progress is
+     greedy and drives into obstacles, clearance alone would steer away from the goal too);
+  4. if none is safe, a safe escape manoeuvre (a turn in place or a slow arc, ``ESCAPE_PRIMITIVES``)
+     with the most progress; if none of those is safe either, the candidate with the largest
+     predicted clearance (the filter then brakes).
 
 ``cbf_filter`` (the per-step filter): with agent i at body offset b_i, obstacle j at c_j with radius
 r_j and h_ij = |p_i - c_j| - r_j - agent_radius - margin, the unicycle moves agent i at
@@ -34,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from lerobot_formation.core.footprint import sequence_clearance
+from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.scene import FAR
 
 BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
@@ -54,6 +59,12 @@ def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.nd
     return goal, obstacles, mask
 
 
+# Escape manoeuvres [v, omega], held over a chunk: turns in place and slow arcs. Used only when no
+# sampled chunk is safe, so that the team turns away from a blocked heading instead of stopping there.
+SLIDE_TOLERANCE = 0.02  # [m] how much closer than now a chunk may come when already inside the margin
+ESCAPE_PRIMITIVES = np.array([[0.0, 1.0], [0.0, -1.0], [0.2, 0.8], [0.2, -0.8], [0.15, 0.0]])
+
+
 def select_chunk(
     candidates: np.ndarray,
     obstacles: np.ndarray,
@@ -62,22 +73,70 @@ def select_chunk(
     dt: float,
     agent_radius: float,
     margin: float,
+    progress_measure: str = "cost_to_go",
+    window: float = 6.0,
+    escape: bool = True,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Index (B,) of the kept chunk among candidates (B, K, T, 2) [v, omega], and diagnostics.
+    """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
-    ``obstacles`` (B, M, 3) and ``goal`` (B, 2) are in the body frame.
+    ``obstacles`` (B, M, 3) and ``goal`` (B, 2) are in the body frame. ``progress_measure``
+    "cost_to_go" (default) or "euclidean" (see ``cost_to_go_progress``). With ``escape``, when no
+    candidate is safe the safe ``ESCAPE_PRIMITIVES`` chunk with the most progress is kept, if any.
+    ``info["choice"]`` is the kept index (K + j for primitive j).
     """
-    B, K = candidates.shape[:2]
+    B, K, T = candidates.shape[:3]
+    pool = candidates
+    if escape:
+        prim = np.broadcast_to(ESCAPE_PRIMITIVES[None, :, None, :], (B, len(ESCAPE_PRIMITIVES), T, 2))
+        pool = np.concatenate([candidates, prim], axis=1)
     pose = np.broadcast_to(BODY_POSE, (B, 3))
-    clear, end = sequence_clearance(pose, candidates, obstacles, template, dt, agent_radius)
-    dist0 = np.linalg.norm(goal, axis=-1)
-    progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
-    safe = clear >= margin
-    best = np.argmax(np.where(safe, progress, -np.inf), axis=1)
-    fallback = np.argmax(clear, axis=1)
-    any_safe = safe.any(axis=1)
-    choice = np.where(any_safe, best, fallback)
-    return choice, {"clearance": clear, "progress": progress, "safe": safe, "any_safe": any_safe}
+    clear, end = sequence_clearance(pose, pool, obstacles, template, dt, agent_radius)
+    if progress_measure == "euclidean":
+        dist0 = np.linalg.norm(goal, axis=-1)
+        progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
+    else:
+        progress = cost_to_go_progress(obstacles, goal, end[..., :2], window)
+    # inside the margin already (the filter holds the team at its edge): a chunk that gets no closer
+    # than now counts as safe, so that the team may slide along an obstacle instead of stalling there
+    now, _ = sequence_clearance(pose, np.zeros((B, 1, 1, 2)), obstacles, template, dt, agent_radius)
+    safe = clear >= np.minimum(margin, now - SLIDE_TOLERANCE)
+    sampled_safe = safe[:, :K].any(axis=1)
+    allowed = safe.copy()
+    allowed[:, K:] &= ~sampled_safe[:, None]  # primitives only when no sampled chunk is safe
+    best = np.argmax(np.where(allowed, progress, -np.inf), axis=1)
+    fallback = np.argmax(clear[:, :K], axis=1)  # nothing safe: the widest sampled chunk (the filter brakes)
+    choice = np.where(allowed.any(axis=1), best, fallback)
+    chosen = pool[np.arange(B), choice]
+    info = {
+        "choice": choice,
+        "clearance": clear[:, :K],
+        "progress": progress[:, :K],
+        "safe": safe[:, :K],
+        "any_safe": sampled_safe,
+        "escaped": choice >= K,
+    }
+    return chosen, info
+
+
+def cost_to_go_progress(
+    obstacles: np.ndarray, goal: np.ndarray, end: np.ndarray, window: float
+) -> np.ndarray:
+    """Decrease (B, K) of a grid cost-to-go from the midpoint (the origin) to each candidate's end point
+    (B, K, 2), in the body frame around the observed obstacles.
+
+    Straight-line progress is greedy: it keeps the candidate that heads at the goal through an obstacle
+    until every candidate collides, and drops the ones that start to go round it. The cost-to-go
+    (``navigation.cost_to_go``, cells within 0.9 m of an obstacle three times dearer, as MPPI's goal
+    cost) is the length of the way round. It is computed on a window of +-``window`` m; a goal beyond
+    it is replaced by the window's point in the goal's direction.
+    """
+    B, K = end.shape[:2]
+    reach = np.abs(goal).max(axis=-1)
+    g = goal * np.minimum(1.0, window / np.maximum(reach, 1e-9))[:, None]
+    ctg = cost_to_go(obstacles, g, inflate=0.9, wall_cost=3.0, bounds=(-window - 1.0, window + 1.0))
+    start = ctg.at(np.zeros((B, 2)))
+    stop = ctg.at(end.reshape(B * K, 2), rows=np.repeat(np.arange(B), K)).reshape(B, K)
+    return start[:, None] - stop
 
 
 def barrier_rows(

@@ -30,6 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_formation.core.dynamics import rotate_body
+from lerobot_formation.core.geometry import obstacle_gaps
+from lerobot_formation.core.navigation import grid_cell, grid_size, inflated_cells, neighbour_slices
+
 FAR = 1.0e6  # [m] padded obstacle rows sit here, radius 0, so they never touch anything
 PAPER_START = (0.0, 0.0, np.pi / 2)  # midpoint pose [x, y, phi] of the paper's start
 # Seed ranges of the evaluation protocols (disjoint, like diffusion_policy's train/test seeds).
@@ -55,7 +59,11 @@ class SceneConfig:
     start: tuple[float, float, float] = PAPER_START
     agent_radius: float = 0.1  # [m]
     half_width: float = 0.5  # [m] half the leader bar: inflation of the passage check (+ agent radius)
-    formation_radius: float = 1.118  # [m] farthest agent from the midpoint: goal margin
+    # [m] farthest agent from the midpoint: goal margin. FormationGraph().radius() is sqrt(1.25) =
+    # 1.11803...; kept at the rounded 1.118 because the exact value changes the validity of some
+    # candidates (8 of the 633,600 paper-layout
+    # candidates drawn for seeds 0-2999 and 1,000,000-1,000,299), so it would change scenes.
+    formation_radius: float = 1.118
     start_margin: float = 0.2  # [m] clearance each start agent must keep
     grid_resolution: float = 0.1  # [m] passage check
     chunk: int = 64  # candidates drawn per rng call
@@ -266,6 +274,17 @@ def scenes_from_list(items: list[dict], config: SceneConfig | None = None, check
     return scenes
 
 
+def scenes_from_frames(
+    obstacles: np.ndarray, goal: np.ndarray, start: np.ndarray, seeds: np.ndarray
+) -> Scenes:
+    """Rebuild Scenes from a dataset's per-episode ``scene.*`` values (``generate_pac_dataset``):
+    obstacles (B, 3 * slots) with r = 0 in unused slots, goal (B, 2), start (B, 3), seeds (B,)."""
+    obs = np.asarray(obstacles, dtype=np.float64).reshape(len(goal), -1, 3)
+    mask = obs[..., 2] > 0
+    obs[~mask] = (FAR, FAR, 0.0)
+    return Scenes(obs, mask, np.asarray(goal, np.float64), np.asarray(start, np.float64), np.asarray(seeds))
+
+
 def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
     """Raise ValueError naming the first impossible scene: NaN, negative radius, start or goal out of
     range (``MAX_COORDINATE``, ``MAX_GOAL_DISTANCE``), obstacle over the start formation, a goal
@@ -309,7 +328,7 @@ def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
 
     tmpl = np.asarray(FormationGraph().template)
     start_agents = _start_agents(scenes.start, tmpl)  # (B, N, 2)
-    gap = _gap(start_agents, scenes.obstacles) - config.agent_radius  # (B, N, M)
+    gap = obstacle_gaps(start_agents, scenes.obstacles) - config.agent_radius  # (B, N, M)
     hit = (gap < 0) & scenes.mask[:, None, :]
     if hit.any():
         b, n, m = np.argwhere(hit)[0]
@@ -317,7 +336,7 @@ def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
             f"scene {b}: obstacle {m} {scenes.obstacles[b, m].tolist()} lies over the start formation "
             f"(agent {n} at {start_agents[b, n].round(3).tolist()})"
         )
-    g = _gap(scenes.goal[:, None, :], scenes.obstacles)[:, 0]  # (B, M)
+    g = obstacle_gaps(scenes.goal[:, None, :], scenes.obstacles)[:, 0]  # (B, M)
     inside = (g < 0) & scenes.mask
     if inside.any():
         b, m = np.argwhere(inside)[0]
@@ -335,19 +354,9 @@ def check_scenes(scenes: Scenes, config: SceneConfig | None = None) -> None:
         )
 
 
-def _gap(points: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
-    """Distance from points (B, P, 2) to obstacle surfaces (B, M, 3) -> (B, P, M)."""
-    d = points[:, :, None, :] - obstacles[:, None, :, :2]
-    return np.sqrt(np.sum(d * d, axis=-1)) - obstacles[:, None, :, 2]
-
-
 def _start_agents(start: np.ndarray, template: np.ndarray) -> np.ndarray:
     """Template agent positions at the start pose, (B, N, 2). Body frame: y along the heading."""
-    phi = start[:, 2] - np.pi / 2
-    c, s = np.cos(phi), np.sin(phi)
-    x = template[None, :, 0] * c[:, None] - template[None, :, 1] * s[:, None]
-    y = template[None, :, 0] * s[:, None] + template[None, :, 1] * c[:, None]
-    return np.stack([x, y], axis=-1) + start[:, None, :2]
+    return rotate_body(template[None], start[:, 2][:, None]) + start[:, None, :2]
 
 
 def _cheap_reason(cand: Scenes, config: SceneConfig) -> np.ndarray:
@@ -356,10 +365,12 @@ def _cheap_reason(cand: Scenes, config: SceneConfig) -> np.ndarray:
 
     tmpl = np.asarray(FormationGraph().template)
     agents = _start_agents(cand.start, tmpl)
-    start_gap = _gap(agents, cand.obstacles) - config.agent_radius - config.start_margin
-    mid_gap = _gap(cand.start[:, None, :2], cand.obstacles)[:, 0] - config.half_width - config.agent_radius
+    start_gap = obstacle_gaps(agents, cand.obstacles) - config.agent_radius - config.start_margin
+    mid_gap = (
+        obstacle_gaps(cand.start[:, None, :2], cand.obstacles)[:, 0] - config.half_width - config.agent_radius
+    )
     covered = ((start_gap < 0).any(axis=(1, 2))) | ((mid_gap < 0).any(axis=1))
-    goal_gap = _gap(cand.goal[:, None, :], cand.obstacles)[:, 0] - config.formation_radius
+    goal_gap = obstacle_gaps(cand.goal[:, None, :], cand.obstacles)[:, 0] - config.formation_radius
     near_goal = (goal_gap < 0).any(axis=1)
     reason = np.zeros(len(cand), dtype=np.int64)
     reason[near_goal] = 2
@@ -388,7 +399,7 @@ def passage_exists(scenes: Scenes, config: SceneConfig) -> np.ndarray:
     res = config.grid_resolution
     lo = min(-2.5, float(np.min(scenes.start[:, :2])) - 2.5, float(np.min(scenes.goal)) - 2.5)
     hi = max(8.5, float(np.max(scenes.start[:, :2])) + 2.5, float(np.max(scenes.goal)) + 2.5)
-    n = int(np.ceil((hi - lo) / res)) + 1
+    n = grid_size(lo, hi, res)
     chunk = max(1, _PASSAGE_CELLS // (n * n))  # bounded memory; the same grid for every chunk
     if len(scenes) > chunk:
         return np.concatenate(
@@ -402,27 +413,20 @@ _PASSAGE_CELLS = 1 << 24  # grid cells of one flood fill batch (a few 16 MB bool
 
 def _flood_fill(scenes: Scenes, config: SceneConfig, lo: float, n: int) -> np.ndarray:
     res = config.grid_resolution
-    axis = lo + res * np.arange(n)
-    X, Y = np.meshgrid(axis, axis, indexing="ij")  # (n, n)
     inflate = config.half_width + config.agent_radius
-    free = np.ones((len(scenes), n, n), dtype=bool)
-    for m in range(scenes.obstacles.shape[1]):  # loop over the few obstacle slots, not scenes
-        ox, oy, r = (scenes.obstacles[:, m, k][:, None, None] for k in range(3))
-        inside = (X - ox) ** 2 + (Y - oy) ** 2 < (r + inflate) ** 2
-        free &= ~(inside & scenes.mask[:, m][:, None, None])
+    free = ~inflated_cells(scenes.obstacles, scenes.mask, inflate, lo, res, n)  # (B, n, n)
     B = len(scenes)
-    si = np.clip(np.round((scenes.start[:, :2] - lo) / res).astype(int), 0, n - 1)
-    gi = np.clip(np.round((scenes.goal - lo) / res).astype(int), 0, n - 1)
+    si = grid_cell(scenes.start[:, :2], lo, res, n)
+    gi = grid_cell(scenes.goal, lo, res, n)
     reach = np.zeros_like(free)
     reach[np.arange(B), si[:, 0], si[:, 1]] = True
     reach &= free
     goal_free = free[np.arange(B), gi[:, 0], gi[:, 1]]
+    shifts = [neighbour_slices(dx, dy, n) for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1))]  # 4-connected
     for it in range(4 * n):
         grown = reach.copy()
-        grown[:, 1:, :] |= reach[:, :-1, :]
-        grown[:, :-1, :] |= reach[:, 1:, :]
-        grown[:, :, 1:] |= reach[:, :, :-1]
-        grown[:, :, :-1] |= reach[:, :, 1:]
+        for src, dst in shifts:
+            grown[dst] |= reach[src]
         grown &= free
         if it % 8 == 0:
             done = reach[np.arange(B), gi[:, 0], gi[:, 1]] | ~goal_free

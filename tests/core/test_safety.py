@@ -66,13 +66,33 @@ def test_select_chunk_prefers_safe_then_progress():
     turn = np.tile([0.4, -0.6], (T, 1))  # turns away from it: safe
     slow = np.tile([0.05, 0.0], (T, 1))  # safe, little progress
     cand = np.stack([straight, slow, turn])[None]
-    choice, info = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    chosen, info = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
     assert not info["safe"][0, 0] and info["safe"][0, 1] and info["safe"][0, 2]
-    assert choice[0] == 2
-    # K = 1: the only candidate, whatever it is
-    choice1, _ = select_chunk(cand[:, :1], obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
-    assert choice1[0] == 0
-    # none safe: the largest clearance
+    np.testing.assert_array_equal(chosen[0], cand[0, info["choice"][0]])
+    assert info["choice"][0] in (1, 2) and not info["escaped"][0]  # never the colliding one
+    # K = 1 and safe: that candidate
+    _, info1 = select_chunk(cand[:, 1:2], obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    assert info1["choice"][0] == 0
+    # none safe: a safe escape manoeuvre if there is one, else the largest clearance
     blocked = np.array([[[0.5, 0.5, 0.3], [-0.5, 0.5, 0.3]]])
-    choice2, info2 = select_chunk(cand, blocked, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
-    assert not info2["any_safe"][0] and choice2[0] == np.argmax(info2["clearance"][0])
+    _, info2 = select_chunk(cand, blocked, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    assert not info2["any_safe"][0]
+    if not info2["escaped"][0]:
+        assert info2["choice"][0] == np.argmax(info2["clearance"][0])
+    _, info3 = select_chunk(cand, blocked, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False)
+    assert info3["choice"][0] == np.argmax(info3["clearance"][0])
+
+
+def test_progress_goes_round_an_obstacle_not_through_it():
+    """Cost-to-go progress prefers the chunk that starts round an obstacle on the straight line over
+    the one that heads at it (straight-line progress would pick the latter)."""
+    obstacles = np.array([[[0.0, 3.2, 0.8]]])
+    goal = np.array([[0.0, 7.0]])
+    T = 16
+    straight = np.tile([0.5, 0.0], (T, 1))
+    veer = np.tile([0.5, 0.35], (T, 1))
+    cand = np.stack([straight, veer])[None]
+    _, eu = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, "euclidean")
+    _, ctg = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    assert eu["safe"][0].all()
+    assert eu["choice"][0] == 0 and ctg["choice"][0] == 1

@@ -1,0 +1,78 @@
+"""LeRobot internals are touched only on the tested LeRobot version; on another one the stock
+behaviour runs, after one logged warning per use."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from datasets_scripts import generate_pac_dataset as gen
+from lerobot_formation import fast_reads, lerobot_compat
+
+
+@pytest.fixture
+def untested(monkeypatch):
+    """Pretend to run on a LeRobot release this plugin was not written for."""
+    monkeypatch.setattr(lerobot_compat, "lerobot_version", lambda: "9.0.0")
+    monkeypatch.setattr(lerobot_compat, "_warned", set())
+
+
+def test_tested_version_is_the_installed_one():
+    assert lerobot_compat.version_is_tested(), lerobot_compat.lerobot_version()
+
+
+def test_untested_version_keeps_the_stock_reader(monkeypatch, caplog):
+    from lerobot.datasets.dataset_reader import DatasetReader
+
+    fast_reads.uninstall()
+    stock = DatasetReader.get_item
+    try:
+        monkeypatch.setattr(lerobot_compat, "lerobot_version", lambda: "9.0.0")
+        monkeypatch.setattr(lerobot_compat, "_warned", set())
+        with caplog.at_level(logging.WARNING, logger=lerobot_compat.__name__):
+            assert not fast_reads.install()
+            assert not fast_reads.install()
+        assert DatasetReader.get_item is stock
+        assert lerobot_compat.stock_reader_method("get_item") is stock
+        assert len(caplog.records) == 1 and "9.0.0" in caplog.records[0].getMessage()
+    finally:
+        monkeypatch.undo()
+        fast_reads.install()  # as the plugin's import left it
+    assert DatasetReader.get_item is fast_reads._fast_get_item
+    assert lerobot_compat.stock_reader_method("get_item") is stock
+
+
+def test_untested_version_embeds_images_and_writes_frame_by_frame(untested):
+    from lerobot.datasets import dataset_writer
+
+    stock = dataset_writer.embed_images
+    with lerobot_compat.skip_noop_image_embedding(gen.dataset_features()):
+        assert dataset_writer.embed_images is stock
+
+    class Recorder:  # the two LeRobotDataset calls of the stock path
+        def __init__(self):
+            self.frames, self.saved = [], []
+
+        def add_frame(self, frame):
+            self.frames.append(frame)
+
+        def save_episode(self, **kwargs):
+            self.saved.append(kwargs)
+
+    frames = {"action": np.zeros((3, 2), np.float32), "observation.state": np.ones((3, 7), np.float32)}
+    ds = Recorder()
+    gen.write_episode(ds, frames, fast=True)
+    assert len(ds.frames) == 3 and ds.saved == [{}]
+    assert ds.frames[0]["task"] == gen.TASK and set(ds.frames[0]) == {"action", "observation.state", "task"}
+
+
+def test_tested_version_skips_the_noop_embedding():
+    from lerobot.datasets import dataset_writer
+
+    stock = dataset_writer.embed_images
+    with lerobot_compat.skip_noop_image_embedding(gen.dataset_features()):
+        assert dataset_writer.embed_images is not stock
+    assert dataset_writer.embed_images is stock
+    image = {"image": {"dtype": "image", "shape": (8, 8, 3), "names": None}}
+    with lerobot_compat.skip_noop_image_embedding(image):
+        assert dataset_writer.embed_images is stock
