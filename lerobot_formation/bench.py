@@ -367,11 +367,14 @@ def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes) -> 
     return [f.name for f in files]
 
 
-def write_comparison_figure(out: Path, label: str, records: dict[str, EpisodeRecords], scenes: Scenes) -> str:
+def write_comparison_figure(
+    out: Path, label: str, records: dict[str, EpisodeRecords], scenes: Scenes, spec: str = ""
+) -> str:
     from lerobot_formation.plots import comparison_scenes, plot_controller_comparison
 
     path = out / f"controllers_{label}.png"
-    title = SET_TITLES.get(label, label)
+    paper_protocol = spec.split(":")[0] in ("random", "dataset", "")
+    title = SET_TITLES.get(label, label) if paper_protocol else f"{spec} scenes (unseen)"
     return plot_controller_comparison(records, scenes, comparison_scenes(records, 3), path, title=title).name
 
 
@@ -426,7 +429,8 @@ def run_set(
             flush=True,
         )
     if figures and len(records) > 1:
-        shared = write_comparison_figure(out, label, records, scenes)
+        spec = args.unseen if label == "unseen" else args.scenes
+        shared = write_comparison_figure(out, label, records, scenes, spec or "")
         for entry in results.values():
             entry["figures"].append(shared)
     return results
