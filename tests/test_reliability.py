@@ -330,20 +330,17 @@ def test_walled_off_goal_is_refused_by_the_env_too():
 
 
 # -- the bench: checkpoints and arguments ------------------------------------------------------------
-def _stock_diffusion_checkpoint(path: Path) -> Path:
-    import torch
+def _tiny_diffusion_kwargs(env_dim: int = 66) -> dict:
+    """Config fields of a tiny diffusion policy on the formation features (a grid+list dataset)."""
     from lerobot.configs import FeatureType, PolicyFeature
-    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
     from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-    torch.manual_seed(0)
-    cfg = DiffusionConfig(
+    return dict(
         device="cpu",
         push_to_hub=False,
         input_features={
             OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
-            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(66,)),
+            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(env_dim,)),
         },
         output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))},
         horizon=16,
@@ -353,7 +350,15 @@ def _stock_diffusion_checkpoint(path: Path) -> Path:
         n_groups=4,
         diffusion_step_embed_dim=16,
     )
-    DiffusionPolicy(cfg).save_pretrained(path)
+
+
+def _stock_diffusion_checkpoint(path: Path) -> Path:
+    import torch
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+
+    torch.manual_seed(0)
+    DiffusionPolicy(DiffusionConfig(**_tiny_diffusion_kwargs())).save_pretrained(path)
     return path
 
 
@@ -489,28 +494,12 @@ def test_seed_past_the_end_of_a_scenes_file(tmp_path):
 # -- lerobot-train start-up checks -------------------------------------------------------------------
 def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up():
     """lerobot-train calls make_env_pre_post_processors(env_cfg, policy_cfg) before its first step."""
-    from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.envs.factory import make_env_pre_post_processors
-    from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
     from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
     from lerobot_formation.env_config import FormationEnvConfig
 
-    policy_cfg = FormationDiffusionConfig(
-        device="cpu",
-        push_to_hub=False,
-        input_features={
-            OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
-            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(66,)),  # a grid+list dataset
-        },
-        output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))},
-        horizon=16,
-        n_action_steps=8,
-        down_dims=(16, 32),
-        kernel_size=3,
-        n_groups=4,
-        diffusion_step_embed_dim=16,
-    )
+    policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66))  # a grid+list dataset
     make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid+list"), policy_cfg)
     with pytest.raises(ValueError) as e:
         make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid"), policy_cfg)
