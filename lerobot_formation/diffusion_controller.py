@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.footprint import select_safest
 from lerobot_formation.core.navigation import cost_to_go
@@ -240,18 +239,7 @@ class DiffusionController:
         if self.policy_safety:
             if K == 1:
                 return cand[:, 0, : self.n_act]
-            goal_b, obstacles_b, _ = safety.decode_nearest(
-                self.env_history[idx, -1], get_encoding(self.encoding).slots(self.max_obstacles)
-            )
-            chosen, info = safety.select_chunk(
-                cand,
-                obstacles_b,
-                goal_b,
-                self.template,
-                self.params.dt,
-                self.params.agent_radius,
-                self.policy.config.safety_margin,
-            )
+            chosen, info = self.policy.choose_chunk_raw(self.env_history[idx, -1], cand)
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             return chosen[:, : self.n_act]
@@ -295,21 +283,8 @@ class DiffusionController:
         self.queue_pos[idx] += 1
         self.stats["steps"] += len(idx)
         if self.filter == "cbf":
-            cfg = self.policy.config
-            _, obstacles_b, _ = safety.decode_nearest(
-                env, get_encoding(self.encoding).slots(self.max_obstacles)
-            )
-            a, changed = safety.cbf_filter(
-                a,
-                obstacles_b,
-                self.template,
-                self.params.agent_radius,
-                cfg.safety_margin,
-                cfg.cbf_rate,
-                np.asarray(cfg.action_low),
-                np.asarray(cfg.action_high),
-            )
+            a, changed = self.policy.filter_action_raw(env, a)
             self.stats["filter_interventions"] += int(changed.sum())
-            if cfg.replan_on_intervention:  # as select_action: replan at the next step
+            if self.policy.config.replan_on_intervention:  # as select_action: replan at the next step
                 self.queue_pos[idx[changed]] = self.n_act
         return a

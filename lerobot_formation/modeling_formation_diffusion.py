@@ -127,26 +127,29 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         params = FormationParams()
         return np.asarray(params.graph.template), params.dt, params.agent_radius
 
-    def choose_chunk(self, env_state: Tensor, chunks: Tensor) -> tuple[Tensor, dict]:
-        """Best-of-K (``core.safety.select_chunk``): env_state (B, D) raw ``nearest`` observation, chunks
-        (B, K, T, 2) normalised -> the kept chunks (B, T, 2) normalised and diagnostics."""
+    def _observed_obstacles(self, env_state) -> tuple[np.ndarray, np.ndarray]:
+        """Goal (B, 2) and obstacles (B, M, 3) in the body frame from a raw ``nearest`` observation."""
         slots = get_encoding(self.config.obstacle_encoding).slots(self.config.max_obstacles)
-        goal, obstacles, _ = safety.decode_nearest(env_state.float().cpu().numpy(), slots)
-        raw = self.unnormalize_action(chunks).numpy().astype(np.float64)
-        template, dt, agent_radius = self._safety_geometry()
-        chosen, info = safety.select_chunk(
-            raw, obstacles, goal, template, dt, agent_radius, self.config.safety_margin
-        )
-        return self.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
+        env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
+        goal, obstacles, _ = safety.decode_nearest(env, slots)
+        return goal, obstacles
 
-    def filter_action(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
-        """CBF filter (``core.safety.cbf_filter``) on normalised actions (B, 2) -> (filtered, changed)."""
-        slots = get_encoding(self.config.obstacle_encoding).slots(self.config.max_obstacles)
-        _, obstacles, _ = safety.decode_nearest(env_state.float().cpu().numpy(), slots)
+    def choose_chunk_raw(self, env_state, chunks: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Best-of-K (``core.safety.select_chunk``) with this policy's settings: env_state (B, D) raw
+        ``nearest`` observation, chunks (B, K, T, 2) in m/s and rad/s -> kept chunks (B, T, 2), info."""
+        goal, obstacles = self._observed_obstacles(env_state)
+        template, dt, agent_radius = self._safety_geometry()
+        return safety.select_chunk(
+            chunks, obstacles, goal, template, dt, agent_radius, self.config.safety_margin
+        )
+
+    def filter_action_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """CBF filter (``core.safety.cbf_filter``) with this policy's settings on [v, omega] (B, 2)
+        -> (filtered, changed)."""
+        _, obstacles = self._observed_obstacles(env_state)
         template, _, agent_radius = self._safety_geometry()
-        raw = self.unnormalize_action(action).numpy().astype(np.float64)
-        out, changed = safety.cbf_filter(
-            raw,
+        return safety.cbf_filter(
+            action,
             obstacles,
             template,
             agent_radius,
@@ -154,6 +157,18 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             self.config.cbf_rate,
             np.asarray(self.config.action_low),
             np.asarray(self.config.action_high),
+        )
+
+    def choose_chunk(self, env_state: Tensor, chunks: Tensor) -> tuple[Tensor, dict]:
+        """``choose_chunk_raw`` on normalised chunks (B, K, T, 2) -> kept chunks (B, T, 2) normalised."""
+        raw = self.unnormalize_action(chunks).numpy().astype(np.float64)
+        chosen, info = self.choose_chunk_raw(env_state, raw)
+        return self.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
+
+    def filter_action(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
+        """``filter_action_raw`` on normalised actions (B, 2) -> (filtered normalised, changed)."""
+        out, changed = self.filter_action_raw(
+            env_state, self.unnormalize_action(action).numpy().astype(np.float64)
         )
         filtered = self.normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
         return filtered, changed
