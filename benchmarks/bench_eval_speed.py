@@ -43,6 +43,8 @@ os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
 
+from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
+
 BIN = Path(sys.executable).parent
 DEFAULT_STOCK = "default,10:sync,25:sync,50:sync,100:sync,2:async,10:async,25:async"
 QUICK_STOCK = "default,10:sync,2:async"
@@ -133,9 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="for --scenes dataset:N")
     ap.add_argument("--episode-length", type=int, default=600, help="control steps before a timeout")
     ap.add_argument("--stock", default=None, help=f"lerobot-eval settings (default: {DEFAULT_STOCK})")
-    ap.add_argument(
-        "--threads", type=int, default=None, help="torch threads, both paths (default: OMP_NUM_THREADS)"
-    )
+    add_threads_argument(ap, "torch threads, both paths")
     ap.add_argument("--out", default=None, help="keep lerobot-eval's outputs here (default: a temp dir)")
     ap.add_argument(
         "--quick", action="store_true", help="smoke run: 10 episodes of 60 steps, 3 stock settings"
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         ap.error(str(e))
 
-    import torch
+    import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
     from lerobot_formation.bench import parse_scenes
     from lerobot_formation.core.dynamics import FormationParams
@@ -159,8 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.diffusion_controller import DiffusionController
     from lerobot_formation.evaluation import evaluate
 
-    threads = args.threads or torch.get_num_threads()
-    torch.set_num_threads(threads)
+    threads = apply_threads(args.threads)
     scenes = parse_scenes(
         args.scenes or f"random:{args.episodes}", args.seed, args.dataset_root, args.policy_path
     )

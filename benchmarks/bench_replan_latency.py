@@ -10,6 +10,16 @@
     measured by the success-against-steps table; pass that count as ``--ddim-steps``.
 (b) The default model's latency (``--policy.path``, its own sampler): one ``DiffusionController.plan``
     for one episode, per episode for ``--batch`` episodes, and the stock ``select_action`` for one.
+(c) The lean inference path (policy config ``inference_backend``) on the default model
+    (``--policy.path``, else pretrained/formation_diffusion_safe): one replan for one observation (B=1),
+    i.e. one ``sample_action_chunks`` call (conditioning + the K candidates' batched denoising, what
+    ``select_action``, the safety layer and the engine run), for K in ``--lean-candidates`` and DDIM
+    steps in ``--lean-steps``, each change added in turn: the eager baseline (LeRobot's
+    ``conditional_sample`` under ``torch.no_grad``, as the stock ``predict_action_chunk``), then
+    ``torch.inference_mode``, then precomputed DDIM steps (backend "lean"), then the traced and frozen
+    U-Net (backend "trace"); the variants are timed in turn, ``--lean-repeats`` rounds (medians). Also
+    one U-Net call, eager against traced, and the largest difference of the sampled chunks (same
+    noise) from the eager ones. ``--parts c`` runs only this part (well under 2 minutes).
 
 Timings are medians over ``--repeats`` calls after a warm-up call, with ``--threads`` torch threads.
 
@@ -20,8 +30,11 @@ Run (full size)::
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=2 python benchmarks/bench_replan_latency.py \\
         --policy.path pretrained/<name> --threads 2
 
-``--quick``: one repeat, batch 10. The last line is the ratio of (a): stock DDPM-100 select_action
-over our batched DDIM per episode.
+    HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts c --threads 1
+
+``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (c) when it
+runs (``replan latency B=1 K=1: ...``: the trace backend against the eager baseline at the first of
+``--lean-steps``), else the ratio of (a): stock DDPM-100 select_action over our batched DDIM per episode.
 """
 
 from __future__ import annotations
@@ -37,6 +50,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+
+from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -114,6 +129,120 @@ def engine_replan_s(ctrl, n: int, repeats: int) -> float:
     return timed(lambda: ctrl.plan(idx, scenes.start), repeats)
 
 
+LEAN_VARIANTS = ("eager", "+inference_mode", "+DDIM precomputed", "+traced U-Net")
+
+
+def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
+    """Median ms of one B=1 replan with K=candidates for each of LEAN_VARIANTS (timed in turn, after two
+    warm-up calls each), and the largest chunk difference from eager ("max diff")."""
+    from lerobot_formation.lerobot_compat import global_conditioning
+
+    cfg = policy.config
+    env_dim = cfg.input_features["observation.environment_state"].shape[0]
+    g = torch.Generator().manual_seed(0)
+    batch = {
+        "observation.state": torch.rand(1, cfg.n_obs_steps, 7, generator=g) * 2 - 1,
+        "observation.environment_state": torch.rand(1, cfg.n_obs_steps, env_dim, generator=g),
+    }
+    noise = torch.randn(candidates, cfg.horizon, cfg.action_feature.shape[0], generator=g)
+    model = policy.inference_model
+
+    def stock():
+        with torch.no_grad():
+            cond = global_conditioning(model, batch).repeat_interleave(candidates, dim=0)
+            return model.conditional_sample(candidates, global_cond=cond, noise=noise)[
+                :, cfg.n_obs_steps - 1 :
+            ]
+
+    def backend(name):
+        def run():
+            cfg.inference_backend = name
+            return policy.sample_action_chunks(batch, candidates, noise=noise)[0]
+
+        return run
+
+    calls = dict(
+        zip(LEAN_VARIANTS, (stock, backend("eager"), backend("lean"), backend("trace")), strict=True)
+    )
+    times = {name: [] for name in calls}
+    out = {}
+    for name, fn in calls.items():
+        out[name] = fn()
+        fn()
+    for _ in range(repeats):
+        for name, fn in calls.items():
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    cfg.inference_backend = "eager"
+    result = {name: 1e3 * statistics.median(times[name]) for name in calls}
+    result["max diff"] = max(float((out[n] - out["eager"]).abs().max()) for n in calls)
+    return result
+
+
+def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
+    """Median ms of one U-Net call at B=1 (inference_mode): eager, traced + frozen; and the ms the
+    trace took to build (trace, freeze, check)."""
+    from lerobot_formation.lerobot_compat import global_conditioning
+
+    cfg = policy.config
+    model = policy.inference_model
+    env_dim = cfg.input_features["observation.environment_state"].shape[0]
+    batch = {
+        "observation.state": torch.zeros(1, cfg.n_obs_steps, 7),
+        "observation.environment_state": torch.zeros(1, cfg.n_obs_steps, env_dim),
+    }
+    with torch.inference_mode():
+        args = (torch.randn(1, cfg.horizon, 2), torch.full((1,), 10), global_conditioning(model, batch))
+        t = time.perf_counter()
+        traced = policy._lean.unet(model, model.unet, *args)
+        build = time.perf_counter() - t
+        if traced is model.unet:
+            raise RuntimeError("tracing the U-Net failed (see the warning above)")
+        times = ([], [])
+        for _ in range(repeats):  # in turn, as the machine's load drifts
+            for fn, out in zip((model.unet, traced), times, strict=True):
+                t = time.perf_counter()
+                fn(*args)
+                out.append(time.perf_counter() - t)
+        return 1e3 * statistics.median(times[0]), 1e3 * statistics.median(times[1]), 1e3 * build
+
+
+def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) -> str:
+    """Print part (c); return its headline (K=1 at steps[0], trace against eager)."""
+    from lerobot_formation.diffusion_controller import load_policy, set_inference_steps
+
+    policy = load_policy(path)[0]
+    cfg = policy.config
+    print(
+        f"(c) lean inference, {path} (down_dims {list(cfg.down_dims)}, horizon {cfg.horizon}), one replan "
+        f"at B=1, median of {repeats} rounds; ms (speed-up over eager):"
+    )
+    eager_unet, traced_unet, build = unet_call_ms(policy, 10 * repeats)
+    print(
+        f"    one U-Net call: eager {eager_unet:.2f} ms, traced+frozen {traced_unet:.2f} ms "
+        f"({eager_unet / traced_unet:.2f}x; built once in {build:.0f} ms on the first call)"
+    )
+    print("    " + "  ".join(f"{h:>17}" for h in ("K, DDIM steps", *LEAN_VARIANTS)) + "  max |diff|")
+    headline = None
+    for n in steps:
+        set_inference_steps(policy, n)
+        for k in candidates:
+            r = lean_replan_ms(policy, k, repeats)
+            eager = r["eager"]
+            cells = [f"{k}, {n}", f"{eager:.2f}"] + [
+                f"{r[v]:.2f} ({eager / r[v]:.2f}x)" for v in LEAN_VARIANTS[1:]
+            ]
+            print("    " + "  ".join(f"{c:>17}" for c in cells) + f"  {r['max diff']:.1e}")
+            if headline is None and k == 1:
+                trace = r[LEAN_VARIANTS[-1]]
+                headline = (
+                    f"replan latency B=1 K=1: {trace:.1f} ms (eager {eager:.1f} ms, ratio {eager / trace:.2f}x; "
+                    f"inference_backend=trace, DDIM {n} steps, {torch.get_num_threads()} thread(s))"
+                )
+    return headline
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--policy.path", dest="policy_path", default=None, help="default model (part b)")
@@ -121,13 +250,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ddim-steps", type=int, default=10, help="our fastest setting's DDIM steps (part a)")
     ap.add_argument("--batch", type=int, default=100, help="episodes per batched replan")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: OMP_NUM_THREADS)")
+    add_threads_argument(ap, "torch threads")
     ap.add_argument("--quick", action="store_true", help="smoke run: 1 repeat, batch 10")
+    ap.add_argument("--parts", default="abc", help="which parts to run, e.g. 'c' (see the docstring)")
+    ap.add_argument("--lean-candidates", type=int, nargs="+", default=[1, 10], help="K in part (c)")
+    ap.add_argument("--lean-steps", type=int, nargs="+", default=[10, 3], help="DDIM steps in part (c)")
+    ap.add_argument("--lean-repeats", type=int, default=30, help="timing rounds in part (c)")
     args = ap.parse_args(argv)
     if args.quick:
-        args.repeats, args.batch = 1, min(args.batch, 10)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+        args.repeats, args.batch, args.lean_repeats = 1, min(args.batch, 10), min(args.lean_repeats, 5)
+    apply_threads(args.threads)
     threads = torch.get_num_threads()
 
     from lerobot_formation.diffusion_controller import DiffusionController, load_policy
@@ -138,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     # (b) The default model.
-    if args.policy_path:
+    if args.policy_path and "b" in args.parts:
         bundle = load_policy(args.policy_path)
         cfg = bundle[0].config
         env_dim = cfg.input_features["observation.environment_state"].shape[0]
@@ -157,7 +289,18 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"    stock select_action, 1 episode: {1e3 * stock:.1f} ms per replan")
 
-    # (a) The paper-size network.
+    if "a" in args.parts:
+        paper_part(args)
+    if "c" in args.parts:
+        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
+        print(lean_part(path, args.lean_candidates, args.lean_steps, args.lean_repeats))
+    return 0
+
+
+def paper_part(args) -> None:
+    """Part (a): the paper-size network."""
+    from lerobot_formation.diffusion_controller import DiffusionController
+
     policy, pre, post = paper_policy(Path(args.paper_config))
     cfg = policy.config
     env_dim = cfg.input_features["observation.environment_state"].shape[0]
@@ -182,7 +325,6 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"ratio stock DDPM select_action / engine batched DDIM-{args.ddim_steps} per episode: {stock / ours:.0f}x"
     )
-    return 0
 
 
 if __name__ == "__main__":

@@ -42,6 +42,7 @@ from lerobot_formation.core.scene import (
     save_scenes,
     scene_preset,
 )
+from lerobot_formation.threads import add_threads_argument, apply_threads
 
 DAGGER_SEED_START = 3_000_000  # disjoint from the dataset (0...) and the evaluation seeds (1_000_000...)
 
@@ -121,7 +122,9 @@ def main(argv: list[str] | None = None) -> int:
         "--num-inference-steps", type=int, default=None, help="DDIM steps (default: checkpoint's)"
     )
     ap.add_argument("--out", required=True, help="scenes JSON file to write")
+    add_threads_argument(ap, "torch threads of the policy")
     args = ap.parse_args(argv)
+    apply_threads(args.threads)
     if args.rollouts < 1 or args.per_episode < 1:
         ap.error("--rollouts and --per-episode must be >= 1")
     if not (Path(args.policy_path) / "config.json").is_file():

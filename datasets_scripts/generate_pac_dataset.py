@@ -62,6 +62,7 @@ from lerobot_formation.core.scene import (
 from lerobot_formation.core.scene import scene_preset as scene_preset_config
 from lerobot_formation.env import TASK
 from lerobot_formation.lerobot_compat import save_episode_buffer, skip_noop_image_embedding
+from lerobot_formation.threads import add_threads_argument, apply_threads
 
 FPS = 10
 MAX_OBSTACLES = 5
@@ -714,6 +715,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="no progress bar (there is none either when stderr is not a terminal); the summary "
         "line is always printed",
     )
+    add_threads_argument(ap, "CPU threads per process, which the data does not depend on")
     args = ap.parse_args(argv)
     if args.episodes < 1:
         ap.error(f"--episodes must be >= 1, got {args.episodes}")
@@ -734,6 +736,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    apply_threads(args.threads)  # before lerobot loads torch, and inherited by the workers
     from lerobot_formation.plugin import quiet_torchcodec_warning
 
     quiet_torchcodec_warning()  # LeRobotDataset.create logs torchcodec's FFmpeg traceback otherwise

@@ -50,6 +50,7 @@ from lerobot_formation.core.scene import (
     scenes_from_frames,
 )
 from lerobot_formation.evaluation import evaluate
+from lerobot_formation.threads import add_threads_argument, apply_threads
 
 
 def _diffusion(candidates: bool, safety_filter: str | None, adaptive: bool = False):
@@ -463,6 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="no progress bars (there are none either when stderr is not a terminal); the summary "
         "lines are always printed",
     )
+    add_threads_argument(ap, "torch threads of the diffusion controllers")
     return ap
 
 
@@ -508,6 +510,7 @@ def write_results(
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
+    apply_threads(args.threads)
     names = [c.strip() for c in args.controllers.split(",") if c.strip()]
     for n in names:
         if n not in CONTROLLERS:
@@ -531,8 +534,7 @@ def main(argv: list[str] | None = None) -> int:
     if diffusion:
         from lerobot_formation.diffusion_controller import load_policy
 
-        # torch's thread count follows OMP_NUM_THREADS; two busy processes with 2 threads each on
-        # 2 cores crawl, so set OMP_NUM_THREADS=1 when running several jobs at once.
+        # torch's thread count is --threads (apply_threads set OMP_NUM_THREADS before torch loads).
         try:
             bundle = load_policy(args.policy_path)
         except ValueError as e:  # CheckpointError: missing, incomplete, broken or another policy type

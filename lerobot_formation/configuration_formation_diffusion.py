@@ -18,6 +18,7 @@ ACTION_DIM = 2  # [v, omega]
 # observation.environment_state sizes of each encoding at its default slot count.
 ENV_STATE_DIMS = tuple(environment_state_dim(e) for e in ENCODINGS)
 SAFETY_FILTERS = ("none", "cbf")
+INFERENCE_BACKENDS = ("eager", "lean", "trace")
 _BOUNDS = FormationParams()
 
 
@@ -70,6 +71,10 @@ class FormationDiffusionConfig(DiffusionConfig):
         egocentric_obstacles: give the network the goal and the obstacle list in the midpoint's frame,
             nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
             (the paper feeds world coordinates).
+        egocentric_state: give the network ``observation.state`` in the midpoint's own frame (its
+            velocity and turn rate; position and heading become constants), a preprocessor step. Needs
+            an egocentric obstacle view ("nearest", or "grid+list" with egocentric_obstacles). Off by
+            default (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
             (``core.obstacle_grid.ENCODING_REGISTRY``: "grid", "grid+list", "nearest"). None: found
             from the feature's size (checkpoints made before the field existed) and stored.
@@ -87,8 +92,20 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
             obstacle (followers lag their square slots by up to ~0.1 m).
         cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
+        escape_advantage: best-of-K only. None: the escape manoeuvres (``core.safety.ESCAPE_PRIMITIVES``)
+            are used only when no sampled chunk is safe. A number [m]: a safe manoeuvre is also kept
+            when its cost-to-go progress beats every safe sampled chunk's by that much (the policy
+            stalled against an obstacle).
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
+        inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
+            the engine). "eager" (default): LeRobot's own ``DiffusionModel.conditional_sample``. "lean":
+            under ``torch.inference_mode``, with the DDIM steps' timesteps and coefficients precomputed
+            once per scheduler and step count (checked against diffusers' ``step``; other schedulers
+            keep diffusers' ``step``). "trace": "lean" with a ``torch.jit`` traced and frozen U-Net,
+            built on first use in eval mode, rebuilt when the weights change, never saved (the
+            ``state_dict`` is unchanged); falls back to the eager U-Net if tracing fails. Same noise,
+            same chunks within 1e-5 (modeling_formation_diffusion.py).
         drop_n_last_frames: frames at each episode's end the training sampler never starts a window
             at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
             Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
@@ -122,6 +139,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
     # Goal and obstacle list in the midpoint's frame, nearest first (processor_formation_diffusion.py).
     egocentric_obstacles: bool = False
+    egocentric_state: bool = False
     obstacle_encoding: str | None = None
     max_obstacles: int | None = None
     fixed_action_bounds: bool = False
@@ -133,7 +151,10 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_filter: str = "none"
     safety_margin: float = 0.1
     cbf_rate: float = 2.0
+    escape_advantage: float | None = None
     replan_on_intervention: bool = True
+    # Inference path (see the Args above; not a training setting).
+    inference_backend: str = "eager"
 
     # Unet.
     down_dims: tuple[int, ...] = (256, 512, 1024)
@@ -209,6 +230,10 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"obstacle_encoding must be one of {ENCODINGS} (or null), got {self.obstacle_encoding!r}"
             )
+        if self.inference_backend not in INFERENCE_BACKENDS:
+            raise config_error(
+                f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
+            )
         if self.num_candidates < 1:
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
         if self.safety_filter not in SAFETY_FILTERS:
@@ -273,6 +298,14 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise ValueError(
                 f"egocentric_obstacles=true rewrites a world-frame list; '{self.obstacle_encoding}' is already "
                 "egocentric: set --policy.egocentric_obstacles=false"
+            )
+        if self.egocentric_state and not (
+            get_encoding(self.obstacle_encoding).egocentric or self.egocentric_obstacles
+        ):
+            raise ValueError(
+                f"egocentric_state=true drops the world pose, but obstacle_encoding={self.obstacle_encoding!r} "
+                "observes obstacles in world coordinates: use --env.obstacle_encoding=nearest (or grid+list "
+                "with --policy.egocentric_obstacles=true), or set --policy.egocentric_state=false"
             )
         grid_list_dim = environment_state_dim("grid+list", self.max_obstacles)
         if self.egocentric_obstacles and tuple(env_state.shape) != (grid_list_dim,):

@@ -125,8 +125,8 @@ class FormationEnvConfig(EnvConfig):
     obstacle_encoding: str = "grid"
     # Scene distribution of seeded resets: paper, or a wider preset (core/scene.py SCENE_PRESETS).
     scene_preset: str = "paper"
-    # JSON scenes file (core.scene.save_scenes); reset seed s plays scene s mod len(file). None: the
-    # scene of seed s is sampled.
+    # JSON scenes file (core.scene.save_scenes); reset seed s plays scene s of the file (a seed past its
+    # end is an error, no wrap-around: use --seed=0). None: the scene of seed s is sampled.
     scenes_file: str | None = None
     # Render mode of the sub-envs; lerobot-eval renders episodes to video with rgb_array.
     render_mode: str = "rgb_array"

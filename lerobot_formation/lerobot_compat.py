@@ -5,6 +5,8 @@ the stock behaviour is used where one exists (with one logged warning per use), 
 names what changed. The uses:
 
 - ``global_conditioning``: ``DiffusionModel._prepare_global_conditioning`` (batched candidate sampling);
+- ``denoiser_parts``: what ``DiffusionModel.conditional_sample`` loops over (the U-Net, the noise
+  scheduler, the step count), for the lean inference path (``inference_backend``);
 - ``caller_policy_config``: the caller's frame of ``make_env_pre_post_processors``;
 - ``install_offline_dataset_root_check``: wraps ``DatasetConfig.__post_init__``;
 - ``patch_dataset_reader``: replaces ``DatasetReader.get_item`` / ``_query_hf_dataset`` with the fast
@@ -71,6 +73,18 @@ def global_conditioning(model, batch: dict[str, Tensor]) -> Tensor:
             f"(written for {TESTED}); batched candidate sampling needs an update of lerobot_compat.py"
         )
     return fn(batch)
+
+
+def denoiser_parts(model):
+    """What ``DiffusionModel.conditional_sample`` runs, for a sampler that repeats its loop (for each of
+    ``noise_scheduler.timesteps`` after ``set_timesteps(num_inference_steps)``: ``unet(sample, t (B,),
+    global_cond)`` then ``noise_scheduler.step``): ``(unet, noise_scheduler, num_inference_steps,
+    (horizon, action_dim))``. None on an untested LeRobot (one logged warning): the caller then calls
+    ``conditional_sample`` itself."""
+    if _untested("the lean inference path (inference_backend 'lean' / 'trace')"):
+        return None
+    sample_shape = (model.config.horizon, model.config.action_feature.shape[0])
+    return model.unet, model.noise_scheduler, model.num_inference_steps, sample_shape
 
 
 def caller_policy_config():

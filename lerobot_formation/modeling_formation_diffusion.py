@@ -16,6 +16,17 @@ EMA (as diffusers' ``EMAModel`` and the original Diffusion Policy define it):
   directly: no attribute swap, so concurrent calls cannot see the wrong weights. In train mode
   they use the live model.
 
+Lean inference (``inference_backend``, config field; "eager" is LeRobot's ``conditional_sample``
+unchanged): "lean" samples under ``torch.inference_mode`` with the DDIM steps precomputed
+(``_DDIMSteps``: diffusers' own timesteps and ``alphas_cumprod``, each step checked once against
+diffusers' ``step``); "trace" adds a ``torch.jit`` traced and frozen U-Net (``_TracedUnet``), built
+on the first call in eval mode and rebuilt when the weights change (an EMA update, ``load_state_dict``,
+a device move). Both live in ``_LeanCache``, a plain attribute: never in the ``state_dict`` or a
+checkpoint, and a copy or pickle of the policy starts without them. ``select_action``,
+``predict_action_chunk`` and ``sample_action_chunks`` (the engine, the safety layer) all sample
+through ``_sample``. The traced graph is not specialised to the batch size (checked at build time on
+a second size, and by the tests).
+
 Multi-GPU (``accelerate launch --multi_gpu --num_processes=N $(which lerobot-train) ...``): DDP
 averages the gradients, so after each optimizer step the live weights are identical on every process;
 ``lerobot-train`` calls ``accelerator.unwrap_model(policy).update()`` on every process after that step,
@@ -27,9 +38,11 @@ gradients, so DDP neither reduces nor waits for them.
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 import torch
+from diffusers.schedulers.scheduling_ddim import DDIMScheduler
 from diffusers.training_utils import EMAModel
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel, DiffusionPolicy
 from lerobot.policies.utils import populate_queues
@@ -41,9 +54,139 @@ from lerobot_formation.configuration_formation_diffusion import ENV_STATE_DIMS, 
 from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
-from lerobot_formation.lerobot_compat import global_conditioning
+from lerobot_formation.lerobot_compat import denoiser_parts, global_conditioning
 
 EMA_PREFIX = "ema_diffusion."
+logger = logging.getLogger(__name__)
+
+
+class _DDIMSteps:
+    """Deterministic DDIM steps (eta = 0, as ``conditional_sample`` calls ``DDIMScheduler.step``) of one
+    scheduler and step count, precomputed: the timesteps are diffusers' ``set_timesteps``, the
+    coefficients its ``alphas_cumprod`` (0-dim float32 tensors, the operations in diffusers' order, so
+    the result is bit-identical). ``build`` checks every step once against diffusers' ``step``."""
+
+    def __init__(self, scheduler: DDIMScheduler, num_steps: int):
+        cfg = scheduler.config
+        scheduler.set_timesteps(num_steps)
+        self.timesteps = [int(t) for t in scheduler.timesteps]
+        # diffusers' DDIM previous timestep: t - num_train_timesteps // num_inference_steps
+        gap = cfg.num_train_timesteps // scheduler.num_inference_steps
+        alphas = scheduler.alphas_cumprod
+        self.clip = float(cfg.clip_sample_range) if cfg.clip_sample else None
+        self.coefs = []
+        for t in self.timesteps:
+            a, a_prev = alphas[t], alphas[t - gap] if t - gap >= 0 else scheduler.final_alpha_cumprod
+            self.coefs.append(((1 - a) ** 0.5, a**0.5, a_prev**0.5, (1 - a_prev) ** 0.5))
+
+    def step(self, i: int, eps: Tensor, sample: Tensor) -> Tensor:
+        """x_t -> x_{t_prev} at the i-th timestep, from the predicted noise ``eps``."""
+        sqrt_beta, sqrt_alpha, sqrt_alpha_prev, sqrt_beta_prev = self.coefs[i]
+        x0 = (sample - sqrt_beta * eps) / sqrt_alpha
+        if self.clip is not None:
+            x0 = x0.clamp(-self.clip, self.clip)
+        return sqrt_alpha_prev * x0 + sqrt_beta_prev * eps
+
+    @classmethod
+    def build(cls, scheduler, num_steps: int) -> _DDIMSteps | None:
+        """The precomputed steps, or None (diffusers' ``step`` is kept) for another scheduler or
+        prediction type, or if any step differs from diffusers' (another diffusers version)."""
+        cfg = getattr(scheduler, "config", None)
+        if not (
+            isinstance(scheduler, DDIMScheduler) and cfg.prediction_type == "epsilon" and not cfg.thresholding
+        ):
+            return None
+        steps = cls(scheduler, num_steps)
+        g = torch.Generator().manual_seed(0)
+        sample, eps = 1.5 * torch.randn(2, 2, 8, 2, generator=g)
+        for i, t in enumerate(steps.timesteps):
+            ref = scheduler.step(eps, t, sample).prev_sample
+            if not torch.allclose(steps.step(i, eps, sample), ref, rtol=1e-6, atol=1e-6):
+                logger.warning(
+                    "precomputed DDIM step at t=%d differs from diffusers' DDIMScheduler.step: keeping "
+                    "diffusers' step (inference_backend lean/trace)",
+                    t,
+                )
+                return None
+        return steps
+
+
+class _TracedUnet:
+    """``torch.jit.trace`` + ``torch.jit.freeze`` of a U-Net in eval mode, on the first call's inputs.
+
+    Frozen weights are constants, so the trace remembers which tensors (and versions: every in-place
+    change bumps one) it was built from; ``current`` says whether they are unchanged. Built, then
+    checked against the eager U-Net on its own inputs and on one more batch row (the graph must not be
+    specialised to the batch size); ``fn`` is None when tracing failed (the eager U-Net is used)."""
+
+    def __init__(self, unet: torch.nn.Module, sample: Tensor, timestep: Tensor, cond: Tensor):
+        self.unet = unet
+        self.tensors = [*unet.parameters(), *unet.buffers()]
+        self.key = self._fingerprint()
+        self.fn = None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                # torch 2.11 deprecates torch.jit (torch.compile gains nothing here, see the
+                # benchmark); if a release removes it, this raises and the eager U-Net is kept.
+                warnings.simplefilter("ignore", DeprecationWarning)
+                traced = torch.jit.trace(unet, (sample, timestep, cond), check_trace=False)
+                fn = torch.jit.freeze(traced.eval())
+            wider = (sample, timestep, cond)
+            wider = tuple(torch.cat([x, x[:1]]) for x in wider)
+            for args in ((sample, timestep, cond), wider):
+                want = unet(*args)
+                for _ in range(2):  # the JIT's profiling run, then its optimised graph
+                    got = fn(*args)
+                    if got.shape != want.shape or not torch.allclose(got, want, rtol=1e-5, atol=1e-5):
+                        raise RuntimeError(
+                            f"traced U-Net differs from the eager one by {(got - want).abs().max():.2e} "
+                            f"at batch size {len(args[0])}"
+                        )
+        except Exception as e:  # noqa: BLE001 (any tracing failure: keep the eager U-Net)
+            logger.warning("inference_backend='trace': %s: %s; using the eager U-Net", type(e).__name__, e)
+            return
+        self.fn = fn
+
+    def _fingerprint(self) -> list[tuple[int, int]]:
+        try:
+            return [(t.data_ptr(), t._version) for t in self.tensors]
+        except RuntimeError:  # weights made under inference_mode keep no version counter
+            return [(t.data_ptr(), -1) for t in self.tensors]
+
+    def current(self, unet: torch.nn.Module) -> bool:
+        return unet is self.unet and self._fingerprint() == self.key
+
+
+class _LeanCache:
+    """Precomputed DDIM steps and traced U-Nets of one policy, per diffusion model (live, EMA). Not a
+    module or buffer: never in ``state_dict``; a deep copy or pickle of the policy starts empty."""
+
+    def __init__(self):
+        self.steps: dict[int, tuple] = {}  # id(model) -> (scheduler, num_steps, _DDIMSteps | None)
+        self.unets: dict[int, _TracedUnet] = {}  # id(model) -> trace (holds the U-Net it traced)
+
+    def ddim(self, model, scheduler, num_steps: int) -> _DDIMSteps | None:
+        entry = self.steps.get(id(model))
+        if entry is None or entry[0] is not scheduler or entry[1] != num_steps:
+            entry = (scheduler, num_steps, _DDIMSteps.build(scheduler, num_steps))
+            self.steps[id(model)] = entry
+        return entry[2]
+
+    def unet(self, model, unet, sample: Tensor, timestep: Tensor, cond: Tensor):
+        traced = self.unets.get(id(model))
+        if traced is None or not traced.current(unet):
+            traced = self.unets[id(model)] = _TracedUnet(unet, sample, timestep, cond)
+        return traced.fn or unet
+
+    def __deepcopy__(self, memo):
+        return _LeanCache()
+
+    def __getstate__(self):
+        return {}
+
+    def __setstate__(self, state):
+        self.__init__()
 
 
 class FormationDiffusionPolicy(DiffusionPolicy):
@@ -64,6 +207,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 f"loaded with that type's policy class (lerobot.policies.factory.get_policy_class({got!r}))."
             )
         super().__init__(config, **kwargs)
+        self._lean = _LeanCache()  # inference_backend "lean" / "trace" (never in the state_dict)
         self.ema_diffusion: DiffusionModel | None = None
         self._ema: EMAModel | None = None
         if config.use_ema:
@@ -106,8 +250,42 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         B, K = cond.shape[0], int(num_candidates)
         if K > 1:
             cond = cond.repeat_interleave(K, dim=0)
-        full = model.conditional_sample(B * K, global_cond=cond, noise=noise)
+        full = self._sample(model, cond, noise)
         return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
+
+    def _sample(self, model: DiffusionModel, cond: Tensor, noise: Tensor | None = None) -> Tensor:
+        """(len(cond), horizon, action_dim) denoised samples of ``model`` for the conditioning vectors
+        ``cond``, from ``noise`` (else fresh ``torch.randn``, as ``conditional_sample`` draws it), on
+        the configured ``inference_backend`` (see the module docstring)."""
+        backend = self.config.inference_backend
+        parts = None if backend == "eager" else denoiser_parts(model)
+        if parts is None:
+            return model.conditional_sample(len(cond), global_cond=cond, noise=noise)
+        unet, scheduler, num_steps, shape = parts
+        with torch.inference_mode():
+            if noise is None:
+                p = next(model.parameters())
+                noise = torch.randn((len(cond), *shape), dtype=p.dtype, device=p.device)
+            sample = noise
+            ddim = self._lean.ddim(model, scheduler, num_steps)
+            if ddim is not None:
+                timesteps = ddim.timesteps
+            else:  # another scheduler: diffusers' own steps
+                scheduler.set_timesteps(num_steps)
+                timesteps = scheduler.timesteps
+            net = unet
+            if backend == "trace" and not self.training and not self.config.compile_model:
+                t_batch = torch.full(sample.shape[:1], timesteps[0], dtype=torch.long, device=sample.device)
+                net = self._lean.unet(model, unet, sample, t_batch, cond)  # traced on these inputs
+            for i, t in enumerate(timesteps):
+                t_batch = torch.full(sample.shape[:1], t, dtype=torch.long, device=sample.device)
+                eps = net(sample, t_batch, cond)
+                sample = (
+                    ddim.step(i, eps, sample)
+                    if ddim is not None
+                    else scheduler.step(eps, t, sample).prev_sample
+                )
+        return sample
 
     def _action_scale(self) -> tuple[Tensor, Tensor]:
         low = torch.tensor(self.config.action_low, dtype=torch.float32)
@@ -140,7 +318,14 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         goal, obstacles = self._observed_obstacles(env_state)
         template, dt, agent_radius = self._safety_geometry()
         return safety.select_chunk(
-            chunks, obstacles, goal, template, dt, agent_radius, self.config.safety_margin
+            chunks,
+            obstacles,
+            goal,
+            template,
+            dt,
+            agent_radius,
+            self.config.safety_margin,
+            escape_advantage=self.config.escape_advantage,
         )
 
     def filter_action_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -260,6 +445,13 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         Returns (B, n_action_steps, action_dim) actions (normalized, as the postprocessor expects).
         """
         self._check_observation_sizes(batch)
+        if self.config.inference_backend != "eager":
+            if any(len(q) > 0 for q in self._queues.values()):
+                batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in batch if k in self._queues}
+            model = self.inference_model
+            full = self._sample(model, global_conditioning(model, batch), noise)
+            start = self.config.n_obs_steps - 1  # as DiffusionModel.generate_actions slices
+            return full[:, start : start + self.config.n_action_steps]
         if self.ema_diffusion is None or self.training:
             return super().predict_action_chunk(batch, noise=noise)
         # As DiffusionPolicy does: stack the observation history (B, n_obs_steps, ...) from the

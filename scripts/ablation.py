@@ -28,20 +28,22 @@ from lerobot_formation.core.scene import UNSEEN_SEED_START
 from lerobot_formation.evaluation import evaluate
 
 
-def row_specs(args) -> list[tuple[str, str | None, str, int | None]]:
-    """(label, checkpoint, controller, n_action_steps override)."""
-    rows = [("PAC", None, "pac", None), ("MPPI", None, "mppi", None)]
+def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
+    """(label, checkpoint, controller, n_action_steps override, policy config overrides)."""
+    adv = {"escape_advantage": args.escape_advantage}
+    rows = [("PAC", None, "pac", None, {}), ("MPPI", None, "mppi", None, {})]
     if args.old:
-        rows += [("old default, standard", args.old, "diffusion", None)]
-        rows += [("old default, adaptive K=10 (world-frame rule)", args.old, "diffusion-adaptive", None)]
+        rows += [("old default, standard", args.old, "diffusion", None, {})]
+        rows += [("old default, adaptive K=10 (world-frame rule)", args.old, "diffusion-adaptive", None, {})]
     for tag, path in (("new", args.new), ("new + DAgger", args.dagger)):
         if not path:
             continue
         rows += [
-            (f"{tag}, standard", path, "diffusion", None),
-            (f"{tag}, best-of-{args.candidates}", path, "diffusion-bestof", None),
-            (f"{tag}, CBF filter", path, "diffusion-cbf", None),
-            (f"{tag}, best-of-{args.candidates} + CBF", path, "diffusion-safe", None),
+            (f"{tag}, standard", path, "diffusion", None, {}),
+            (f"{tag}, best-of-{args.candidates}", path, "diffusion-bestof", None, {}),
+            (f"{tag}, CBF filter", path, "diffusion-cbf", None, {}),
+            (f"{tag}, best-of-{args.candidates} + CBF", path, "diffusion-safe", None, {}),
+            (f"{tag}, best-of-{args.candidates} + CBF + escapes", path, "diffusion-safe", None, adv),
         ]
     if args.n_action_steps:
         best = args.dagger or args.new
@@ -52,12 +54,21 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None]]:
                 best,
                 "diffusion",
                 args.n_action_steps,
+                {},
             ),
             (
                 f"{tag}, both, {args.n_action_steps} actions per replan",
                 best,
                 "diffusion-safe",
                 args.n_action_steps,
+                {},
+            ),
+            (
+                f"{tag}, both + escapes, {args.n_action_steps} actions per replan",
+                best,
+                "diffusion-safe",
+                args.n_action_steps,
+                adv,
             ),
         ]
     return rows
@@ -76,10 +87,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sets", default="random:100,hard:100", help="comma-separated scene sets")
     ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START)
     ap.add_argument("--candidates", type=int, default=10)
-    ap.add_argument("--n-action-steps", type=int, default=None)
     ap.add_argument(
-        "--rows", default=None, help="only rows whose label contains one of these (comma-separated)"
+        "--escape-advantage",
+        type=float,
+        default=0.1,
+        help="escape_advantage [m] of the '+ escapes' rows (policy config field)",
     )
+    ap.add_argument("--n-action-steps", type=int, default=None)
+    ap.add_argument("--rows", default=None, help="only these rows: exact labels separated by ';'")
     ap.add_argument("--out", default="outputs/ablation")
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -99,15 +114,21 @@ def main(argv: list[str] | None = None) -> int:
     if args.rows:
         keep = {k.strip() for k in args.rows.split(";")}
         rows = [r for r in rows if r[0] in keep]
-    for label, path, name, n_act in rows:
+    for label, path, name, n_act, overrides in rows:
         results[label] = {}
         bundle = None
         if path:
             if path not in bundles:
                 bundles[path] = load_policy(path)
-                trained[path] = bundles[path][0].config.n_action_steps
+                cfg = bundles[path][0].config
+                trained[path] = {
+                    "n_action_steps": cfg.n_action_steps,
+                    "escape_advantage": cfg.escape_advantage,
+                }
             bundle = bundles[path]
-            bundle[0].config.n_action_steps = n_act or trained[path]
+            settings = {**trained[path], **({"n_action_steps": n_act} if n_act else {}), **overrides}
+            for key, value in settings.items():
+                setattr(bundle[0].config, key, value)
         bench_args.policy_path = path
         for s in sets:
             sc = scenes[s]
@@ -126,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                 st = ctrl.stats
                 entry["filter_intervention_rate"] = st["filter_interventions"] / max(st["steps"], 1)
                 entry["replans_none_safe_rate"] = st["replans_none_safe"] / max(st["replans"], 1)
+                entry["escape_rate"] = st["escapes"] / max(st["replans"], 1)
             results[label][s] = entry
             lo, hi = entry["success_ci95"]
             print(
@@ -140,23 +162,25 @@ def main(argv: list[str] | None = None) -> int:
             f"#### {s} (seeds from {args.seed})",
             "",
             "| controller | success % [95 % CI] | collisions | timeouts | smoothness | jerk | path (m) | time (s) "
-            "| filter interventions | replans with no safe candidate |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "| filter interventions | replans with no safe candidate | replans with an escape manoeuvre |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for label in results:
             e = results[label].get(s, {})
             if "error" in e:
-                lines.append(f"| {label} | cannot run: {e['error']} | | | | | | | | |")
+                lines.append(f"| {label} | cannot run: {e['error']} | | | | | | | | | |")
                 continue
             lo, hi = e["success_ci95"]
             name = next(r[2] for r in rows if r[0] == label)
             fi = e.get("filter_intervention_rate") if name in ("diffusion-cbf", "diffusion-safe") else None
             ns = e.get("replans_none_safe_rate") if name in ("diffusion-bestof", "diffusion-safe") else None
+            er = e.get("escape_rate") if name in ("diffusion-bestof", "diffusion-safe") else None
             lines.append(
                 f"| {label} | {100 * e['success_rate']:.0f} [{100 * lo:.0f}, {100 * hi:.0f}] | {e['collisions']} | "
                 f"{e['timeouts']} | {_mean(e, 'control_smoothness')} | {_mean(e, 'jerk')} | "
                 f"{_mean(e, 'path_length')} | {_mean(e, 'time')} | "
-                f"{'—' if fi is None else f'{100 * fi:.1f} %'} | {'—' if ns is None else f'{100 * ns:.1f} %'} |"
+                f"{'—' if fi is None else f'{100 * fi:.1f} %'} | {'—' if ns is None else f'{100 * ns:.1f} %'} | "
+                f"{'—' if er is None else f'{100 * er:.1f} %'} |"
             )
         lines.append("")
     (out / "ablation.md").write_text("\n".join(lines))

@@ -19,6 +19,8 @@ import json
 import os
 from pathlib import Path
 
+from lerobot_formation.threads import add_threads_argument, apply_threads
+
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
@@ -33,9 +35,9 @@ def main(argv: list[str] | None = None) -> int:
         "--start", default=None, help="the run's start, HH:MM:SS or ISO time (default: from the checkpoints)"
     )
     ap.add_argument("--out", type=Path, default=None, help="also write the rows as JSON")
+    add_threads_argument(ap, "torch threads of the policy")
     args = ap.parse_args(argv)
-
-    import torch
+    apply_threads(args.threads)  # before torch loads
 
     from lerobot_formation.bench import parse_scenes
     from lerobot_formation.core.metrics import wilson_interval
@@ -43,7 +45,6 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.diffusion_controller import DiffusionController
     from lerobot_formation.evaluation import evaluate
 
-    torch.set_num_threads(1)
     ckpts = sorted(p for p in (args.run / "checkpoints").iterdir() if p.name.isdigit())
     if not ckpts:
         raise SystemExit(f"error: {args.run}/checkpoints holds no numbered checkpoints")

@@ -75,3 +75,5 @@ $PY scripts/ablation.py --new $SAFE --old $MODEL --sets hard:100 --out outputs/a
 $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger --sets random:100,hard:100 \
   --rows "new + DAgger, standard;new + DAgger, best-of-10;new + DAgger, standard, 4 actions per replan" \
   --n-action-steps 4 --out outputs/ablation_dagger
+$PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --out $OUT/sampling_steps.json | tee $OUT/sampling_steps.log
+$PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time.log

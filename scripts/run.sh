@@ -2,11 +2,16 @@
 # One entry point for a fresh machine: creates .venv (Python >= 3.12, found by itself), installs the
 # project, then runs a job.
 #   scripts/run.sh demo   - the main job on the built-in default (no dataset, GPU or network)
-#   scripts/run.sh test   - lint + the test suite
+#   scripts/run.sh test   - lint + the fast test tier (slow tests skipped)
+#   scripts/run.sh test -m slow - lint + only the slow tier (benchmark-like tests); other args go to pytest
 #   scripts/run.sh setup  - only create/refresh the environment
+# Threads: OMP_NUM_THREADS and MKL_NUM_THREADS default to 1 (the models are tiny; more threads on a
+# small or shared machine oversubscribe the cores); set them, or LEROBOT_FORMATION_THREADS, or pass
+# --threads N to the demo, to use more.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-${OMP_NUM_THREADS:-1}}"
 
 find_python() {
   local c v

@@ -18,7 +18,8 @@ A tiny checkpoint is trained once for this module through the real ``lerobot-tra
 Tolerance of (a2): the two paths draw their noise from different generators once episodes end, so
 their episodes are different samples of the same process and cannot be compared one by one.
 lerobot-eval runs 100 episodes (scene i = seed i); the engine runs the same 100 scenes with 5 noise
-seeds. Each statistic must agree within 3 standard errors of the difference (binomial for the
+seeds (marked slow; the default run has a copy on 20 scenes with 2 noise seeds, whose bounds are
+wider). Each statistic must agree within 3 standard errors of the difference (binomial for the
 success rate, Welch for the reward): about a 0.3 % false alarm if the two paths are the same
 process; both runs are deterministic, and the standard errors ignore that both sides share the
 scenes, which only widens the bound. The scenes are an empty field with a goal 0.56-1.04 m ahead and
@@ -55,6 +56,7 @@ REPO_ID = "local/formation_engine_test"
 EPISODES = 100  # lerobot-eval episodes (one batch of 100 sync envs)
 ENGINE_SEEDS = 5  # noise seeds of the engine over the same scenes
 EPISODE_LENGTH = 30
+SMOKE_EPISODES, SMOKE_ENGINE_SEEDS = 20, 2  # the fast tier's copy of (a2); the full one is marked slow
 
 
 @pytest.fixture(scope="module")
@@ -137,11 +139,26 @@ def test_engine_actions_equal_lerobot_rollout(checkpoint, bundle, workdir):
     np.testing.assert_array_equal(rec.actions, stock_actions)
 
 
+@pytest.mark.slow
 def test_engine_success_matches_lerobot_eval(checkpoint, bundle, workdir, run_cli):
-    scenes = near_goal_scenes(EPISODES)
-    scenes_file = workdir / "near_goal_scenes.json"
+    check_success_matches_lerobot_eval(checkpoint, bundle, workdir, run_cli, EPISODES, ENGINE_SEEDS)
+
+
+def test_engine_success_matches_lerobot_eval_smoke(checkpoint, bundle, workdir, run_cli):
+    """The fast tier's copy of the test above, scaled down (same checks, wider 3-SE bounds)."""
+    check_success_matches_lerobot_eval(
+        checkpoint, bundle, workdir, run_cli, SMOKE_EPISODES, SMOKE_ENGINE_SEEDS
+    )
+
+
+def check_success_matches_lerobot_eval(
+    checkpoint, bundle, workdir, run_cli, episodes: int, engine_seeds: int
+):
+    """(a2) on ``episodes`` near-goal scenes: lerobot-eval once, the engine with ``engine_seeds`` seeds."""
+    scenes = near_goal_scenes(episodes)
+    scenes_file = workdir / f"near_goal_scenes_{episodes}.json"
     save_scenes(scenes, scenes_file)
-    out = workdir / "eval"
+    out = workdir / f"eval_{episodes}"
     run_cli(
         "lerobot-eval",
         f"--policy.path={checkpoint}",
@@ -150,8 +167,8 @@ def test_engine_success_matches_lerobot_eval(checkpoint, bundle, workdir, run_cl
         f"--env.scenes_file={scenes_file}",
         f"--env.episode_length={EPISODE_LENGTH}",
         "--seed=0",  # eval seed i -> scene i of the file
-        f"--eval.n_episodes={EPISODES}",
-        f"--eval.batch_size={EPISODES}",
+        f"--eval.n_episodes={episodes}",
+        f"--eval.batch_size={episodes}",
         "--eval.use_async_envs=false",
         f"--output_dir={out}",
         cwd=workdir,
@@ -159,11 +176,11 @@ def test_engine_success_matches_lerobot_eval(checkpoint, bundle, workdir, run_cl
     metrics = json.loads((out / "eval_info.json").read_text())["per_task"][0]["metrics"]
     stock_success = np.asarray(metrics["successes"], dtype=float)
     stock_reward = np.asarray(metrics["sum_rewards"], dtype=float)
-    assert len(stock_success) == EPISODES
+    assert len(stock_success) == episodes
 
     params = FormationParams(max_steps=EPISODE_LENGTH)
     succ, reward = [], []
-    for seed in range(ENGINE_SEEDS):
+    for seed in range(engine_seeds):
         rec = evaluate(DiffusionController(checkpoint, seed=seed, policy_bundle=bundle), scenes, params)
         succ.append(rec.outcome == SUCCESS)
         reward.append(engine_sum_reward(rec, scenes))

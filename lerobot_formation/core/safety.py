@@ -59,10 +59,13 @@ def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.nd
     return goal, obstacles, mask
 
 
-# Escape manoeuvres [v, omega], held over a chunk: turns in place and slow arcs. Used only when no
-# sampled chunk is safe, so that the team turns away from a blocked heading instead of stopping there.
+# Escape manoeuvres [v, omega], held over a chunk: a lattice of turns in place and arcs. Used only
+# when no sampled chunk is safe, so that the team goes round a blocked heading (the safe arc with the
+# most cost-to-go progress) instead of pressing against the obstacle while the filter holds it.
 SLIDE_TOLERANCE = 0.02  # [m] how much closer than now a chunk may come when already inside the margin
-ESCAPE_PRIMITIVES = np.array([[0.0, 1.0], [0.0, -1.0], [0.2, 0.8], [0.2, -0.8], [0.15, 0.0]])
+_ESCAPE_V = (0.0, 0.1, 0.2, 0.3)
+_ESCAPE_OMEGA = (-1.5, -1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0, 1.5)
+ESCAPE_PRIMITIVES = np.array([[v, w] for v in _ESCAPE_V for w in _ESCAPE_OMEGA if (v, w) != (0.0, 0.0)])
 
 
 def select_chunk(
@@ -76,12 +79,16 @@ def select_chunk(
     progress_measure: str = "cost_to_go",
     window: float = 6.0,
     escape: bool = True,
+    escape_advantage: float | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
     ``obstacles`` (B, M, 3) and ``goal`` (B, 2) are in the body frame. ``progress_measure``
     "cost_to_go" (default) or "euclidean" (see ``cost_to_go_progress``). With ``escape``, when no
     candidate is safe the safe ``ESCAPE_PRIMITIVES`` chunk with the most progress is kept, if any.
+    With ``escape_advantage`` (metres), a safe primitive is also kept when its progress beats every
+    safe sampled chunk's by that much: a team the policy keeps pressing against an obstacle (its
+    chunks safe only because they barely move) goes round it instead of timing out there.
     ``info["choice"]`` is the kept index (K + j for primitive j).
     """
     B, K, T = candidates.shape[:3]
@@ -102,8 +109,12 @@ def select_chunk(
     safe = clear >= np.minimum(margin, now - SLIDE_TOLERANCE)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()
-    allowed[:, K:] &= ~sampled_safe[:, None]  # primitives only when no sampled chunk is safe
-    best = np.argmax(np.where(allowed, progress, -np.inf), axis=1)
+    if escape_advantage is None:
+        allowed[:, K:] &= ~sampled_safe[:, None]  # primitives only when no sampled chunk is safe
+        score = progress
+    else:  # a primitive must beat the best safe sampled chunk by escape_advantage metres of progress
+        score = progress - np.where(np.arange(pool.shape[1]) >= K, escape_advantage, 0.0)[None, :]
+    best = np.argmax(np.where(allowed, score, -np.inf), axis=1)
     fallback = np.argmax(clear[:, :K], axis=1)  # nothing safe: the widest sampled chunk (the filter brakes)
     choice = np.where(allowed.any(axis=1), best, fallback)
     chosen = pool[np.arange(B), choice]

@@ -96,3 +96,27 @@ def test_progress_goes_round_an_obstacle_not_through_it():
     _, ctg = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
     assert eu["safe"][0].all()
     assert eu["choice"][0] == 0 and ctg["choice"][0] == 1
+
+
+def test_escape_advantage_goes_round_a_team_pressed_against_an_obstacle():
+    """Every sampled chunk barely moves (the policy presses the team against a wall ahead): they are
+    safe, so by default one of them is kept and the team stalls; with an escape advantage the safe
+    manoeuvre with the most cost-to-go progress wins. With a sampled chunk that makes real progress,
+    the sampled chunk still wins."""
+    obstacles = np.array([[[0.0, 1.6, 0.5]]])  # straight ahead of the bar
+    goal = np.array([[0.0, 6.0]])
+    T = 16
+    creep = np.stack([np.tile([0.02, 0.0], (T, 1)), np.tile([0.0, 0.05], (T, 1))])[None]
+    _, plain = select_chunk(creep, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    assert plain["any_safe"][0] and not plain["escaped"][0]
+    kept, adv = select_chunk(
+        creep, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape_advantage=0.1
+    )
+    assert adv["escaped"][0]
+    assert abs(kept[0, 0, 1]) > 0  # an arc or a turn, not the blocked straight line
+    # a sampled chunk that makes real progress (the obstacle off to the side) still wins
+    aside = np.array([[[2.5, 2.0, 0.5]]])
+    drive = np.concatenate([creep, np.tile([0.5, 0.0], (T, 1))[None, None]], axis=1)
+    _, adv2 = select_chunk(drive, aside, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape_advantage=0.1)
+    assert adv2["safe"][0, 2] and adv2["progress"][0, 2] > 0.6
+    assert adv2["choice"][0] == 2 and not adv2["escaped"][0]

@@ -73,7 +73,8 @@ def test_one_candidate_without_filter_equals_standard_sampling():
 
 def test_select_action_with_candidates_and_filter_counts_its_interventions():
     torch.manual_seed(0)
-    policy = FormationDiffusionPolicy(nearest_config(num_candidates=4, safety_filter="cbf")).eval()
+    # K = 1: best-of-K would pick a safe escape manoeuvre here, which the filter then leaves as is
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=1, safety_filter="cbf")).eval()
     env = _env_state([[0.5, 0.55, 0.2], [-0.5, 0.6, 0.2]])  # right in front of both leaders
     for _ in range(10):
         a = policy.select_action(_batch(env))
@@ -84,6 +85,11 @@ def test_select_action_with_candidates_and_filter_counts_its_interventions():
     st = policy.safety_stats
     assert st["steps"] == 10 and st["filter_interventions"] >= 1
     assert st["replans"] > 2  # each intervention asks for a fresh plan at the next step
+    picky = FormationDiffusionPolicy(nearest_config(num_candidates=4, safety_filter="cbf")).eval()
+    for _ in range(10):
+        v, w = picky.unnormalize_action(picky.select_action(_batch(env)))[0].tolist()
+        assert v + 0.5 * w <= 0.3 + 1e-5 and v - 0.5 * w <= 0.4 + 1e-5
+    assert picky.safety_stats["replans_none_safe"] >= 1 and picky.safety_stats["escapes"] >= 1
     calm = FormationDiffusionPolicy(
         nearest_config(num_candidates=4, safety_filter="cbf", replan_on_intervention=False)
     ).eval()

@@ -1,0 +1,80 @@
+"""A checkpoint with changed policy options, its weights kept: the start of a fine-tune.
+
+    python scripts/derive_checkpoint.py outputs/train_safe/checkpoints/032000/pretrained_model \
+        outputs/safe_egocentric_init --set egocentric_state=true
+
+``lerobot-train --policy.path=...`` loads the processors saved with the checkpoint, so an option that
+adds a processor step (``egocentric_state``, ``egocentric_obstacles``) cannot be switched on from the
+command line for a fine-tune. This copies the weights, sets the options in config.json and rebuilds
+both processors with ``make_formation_diffusion_pre_post_processors`` from the checkpoint's own
+normalisation statistics. Written to a temporary folder, then renamed into place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+
+def parse_value(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("checkpoint", type=Path, help="a pretrained_model folder")
+    ap.add_argument("dest", type=Path)
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="policy config field")
+    args = ap.parse_args(argv)
+
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.processor import NormalizerProcessorStep
+
+    import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor steps)
+    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+
+    src = args.checkpoint
+    if not (src / "model.safetensors").is_file() or not (src / "config.json").is_file():
+        raise SystemExit(f"error: {src} is not a checkpoint folder (no model.safetensors / config.json)")
+    cfg = PreTrainedConfig.from_pretrained(src)
+    old_pre, _ = make_pre_post_processors(cfg, pretrained_path=str(src))
+    norm = next((s for s in old_pre.steps if isinstance(s, NormalizerProcessorStep)), None)
+    if norm is None:
+        raise SystemExit(f"error: {src}/policy_preprocessor.json has no normalizer step")
+    raw = json.loads((src / "config.json").read_text())
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or not hasattr(cfg, key):
+            raise SystemExit(f"error: --set {item!r}: expected FIELD=VALUE with a {cfg.type} config field")
+        setattr(cfg, key, parse_value(value))
+        raw[key] = parse_value(value)
+    cfg.validate_features()
+    tmp = args.dest.parent / f".{args.dest.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        shutil.copy(src / "model.safetensors", tmp / "model.safetensors")
+        (tmp / "config.json").write_text(json.dumps(raw, indent=4))
+        pre, post = make_formation_diffusion_pre_post_processors(cfg, dataset_stats=norm.stats)
+        pre.save_pretrained(tmp)
+        post.save_pretrained(tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if args.dest.exists():
+        shutil.rmtree(args.dest)
+    tmp.rename(args.dest)
+    print(
+        f"wrote {args.dest} ({', '.join(args.set) or 'no change'}; steps {[type(s).__name__ for s in pre.steps]})"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
