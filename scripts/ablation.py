@@ -10,9 +10,11 @@ default holds at most 5 obstacles) say so instead of a number.
         --sets random:100,hard:100 --out outputs/ablation
 
 Rows: PAC; MPPI; the old default (paper data, egocentric grid+list list) standard and adaptive; the
-new model (wide data, "nearest" encoding) standard, best-of-K, CBF filter, both; with
-``--dagger CKPT`` the same model after a DAgger round; with ``--n-action-steps N`` the new model
-executing N instead of 8 actions per replan (an action-execution change).
+new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escapes, CBF filter,
+both, both + escapes ("escapes": ``escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
+also replaces sampled chunks that make too little progress; without it, only when none is safe);
+with ``--dagger CKPT`` the same model after a DAgger round; with ``--n-action-steps N`` the new
+model executing N instead of its trained number of actions per replan (an action-execution change).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from lerobot_formation.evaluation import evaluate
 def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     """(label, checkpoint, controller, n_action_steps override, policy config overrides)."""
     adv = {"escape_advantage": args.escape_advantage}
+    no_adv = {"escape_advantage": None}  # escape manoeuvres only when no sampled chunk is safe
     rows = [("PAC", None, "pac", None, {}), ("MPPI", None, "mppi", None, {})]
     if args.old:
         rows += [("old default, standard", args.old, "diffusion", None, {})]
@@ -40,9 +43,10 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
             continue
         rows += [
             (f"{tag}, standard", path, "diffusion", None, {}),
-            (f"{tag}, best-of-{args.candidates}", path, "diffusion-bestof", None, {}),
+            (f"{tag}, best-of-{args.candidates}", path, "diffusion-bestof", None, no_adv),
+            (f"{tag}, best-of-{args.candidates} + escapes", path, "diffusion-bestof", None, adv),
             (f"{tag}, CBF filter", path, "diffusion-cbf", None, {}),
-            (f"{tag}, best-of-{args.candidates} + CBF", path, "diffusion-safe", None, {}),
+            (f"{tag}, best-of-{args.candidates} + CBF", path, "diffusion-safe", None, no_adv),
             (f"{tag}, best-of-{args.candidates} + CBF + escapes", path, "diffusion-safe", None, adv),
         ]
     if args.n_action_steps:
@@ -61,7 +65,7 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                 best,
                 "diffusion-safe",
                 args.n_action_steps,
-                {},
+                no_adv,
             ),
             (
                 f"{tag}, both + escapes, {args.n_action_steps} actions per replan",
