@@ -52,8 +52,6 @@ $BIN/lerobot-formation-generate --episodes 5000 --scene-preset wide --obstacle-e
 $BIN/lerobot-train --config_path=configs/formation_diffusion_safe.json --dataset.root=data/formation_wide \
   --output_dir=outputs/train_safe 2>&1 | tee $OUT/train_safe.log
 SAFE=pretrained/formation_diffusion_safe
-$PY scripts/export_pretrained.py outputs/train_safe/checkpoints/032000/pretrained_model $SAFE \
-  --dataset.root data/formation_wide
 $PY -m datasets_scripts.dagger_scenes --policy.path outputs/train_safe/checkpoints/032000/pretrained_model \
   --scene-preset wide --rollouts 300 --out data/dagger_scenes.json | tee $OUT/dagger_scenes.log
 N_DAGGER=$($PY -c "import json; print(len(json.load(open('data/dagger_scenes.json'))['scenes']))")
@@ -70,8 +68,24 @@ $BIN/lerobot-train --policy.path=outputs/train_safe/checkpoints/032000/pretraine
   --policy.push_to_hub=false --seed=1001 --output_dir=outputs/train_dagger 2>&1 | tee $OUT/train_dagger.log
 $PY scripts/export_pretrained.py outputs/train_dagger/checkpoints/004000/pretrained_model \
   outputs/formation_diffusion_dagger --dataset.root data/formation_wide_dagger
+# The shipped default: the 32,000-step run resumed to 72,000 steps on the merged data (its cosine
+# schedule is rebuilt for 72,000 steps), then exported with the escape rule and the traced U-Net on.
+$BIN/lerobot-train --config_path=outputs/train_safe/checkpoints/last/pretrained_model/train_config.json \
+  --resume=true --steps=72000 --dataset.repo_id=local/formation_wide_dagger \
+  --dataset.root=data/formation_wide_dagger 2>&1 | tee $OUT/train_safe_resume.log
+$PY scripts/export_pretrained.py outputs/train_safe/checkpoints/072000/pretrained_model $SAFE \
+  --dataset.root data/formation_wide_dagger --card $SAFE/README.md
+$PY - <<'PYEOF'
+import json, pathlib
+p = pathlib.Path("pretrained/formation_diffusion_safe/config.json")
+c = json.loads(p.read_text()); c.update(escape_advantage=0.1, inference_backend="trace")
+p.write_text(json.dumps(c, indent=4))
+PYEOF
 $PY scripts/ablation.py --new $SAFE --old $MODEL --sets random:100 --n-action-steps 4 --out outputs/ablation_random
-$PY scripts/ablation.py --new $SAFE --old $MODEL --sets hard:100 --out outputs/ablation_hard_a
+$PY scripts/ablation.py --new $SAFE --sets hard:100 --n-action-steps 4 --out outputs/ablation_hard \
+  --rows "PAC;MPPI;new, standard;new, best-of-10;new, best-of-10 + escapes;new, CBF filter;new, best-of-10 + CBF;new, best-of-10 + CBF + escapes;new, both + escapes, 4 actions per replan"
+$PY benchmarks/bench_eval_speed.py --policy.path $SAFE --episodes 500 --stock 50:sync --threads 1 \
+  --out outputs/eval_500 | tee $OUT/eval_500.log
 $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger --sets random:100,hard:100 \
   --rows "new + DAgger, standard;new + DAgger, best-of-10;new + DAgger, standard, 4 actions per replan" \
   --n-action-steps 4 --out outputs/ablation_dagger
