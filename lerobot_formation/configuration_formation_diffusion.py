@@ -238,6 +238,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
         if self.safety_filter not in SAFETY_FILTERS:
             raise config_error(f"safety_filter must be one of {SAFETY_FILTERS}, got {self.safety_filter!r}")
+        if self.escape_advantage is not None and not self.escape_advantage >= 0:
+            raise config_error(f"escape_advantage must be null or >= 0 [m], got {self.escape_advantage}")
         if self.safety_margin < 0 or self.cbf_rate <= 0:
             raise config_error(
                 f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"

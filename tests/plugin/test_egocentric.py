@@ -16,6 +16,12 @@ from lerobot_formation.processor_formation_diffusion import (
     make_formation_diffusion_pre_post_processors,
 )
 
+# normalisation statistics of the processor tests (the state range covers the world batches below)
+STATS = {
+    OBS_STATE: {"min": torch.full((7,), -1.0), "max": torch.full((7,), 6.0)},
+    "action": {"min": torch.tensor([0.0, -1.5]), "max": torch.tensor([0.6, 1.5])},
+}
+
 
 def world_batch(b=6, seed=0):
     scenes = sample_scenes(np.arange(b))
@@ -57,11 +63,7 @@ def test_history_windows_use_each_frames_own_pose():
 def test_step_sits_before_the_normalizer_and_loads_back(tmp_path):
     inputs, outputs = formation_features(env_dim=66)
     cfg = tiny_config(input_features=inputs, output_features=outputs, egocentric_obstacles=True)
-    stats = {
-        OBS_STATE: {"min": torch.full((7,), -1.0), "max": torch.full((7,), 6.0)},
-        "action": {"min": torch.tensor([0.0, -1.5]), "max": torch.tensor([0.6, 1.5])},
-    }
-    pre, _ = make_formation_diffusion_pre_post_processors(cfg, stats)
+    pre, _ = make_formation_diffusion_pre_post_processors(cfg, STATS)
     names = [type(s).__name__ for s in pre.steps]
     assert names.index("EgocentricObstaclesProcessorStep") == names.index("NormalizerProcessorStep") - 1
     pre.save_pretrained(tmp_path)
@@ -75,7 +77,7 @@ def test_step_sits_before_the_normalizer_and_loads_back(tmp_path):
     )
     # Off by default: the paper's world-frame observation passes through.
     plain, _ = make_formation_diffusion_pre_post_processors(
-        tiny_config(input_features=inputs, output_features=outputs), stats
+        tiny_config(input_features=inputs, output_features=outputs), STATS
     )
     torch.testing.assert_close(plain(dict(obs))[OBS_ENV_STATE], obs[OBS_ENV_STATE])
 
@@ -118,11 +120,7 @@ def test_egocentric_state_is_the_body_frame_velocity():
 def test_egocentric_state_step_is_saved_and_needs_a_relative_obstacle_view(tmp_path):
     inputs, outputs = formation_features(env_dim=50)  # "nearest": already egocentric
     cfg = tiny_config(input_features=inputs, output_features=outputs, egocentric_state=True)
-    stats = {
-        OBS_STATE: {"min": torch.full((7,), -1.0), "max": torch.full((7,), 6.0)},
-        "action": {"min": torch.tensor([0.0, -1.5]), "max": torch.tensor([0.6, 1.5])},
-    }
-    pre, _ = make_formation_diffusion_pre_post_processors(cfg, stats)
+    pre, _ = make_formation_diffusion_pre_post_processors(cfg, STATS)
     names = [type(s).__name__ for s in pre.steps]
     assert names.index("EgocentricStateProcessorStep") == names.index("NormalizerProcessorStep") - 1
     pre.save_pretrained(tmp_path)

@@ -160,3 +160,10 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path):
     for key in ("replans", "steps", "filter_interventions", "replans_none_safe"):
         assert engine.stats[key] == policy.safety_stats[key], key
     assert engine.stats["replans"] >= 4 and engine.stats["filter_interventions"] >= 1
+
+
+def test_a_negative_or_nan_escape_advantage_is_refused_with_its_value():
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match=rf"escape_advantage must be null or >= 0 \[m\], got {bad}"):
+            nearest_config(escape_advantage=bad)
+    assert nearest_config(escape_advantage=None).escape_advantage is None
