@@ -32,7 +32,14 @@ Run (full size)::
 
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts c --threads 1
 
-``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (c) when it
+(d) The distilled few-step sampler (``--student PATH``, ``python -m lerobot_formation.distill``): one
+    replan at B=1 through LeRobot's ``select_action`` with the checkpoint's processors (``reset()``
+    first), teacher (``--policy.path``) with its own sampler against the student with its own, for K in
+    ``--lean-candidates`` (K > 1: the safety layer's best-of-K), both traced. ``--parts d`` runs only
+    this part; it also runs with the default ``--parts`` when ``--student`` is given.
+
+``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (d) when it
+runs (``replan latency B=1 via select_action: student K=1 ...``), else of (c) when it
 runs (``replan latency B=1 K=1: ...``: the trace backend against the eager baseline at the first of
 ``--lean-steps``), else the ratio of (a): stock DDPM-100 select_action over our batched DDIM per episode.
 """
@@ -243,6 +250,41 @@ def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) 
     return headline
 
 
+def student_part(teacher_path: str, student_path: str, candidates: list[int], repeats: int) -> str:
+    """Print part (d); return its headline: one replan at B=1 through LeRobot's ``select_action`` (the
+    checkpoint's pre- and postprocessors, ``reset()`` first so the chunk is sampled), the teacher with its
+    own sampler against the distilled student with its own, for K in ``candidates`` (K > 1: the
+    safety layer's best-of-K, ``num_candidates``), both with inference_backend "trace"."""
+    from lerobot_formation.diffusion_controller import load_policy
+
+    rows = {}
+    for name, path in (("teacher", teacher_path), ("student", student_path)):
+        policy, pre, post = load_policy(path)
+        cfg = policy.config
+        cfg.inference_backend = "trace"
+        env_dim = cfg.input_features["observation.environment_state"].shape[0]
+        sampler = f"DDIM {cfg.num_inference_steps} {cfg.timestep_spacing}, {cfg.prediction_type} prediction"
+        for k in candidates:
+            cfg.num_candidates = k
+            rows[name, k] = 1e3 * stock_replan_s(policy, pre, post, env_dim, repeats)
+        rows[name] = sampler
+    print(
+        f"(d) few-step sampler: one replan at B=1 through select_action (pre/post processors, reset first), "
+        f"median of {repeats}; teacher {teacher_path} ({rows['teacher']}), student {student_path} "
+        f"({rows['student']}):"
+    )
+    for k in candidates:
+        t, s = rows["teacher", k], rows["student", k]
+        print(f"    K={k:<3} teacher {t:7.2f} ms   student {s:7.2f} ms   ({t / s:.2f}x)")
+    k1, kmax = candidates[0], candidates[-1]
+    return (
+        f"replan latency B=1 via select_action: student K={k1} {rows['student', k1]:.1f} ms, K={kmax} "
+        f"{rows['student', kmax]:.1f} ms; teacher K={k1} {rows['teacher', k1]:.1f} ms, K={kmax} "
+        f"{rows['teacher', kmax]:.1f} ms; ratio {rows['teacher', k1] / rows['student', k1]:.2f}x "
+        f"({torch.get_num_threads()} thread(s))"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--policy.path", dest="policy_path", default=None, help="default model (part b)")
@@ -256,6 +298,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lean-candidates", type=int, nargs="+", default=[1, 10], help="K in part (c)")
     ap.add_argument("--lean-steps", type=int, nargs="+", default=[10, 3], help="DDIM steps in part (c)")
     ap.add_argument("--lean-repeats", type=int, default=30, help="timing rounds in part (c)")
+    ap.add_argument(
+        "--student",
+        default=None,
+        help="a distilled few-step checkpoint (python -m lerobot_formation.distill): part (d) times it "
+        "against --policy.path (default pretrained/formation_diffusion_safe) through select_action",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.repeats, args.batch, args.lean_repeats = 1, min(args.batch, 10), min(args.lean_repeats, 5)
@@ -294,6 +342,11 @@ def main(argv: list[str] | None = None) -> int:
     if "c" in args.parts:
         path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(lean_part(path, args.lean_candidates, args.lean_steps, args.lean_repeats))
+    if "d" in args.parts or (args.student and "d" not in args.parts and args.parts == "abc"):
+        if not args.student:
+            ap.error("part (d) needs --student PATH (a distilled checkpoint)")
+        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
+        print(student_part(path, args.student, args.lean_candidates, 10 * args.repeats))
     return 0
 
 

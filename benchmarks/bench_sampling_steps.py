@@ -18,9 +18,15 @@ the simulation and the observation encoding between replans, so it is the cost o
 evaluation pays it, not the bare sampler's latency (benchmarks/bench_replan_latency.py measures that).
 A controller without ``stats['replans']`` is reported in total wall seconds.
 
-"Within noise of 10 steps": a setting whose Wilson interval overlaps the reference setting's
-(``--reference``, default 10) on every scene set. The fewest-steps such setting is marked in the table
-and is the headline, with its time per replan against the reference's.
+"Within noise of 10 steps": a setting whose success count is not distinguishable from the reference
+setting's (``--reference`` steps, default 10, with the checkpoint's own timestep spacing) on any scene
+set by a pooled two-proportion z-test at 5 % (|z| < 1.96; ``same_rate``). Of those, the one with the
+lowest time per replan is marked and is the headline, with its time per replan against the reference's.
+
+Samplers: every step count of ``--steps`` runs with every timestep spacing of ``--spacings`` (default:
+the checkpoint's; "trailing" starts the first DDIM step at the last training timestep, which 1-3 step
+sampling needs), and every ``--student PATH`` (a distilled few-step checkpoint,
+``python -m lerobot_formation.distill``) runs with its own step count and spacing, all in one run.
 
 Options: ``--n-action-steps N`` executes N actions per replan instead of the checkpoint's;
 ``--inference-backend eager|lean|trace`` sets the loaded policy config's ``inference_backend``
@@ -32,8 +38,8 @@ Run (full size; about 10 evaluations of 100 episodes: tens of minutes on 2 cores
         --policy.path pretrained/formation_diffusion_safe --threads 1 --out outputs/results/sampling_steps.json
 
 ``--quick`` is a smoke run: ``--scenes dataset:3,random:3 --steps 1,10``. The last line is the headline:
-``fewest DDIM steps within noise of 10: K (success a % vs b % on <set>, ...; time per replan x ms vs y ms,
-ratio r)``.
+``fastest sampler within noise of DDIM 10 leading: <sampler> (success a % vs b % on <set>, ...; time per
+replan x ms vs y ms, ratio r)``.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from lerobot_formation.threads import add_threads_argument, apply_threads  # noq
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_POLICY = REPO / "pretrained" / "formation_diffusion_safe"
 BACKENDS = ("eager", "lean", "trace")  # configuration_formation_diffusion.INFERENCE_BACKENDS
+SPACINGS = ("leading", "trailing", "linspace")  # configuration_formation_diffusion.TIMESTEP_SPACINGS
 
 
 def int_list(text: str) -> list[int]:
@@ -73,20 +80,23 @@ def int_list(text: str) -> list[int]:
     return out
 
 
-def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
-    """Whether two intervals [lo, hi] overlap."""
-    return a[0] <= b[1] and b[0] <= a[1]
+def same_rate(x1: int, n1: int, x2: int, n2: int, z_crit: float = 1.96) -> bool:
+    """Whether two success counts x1/n1 and x2/n2 are within sampling noise of each other: the pooled
+    two-proportion z-test does not reject equal rates at 5 % (two-sided, |z| < 1.96)."""
+    p = (x1 + x2) / (n1 + n2)
+    se = (p * (1 - p) * (1 / n1 + 1 / n2)) ** 0.5
+    return se == 0 or abs(x1 / n1 - x2 / n2) / se < z_crit
 
 
-def within_noise(results: dict[int, dict[str, dict]], reference: int) -> list[int]:
-    """Step counts whose success interval overlaps the reference's on every scene set, fewest first.
-    ``results[steps][set]`` holds ``success_ci95``."""
+def within_noise(results: dict[str, dict[str, dict]], reference: str) -> list[str]:
+    """Settings whose success is within noise of the reference's (``same_rate``) on every scene set.
+    ``results[setting][set]`` holds ``success_rate`` and ``n_episodes``."""
     ref = results[reference]
-    return sorted(
-        k
-        for k, sets in results.items()
-        if all(overlaps(sets[s]["success_ci95"], ref[s]["success_ci95"]) for s in ref)
-    )
+
+    def count(e):
+        return round(e["success_rate"] * e["n_episodes"]), e["n_episodes"]
+
+    return [k for k, sets in results.items() if all(same_rate(*count(sets[s]), *count(ref[s])) for s in ref)]
 
 
 def seconds_per_replan(sets: dict[str, dict]) -> float | None:
@@ -157,6 +167,19 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the policy config's inference_backend (default: the checkpoint's)",
     )
+    ap.add_argument(
+        "--spacings",
+        default=None,
+        help="comma-separated DDIM timestep spacings to run every step count with: leading, trailing, "
+        "linspace (default: the checkpoint's timestep_spacing)",
+    )
+    ap.add_argument(
+        "--student",
+        action="append",
+        default=[],
+        help="a distilled few-step checkpoint (python -m lerobot_formation.distill), run with its own "
+        "num_inference_steps and timestep_spacing beside the teacher's settings; repeatable",
+    )
     ap.add_argument("--out", default=None, help="write every number to this JSON file")
     add_threads_argument(ap, "torch threads")
     ap.add_argument(
@@ -193,15 +216,26 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         ap.error(str(e))
     cfg = bundle[0].config
+    cfg_spacing = cfg.timestep_spacing
     if max(args.steps) > cfg.num_train_timesteps:
         ap.error(f"--steps must be <= {cfg.num_train_timesteps} (the checkpoint's training steps)")
-    if args.n_action_steps is not None:
-        if args.n_action_steps > cfg.horizon - cfg.n_obs_steps + 1:
-            ap.error(f"--n-action-steps must be <= {cfg.horizon - cfg.n_obs_steps + 1} for this checkpoint")
-        cfg.n_action_steps = args.n_action_steps
-    if args.inference_backend is not None:
-        cfg.inference_backend = args.inference_backend
-    own = f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps"
+    spacings = [t.strip() for t in (args.spacings or cfg.timestep_spacing).split(",") if t.strip()]
+    bad = [t for t in spacings if t not in SPACINGS]
+    if bad or not spacings:
+        ap.error(f"--spacings must name some of {SPACINGS}, got {args.spacings!r}")
+    try:
+        students = [(path, load_policy(path)) for path in args.student]
+    except ValueError as e:
+        ap.error(str(e))
+    for bun in [bundle] + [b for _, b in students]:
+        c = bun[0].config
+        if args.n_action_steps is not None:
+            if args.n_action_steps > c.horizon - c.n_obs_steps + 1:
+                ap.error(f"--n-action-steps must be <= {c.horizon - c.n_obs_steps + 1} for this checkpoint")
+            c.n_action_steps = args.n_action_steps
+        if args.inference_backend is not None:
+            c.inference_backend = args.inference_backend
+    own = f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps {cfg.timestep_spacing}"
     print(
         f"policy {args.policy_path} (own sampler {own}, {cfg.n_action_steps} actions per replan, inference_backend "
         f"{cfg.inference_backend!r}), controller {args.controller}; scenes "
@@ -210,20 +244,30 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
 
+    # (label, checkpoint, policy bundle, DDIM steps, timestep spacing); the reference is the teacher's
+    # --reference steps with its own spacing.
+    settings = [(f"DDIM {k} {sp}", args.policy_path, bundle, k, sp) for sp in spacings for k in args.steps]
+    ref = f"DDIM {args.reference} {cfg.timestep_spacing}"
+    if ref not in {lab for lab, *_ in settings}:
+        settings.append((ref, args.policy_path, bundle, args.reference, cfg.timestep_spacing))
+    for path, bun in students:
+        c = bun[0].config
+        k = c.num_inference_steps or c.num_train_timesteps
+        settings.append(
+            (f"student {Path(path).name}: DDIM {k} {c.timestep_spacing}", path, bun, k, c.timestep_spacing)
+        )
+
     params = FormationParams()
-    bench_args = argparse.Namespace(
-        candidates=args.candidates,
-        num_inference_steps=None,
-        seed_policy=args.seed_policy,
-        policy_path=args.policy_path,
-    )
-    results: dict[int, dict[str, dict]] = {}
-    for k in args.steps:
-        bench_args.num_inference_steps = k
-        results[k] = {}
+    results: dict[str, dict[str, dict]] = {}
+    for label, path, bun, k, spacing in settings:
+        bun[0].config.timestep_spacing = spacing
+        bench_args = argparse.Namespace(
+            candidates=args.candidates, num_inference_steps=k, seed_policy=args.seed_policy, policy_path=path
+        )
+        results[label] = {}
         for s in sets:
             try:
-                ctrl = make_controller(args.controller, params, bench_args, bundle)
+                ctrl = make_controller(args.controller, params, bench_args, bun)
             except ValueError as e:  # e.g. a safety-layer controller on a world-frame checkpoint
                 ap.error(f"controller {args.controller}: {e}")
             t0 = time.perf_counter()
@@ -232,6 +276,9 @@ def main(argv: list[str] | None = None) -> int:
             entry = controller_results(rec, scenes[s])
             stats = getattr(ctrl, "stats", None) or {}
             e = {
+                "steps": k,
+                "timestep_spacing": spacing,
+                "policy_path": str(path),
                 "success_rate": entry["success_rate"],
                 "success_ci95": list(entry["success_ci95"]),
                 "n_episodes": entry["n_episodes"],
@@ -241,46 +288,47 @@ def main(argv: list[str] | None = None) -> int:
                 "replans": stats.get("replans"),
                 "policy_calls": getattr(ctrl, "replans", None),
             }
-            results[k][s] = e
+            results[label][s] = e
             lo, hi = e["success_ci95"]
             per = f", {1e3 * wall / e['replans']:.2f} ms per replan" if e["replans"] else ""
             print(
-                f"[{s}] DDIM {k:>3} steps: success {e['success_rate']:.0%} [{lo:.0%}, {hi:.0%}] of {e['n_episodes']} "
+                f"[{s}] {label}: success {e['success_rate']:.0%} [{lo:.0%}, {hi:.0%}] of {e['n_episodes']} "
                 f"(collisions {e['collisions']}, timeouts {e['timeouts']}) in {wall:.1f} s, {e['replans']} replans "
                 f"in {e['policy_calls']} batched calls{per}",
                 flush=True,
             )
+        bundle[0].config.timestep_spacing = cfg_spacing
 
-    ref = args.reference
     ok = within_noise(results, ref)
-    best = ok[0]
-    per_replan = {k: seconds_per_replan(results[k]) for k in args.steps}
+    per_replan = {lab: seconds_per_replan(results[lab]) for lab in results}
     timed_per_replan = all(v is not None for v in per_replan.values())
+
+    def cost(lab):
+        return per_replan[lab] if timed_per_replan else sum(e["wall_s"] for e in results[lab].values())
+
+    best = min(ok, key=lambda lab: (cost(lab), results[lab][sets[0]]["steps"]))
     time_head = "time per replan (ms)" if timed_per_replan else "total wall time (s)"
     print()
     print(
-        "| DDIM steps | "
+        "| sampler | "
         + " | ".join(f"{s} success % [Wilson 95 %]" for s in sets)
-        + f" | {time_head} | within noise of {ref} steps |"
+        + f" | {time_head} | within noise of {ref} |"
     )
     print("|---" * (len(sets) + 3) + "|")
-    for k in args.steps:
+    for lab in results:
         cells = []
         for s in sets:
-            e = results[k][s]
+            e = results[lab][s]
             lo, hi = e["success_ci95"]
             cells.append(f"{100 * e['success_rate']:.0f} [{100 * lo:.0f}, {100 * hi:.0f}]")
-        t = 1e3 * per_replan[k] if timed_per_replan else sum(e["wall_s"] for e in results[k].values())
+        t = 1e3 * cost(lab) if timed_per_replan else cost(lab)
         mark = (
             "reference"
-            if k == ref
-            else ("**yes, fewest steps**" if k == best else ("yes" if k in ok else "no"))
+            if lab == ref
+            else ("**yes, fastest**" if lab == best else ("yes" if lab in ok else "no"))
         )
-        print(f"| {k} | " + " | ".join(cells) + f" | {t:.2f} | {mark} |")
+        print(f"| {lab} | " + " | ".join(cells) + f" | {t:.2f} | {mark} |")
     print()
-
-    def cost(k):
-        return per_replan[k] if timed_per_replan else sum(e["wall_s"] for e in results[k].values())
 
     ratio = cost(best) / cost(ref)
     if args.out:
@@ -289,6 +337,7 @@ def main(argv: list[str] | None = None) -> int:
         payload = {
             "meta": {
                 "policy_path": args.policy_path,
+                "students": args.student,
                 "controller": args.controller,
                 "candidates": args.candidates,
                 "scenes": sets,
@@ -298,15 +347,18 @@ def main(argv: list[str] | None = None) -> int:
                 "inference_backend": cfg.inference_backend,
                 "threads": threads,
                 "reference": ref,
+                "within_noise_rule": "pooled two-proportion z-test, |z| < 1.96 on every scene set",
                 "date": time.strftime("%Y-%m-%d"),
             },
-            "results": {str(k): v for k, v in results.items()},
-            "seconds_per_replan": {str(k): v for k, v in per_replan.items()},
+            "results": results,
+            "seconds_per_replan": per_replan,
             "within_noise_of_reference": ok,
-            "fewest_within_noise": best,
+            "fastest_within_noise": best,
             "time_ratio_to_reference": ratio,
         }
-        out.write_text(json.dumps(payload, indent=1))
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(json.dumps(payload, indent=1))
+        tmp.replace(out)
         print(f"wrote {out}")
     succ = ", ".join(
         f"{100 * results[best][s]['success_rate']:.0f} % vs {100 * results[ref][s]['success_rate']:.0f} % on {s}"
@@ -316,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     a, b = (1e3 * cost(best), 1e3 * cost(ref)) if timed_per_replan else (cost(best), cost(ref))
     u = "ms" if timed_per_replan else "s"
     print(
-        f"fewest DDIM steps within noise of {ref}: {best} (success {succ}; {unit} {a:.2f} {u} vs {b:.2f} {u}, "
+        f"fastest sampler within noise of {ref}: {best} (success {succ}; {unit} {a:.2f} {u} vs {b:.2f} {u}, "
         f"ratio {ratio:.2f})"
     )
     return 0

@@ -19,6 +19,7 @@ ACTION_DIM = 2  # [v, omega]
 ENV_STATE_DIMS = tuple(environment_state_dim(e) for e in ENCODINGS)
 SAFETY_FILTERS = ("none", "cbf")
 INFERENCE_BACKENDS = ("eager", "lean", "trace")
+TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
 _BOUNDS = FormationParams()
 
 
@@ -106,6 +107,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             built on first use in eval mode, rebuilt when the weights change, never saved (the
             ``state_dict`` is unchanged); falls back to the eager U-Net if tracing fails. Same noise,
             same chunks within 1e-5 (modeling_formation_diffusion.py).
+        timestep_spacing: where a DDIM sampler of ``num_inference_steps`` steps puts its timesteps
+            (diffusers' ``DDIMScheduler`` ``timestep_spacing``). "leading" (default, diffusers' and so
+            LeRobot's): 0, T/S, 2T/S, ...; with S = 1 the only step is t = 0, which cannot denoise.
+            "trailing": T-1, T-1-T/S, ...; the first step starts from pure noise, as few-step samplers
+            need (Lin et al. 2024, "Common diffusion noise schedules and sample steps are flawed",
+            Table 2). A distilled student (``lerobot_formation.distill``) is trained for "trailing".
         drop_n_last_frames: frames at each episode's end the training sampler never starts a window
             at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
             Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
@@ -155,6 +162,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     replan_on_intervention: bool = True
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
+    timestep_spacing: str = "leading"
 
     # Unet.
     down_dims: tuple[int, ...] = (256, 512, 1024)
@@ -233,6 +241,10 @@ class FormationDiffusionConfig(DiffusionConfig):
         if self.inference_backend not in INFERENCE_BACKENDS:
             raise config_error(
                 f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
+            )
+        if self.timestep_spacing not in TIMESTEP_SPACINGS:
+            raise config_error(
+                f"timestep_spacing must be one of {TIMESTEP_SPACINGS}, got {self.timestep_spacing!r}"
             )
         if self.num_candidates < 1:
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")

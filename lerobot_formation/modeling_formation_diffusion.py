@@ -74,15 +74,21 @@ class _DDIMSteps:
         gap = cfg.num_train_timesteps // scheduler.num_inference_steps
         alphas = scheduler.alphas_cumprod
         self.clip = float(cfg.clip_sample_range) if cfg.clip_sample else None
+        self.predicts_sample = cfg.prediction_type == "sample"  # a distilled student predicts x0
         self.coefs = []
         for t in self.timesteps:
             a, a_prev = alphas[t], alphas[t - gap] if t - gap >= 0 else scheduler.final_alpha_cumprod
             self.coefs.append(((1 - a) ** 0.5, a**0.5, a_prev**0.5, (1 - a_prev) ** 0.5))
 
     def step(self, i: int, eps: Tensor, sample: Tensor) -> Tensor:
-        """x_t -> x_{t_prev} at the i-th timestep, from the predicted noise ``eps``."""
+        """x_t -> x_{t_prev} at the i-th timestep, from the network's output ``eps`` (the predicted
+        noise, or with prediction_type "sample" the predicted x_0; diffusers' order of operations)."""
         sqrt_beta, sqrt_alpha, sqrt_alpha_prev, sqrt_beta_prev = self.coefs[i]
-        x0 = (sample - sqrt_beta * eps) / sqrt_alpha
+        if self.predicts_sample:
+            x0 = eps
+            eps = (sample - sqrt_alpha * x0) / sqrt_beta
+        else:
+            x0 = (sample - sqrt_beta * eps) / sqrt_alpha
         if self.clip is not None:
             x0 = x0.clamp(-self.clip, self.clip)
         return sqrt_alpha_prev * x0 + sqrt_beta_prev * eps
@@ -93,7 +99,9 @@ class _DDIMSteps:
         prediction type, or if any step differs from diffusers' (another diffusers version)."""
         cfg = getattr(scheduler, "config", None)
         if not (
-            isinstance(scheduler, DDIMScheduler) and cfg.prediction_type == "epsilon" and not cfg.thresholding
+            isinstance(scheduler, DDIMScheduler)
+            and cfg.prediction_type in ("epsilon", "sample")
+            and not cfg.thresholding
         ):
             return None
         steps = cls(scheduler, num_steps)
@@ -258,6 +266,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         ``cond``, from ``noise`` (else fresh ``torch.randn``, as ``conditional_sample`` draws it), on
         the configured ``inference_backend`` (see the module docstring)."""
         backend = self.config.inference_backend
+        self._sync_timestep_spacing(model)
         parts = None if backend == "eager" else denoiser_parts(model)
         if parts is None:
             return model.conditional_sample(len(cond), global_cond=cond, noise=noise)
@@ -286,6 +295,14 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                     else scheduler.step(eps, t, sample).prev_sample
                 )
         return sample
+
+    def _sync_timestep_spacing(self, model: DiffusionModel) -> None:
+        """Give ``model``'s scheduler the config's ``timestep_spacing`` (LeRobot builds it with diffusers'
+        default, "leading"); checked at every sampling call, so a changed config takes effect."""
+        scheduler = model.noise_scheduler
+        spacing = self.config.timestep_spacing
+        if getattr(scheduler.config, "timestep_spacing", spacing) != spacing:
+            model.noise_scheduler = type(scheduler).from_config(scheduler.config, timestep_spacing=spacing)
 
     def _action_scale(self) -> tuple[Tensor, Tensor]:
         low = torch.tensor(self.config.action_low, dtype=torch.float32)
@@ -453,11 +470,13 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             start = self.config.n_obs_steps - 1  # as DiffusionModel.generate_actions slices
             return full[:, start : start + self.config.n_action_steps]
         if self.ema_diffusion is None or self.training:
+            self._sync_timestep_spacing(self.diffusion)
             return super().predict_action_chunk(batch, noise=noise)
         # As DiffusionPolicy does: stack the observation history (B, n_obs_steps, ...) from the
         # queues select_action fills, or take an offline batch as given. No image features here.
         if any(len(q) > 0 for q in self._queues.values()):
             batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in batch if k in self._queues}
+        self._sync_timestep_spacing(self.ema_diffusion)
         return self.ema_diffusion.generate_actions(batch, noise=noise)
 
     def _check_observation_sizes(self, batch: dict[str, Tensor]) -> None:

@@ -29,7 +29,8 @@ def _script(relpath: str):
         ),
         (
             "benchmarks/bench_sampling_steps.py",
-            ["--quick", "--threads N", "--steps", "--scenes", "--controller", "--inference-backend", "--out"],
+            ["--quick", "--threads N", "--steps", "--scenes", "--controller", "--inference-backend", "--out"]
+            + ["--spacings", "--student"],
         ),
     ],
 )
@@ -53,13 +54,17 @@ def test_sampling_steps_helpers():
     assert m.int_list("10, 1,2,2") == [10, 1, 2]
     with pytest.raises(Exception, match="steps must be >= 1"):
         m.int_list("0")
-    assert m.overlaps((0.1, 0.5), (0.5, 0.9)) and not m.overlaps((0.1, 0.4), (0.5, 0.9))
+    assert m.same_rate(60, 100, 66, 100) and not m.same_rate(50, 100, 66, 100)  # z = 0.88 vs 2.3
+    assert m.same_rate(0, 10, 0, 10) and not m.same_rate(0, 100, 100, 100)
     res = {
-        1: {"a": {"success_ci95": [0.0, 0.2]}, "b": {"success_ci95": [0.5, 0.8]}},
-        3: {"a": {"success_ci95": [0.3, 0.6]}, "b": {"success_ci95": [0.4, 0.7]}},
-        10: {"a": {"success_ci95": [0.4, 0.7]}, "b": {"success_ci95": [0.5, 0.8]}},
+        "k1": {"a": {"success_rate": 0.1, "n_episodes": 100}, "b": {"success_rate": 0.6, "n_episodes": 100}},
+        "k3": {"a": {"success_rate": 0.5, "n_episodes": 100}, "b": {"success_rate": 0.55, "n_episodes": 100}},
+        "ref": {
+            "a": {"success_rate": 0.55, "n_episodes": 100},
+            "b": {"success_rate": 0.6, "n_episodes": 100},
+        },
     }
-    assert m.within_noise(res, 10) == [3, 10]  # 1 overlaps on "b" only: not within noise
+    assert m.within_noise(res, "ref") == ["k3", "ref"]  # k1 matches on "b" only: not within noise
     sets = {"a": {"wall_s": 2.0, "replans": 10}, "b": {"wall_s": 1.0, "replans": 20}}
     assert m.seconds_per_replan(sets) == pytest.approx(0.1)
     assert m.seconds_per_replan({"a": {"wall_s": 1.0, "replans": None}}) is None

@@ -131,3 +131,53 @@ def test_resume_continues_the_run(trained, workdir, run_cli):
     assert last.resolve().name == "000006"
     assert json.loads((last / "training_state" / "training_step.json").read_text())["step"] == 6
     assert ema_step_and_gap(last)[0] == 6  # the EMA step count was restored and continued
+
+
+def test_distill_a_one_step_student_and_resume(trained, dataset_root, tmp_path, capsys):
+    """``python -m lerobot_formation.distill`` on the tiny checkpoint: the student is a loadable
+    formation_diffusion checkpoint (x_0 prediction, 1 trailing DDIM step), its one-step samples move
+    toward the teacher's, and a second run continues from OUT/last."""
+    import torch
+
+    from lerobot_formation import distill
+    from lerobot_formation.diffusion_controller import load_policy, set_inference_steps
+    from lerobot_formation.lerobot_compat import global_conditioning
+
+    teacher_path = trained / "checkpoints" / "000004" / "pretrained_model"
+    out = tmp_path / "distill"
+    common = ["--teacher", str(teacher_path), "--dataset.root", str(dataset_root), "--out", str(out)]
+    common += ["--batch-size", "16", "--lr", "3e-3", "--save-every", "20", "--log-every", "10"]
+    assert distill.main(common + ["--steps", "20"]) == 0
+    assert distill.main(common + ["--steps", "60"]) == 0
+    printed = capsys.readouterr().out
+    assert "resumed from" in printed and "at step 20" in printed
+
+    student, _, _ = load_policy(out / "pretrained_model")
+    cfg = student.config
+    assert (cfg.prediction_type, cfg.num_inference_steps, cfg.timestep_spacing) == ("sample", 1, "trailing")
+    log = json.loads((out / "pretrained_model" / "distill_log.json").read_text())
+    assert log["steps"] == 60
+    teacher, pre, _ = load_policy(teacher_path)
+    init = distill.student_config(teacher.config, 1)
+    untrained = type(teacher)(init)
+    untrained.load_state_dict(teacher.state_dict())
+    set_inference_steps(untrained, 1)
+    untrained.eval()
+    # One held-out batch of dataset observations and noise: the student's gap to the teacher shrank.
+    g = torch.Generator().manual_seed(123)
+    n_obs = teacher.config.n_obs_steps
+    obs = {
+        k: torch.rand(32, n_obs, *teacher.config.input_features[k].shape, generator=g) * 2 - 1
+        for k in teacher.config.input_features
+    }
+    noise = torch.randn(32, teacher.config.horizon, 2, generator=g)
+    with torch.inference_mode():
+        target = teacher._sample(
+            teacher.inference_model, global_conditioning(teacher.inference_model, obs), noise
+        )
+
+        def gap(policy):
+            m = policy.inference_model
+            return float(((policy._sample(m, global_conditioning(m, obs), noise) - target) ** 2).mean())
+
+        assert gap(student) < 0.8 * gap(untrained), (gap(student), gap(untrained))
