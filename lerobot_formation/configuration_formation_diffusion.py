@@ -97,6 +97,10 @@ class FormationDiffusionConfig(DiffusionConfig):
             are used only when no sampled chunk is safe. A number [m]: a safe manoeuvre is also kept
             when its cost-to-go progress beats every safe sampled chunk's by that much (the policy
             stalled against an obstacle).
+        replan_blend_steps: m >= 0. At every replan, the new chunk's first m actions are blended from
+            the last executed action into the chunk (``core.replan_blend``), before best-of-K scores the
+            candidates; removes the step in [v, omega] that a replan makes (the main source of motion
+            jerk). 0 (default): no blending, LeRobot's plain chunk execution.
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -160,6 +164,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     cbf_rate: float = 2.0
     escape_advantage: float | None = None
     replan_on_intervention: bool = True
+    replan_blend_steps: int = 0
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"
@@ -242,6 +247,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
             )
+        if not 0 <= self.replan_blend_steps <= self.horizon - self.n_obs_steps + 1:
+            raise config_error(
+                f"replan_blend_steps must be in [0, {self.horizon - self.n_obs_steps + 1}] (the chunk's length), "
+                f"got {self.replan_blend_steps}"
+            )
         if self.timestep_spacing not in TIMESTEP_SPACINGS:
             raise config_error(
                 f"timestep_spacing must be one of {TIMESTEP_SPACINGS}, got {self.timestep_spacing!r}"
@@ -263,6 +273,12 @@ class FormationDiffusionConfig(DiffusionConfig):
     @property
     def safety_layer(self) -> bool:
         return self.num_candidates > 1 or self.safety_filter != "none"
+
+    @property
+    def plans_per_episode(self) -> bool:
+        """Whether ``select_action`` keeps its own per-episode chunks (safety layer or replan blending)
+        instead of LeRobot's action queue."""
+        return self.safety_layer or self.replan_blend_steps > 0
 
     def validate_features(self) -> None:
         """Check the formation features; the error names the feature, its shape and what was found."""

@@ -28,6 +28,7 @@ from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.footprint import select_safest
 from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
+from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import Scenes
 from lerobot_formation.env import midpoint_state
 
@@ -212,6 +213,8 @@ class DiffusionController:
         self.started = np.zeros(B, dtype=bool)
         self.queue = np.zeros((B, self.n_act, 2))
         self.queue_pos = np.full(B, self.n_act)
+        self.last_action = np.zeros((B, 2))  # the action executed last (replan blending)
+        self.has_last = np.zeros(B, dtype=bool)
         self.generator = torch.Generator().manual_seed(self.seed)
         # MPPI's tuned field: walls x3 within 0.9 m (x30 leaves one-cell valleys the square cannot use).
         self.ctg = (
@@ -235,12 +238,17 @@ class DiffusionController:
         chunks = self.policy.sample_action_chunks(batch, K, noise=self._noise(n * K))
         cand = self.post(chunks.reshape(n * K, *chunks.shape[2:])).cpu().numpy().astype(np.float64)
         cand = cand.reshape(n, K, *cand.shape[1:])
+        cand = blend_replan(
+            cand, self.last_action[idx], self.has_last[idx], self.policy.config.replan_blend_steps
+        )
         self.replans += 1
         self.stats["replans"] += n
         if self.policy_safety:
             if K == 1:
                 return cand[:, 0, : self.n_act]
-            chosen, info = self.policy.choose_chunk_raw(self.env_history[idx, -1], cand)
+            chosen, info = self.policy.choose_chunk_raw(
+                self.env_history[idx, -1], cand, self.last_action[idx], self.has_last[idx]
+            )
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             return chosen[:, : self.n_act]
@@ -288,4 +296,6 @@ class DiffusionController:
             self.stats["filter_interventions"] += int(changed.sum())
             if self.policy.config.replan_on_intervention:  # as select_action: replan at the next step
                 self.queue_pos[idx[changed]] = self.n_act
+        self.last_action[idx] = a
+        self.has_last[idx] = True
         return a

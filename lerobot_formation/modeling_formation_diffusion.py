@@ -54,6 +54,7 @@ from lerobot_formation.configuration_formation_diffusion import ENV_STATE_DIMS, 
 from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
+from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.lerobot_compat import denoiser_parts, global_conditioning
 
 EMA_PREFIX = "ema_diffusion."
@@ -329,11 +330,17 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         goal, obstacles, _ = safety.decode_nearest(env, slots)
         return goal, obstacles
 
-    def choose_chunk_raw(self, env_state, chunks: np.ndarray) -> tuple[np.ndarray, dict]:
+    def choose_chunk_raw(
+        self, env_state, chunks: np.ndarray, last_action: np.ndarray | None = None, has_last=None
+    ) -> tuple[np.ndarray, dict]:
         """Best-of-K (``core.safety.select_chunk``) with this policy's settings: env_state (B, D) raw
-        ``nearest`` observation, chunks (B, K, T, 2) in m/s and rad/s -> kept chunks (B, T, 2), info."""
+        ``nearest`` observation, chunks (B, K, T, 2) in m/s and rad/s -> kept chunks (B, T, 2), info.
+        With ``replan_blend_steps`` and the last executed actions (B, 2) [m/s, rad/s] and ``has_last``
+        (B,), the escape manoeuvres are blended into them as the sampled chunks were."""
         goal, obstacles = self._observed_obstacles(env_state)
         template, dt, agent_radius = self._safety_geometry()
+        m = self.config.replan_blend_steps
+        blend = None if last_action is None or m == 0 else (np.asarray(last_action), np.asarray(has_last), m)
         return safety.select_chunk(
             chunks,
             obstacles,
@@ -343,6 +350,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             agent_radius,
             self.config.safety_margin,
             escape_advantage=self.config.escape_advantage,
+            blend=blend,
         )
 
     def filter_action_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -361,10 +369,16 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             np.asarray(self.config.action_high),
         )
 
-    def choose_chunk(self, env_state: Tensor, chunks: Tensor) -> tuple[Tensor, dict]:
-        """``choose_chunk_raw`` on normalised chunks (B, K, T, 2) -> kept chunks (B, T, 2) normalised."""
+    def choose_chunk(
+        self, env_state: Tensor, chunks: Tensor, last_action: Tensor | None = None, has_last=None
+    ) -> tuple[Tensor, dict]:
+        """``choose_chunk_raw`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept
+        chunks (B, T, 2) normalised."""
         raw = self.unnormalize_action(chunks).numpy().astype(np.float64)
-        chosen, info = self.choose_chunk_raw(env_state, raw)
+        if last_action is not None:
+            last_action = self.unnormalize_action(last_action).numpy().astype(np.float64)
+            has_last = has_last.cpu().numpy()
+        chosen, info = self.choose_chunk_raw(env_state, raw, last_action, has_last)
         return self.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
     def filter_action(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
@@ -395,7 +409,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         action the filter changed. Each episode of the batch keeps its own chunk and replans on its own,
         as the batched engine does. Counts go to ``self.safety_stats``.
         """
-        if not self.config.safety_layer:
+        if not self.config.plans_per_episode:
             return super().select_action(batch, noise=noise)
         batch = {k: v for k, v in batch.items() if k != ACTION}
         env_now = batch[OBS_ENV_STATE]
@@ -404,13 +418,23 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         if self._plan is None or len(self._plan) != B:
             self._plan = torch.zeros(B, n_act, self.config.action_feature.shape[0], device=env_now.device)
             self._plan_pos = torch.full((B,), n_act, dtype=torch.long)
+            self._last_action = torch.zeros(B, self._plan.shape[-1], device=env_now.device)
+            self._has_last = torch.zeros(B, dtype=torch.bool)
         need = torch.nonzero(self._plan_pos >= n_act).flatten()
         if len(need):
             stacked = {k: torch.stack(list(self._queues[k]), dim=1)[need] for k in batch if k in self._queues}
             self._check_observation_sizes(stacked)
             chunks = self.sample_action_chunks(stacked, self.config.num_candidates, noise=noise)
+            chunks = blend_replan(
+                chunks,
+                self._last_action[need].to(chunks.dtype),
+                self._has_last[need],
+                self.config.replan_blend_steps,
+            )
             if self.config.num_candidates > 1:
-                chosen, info = self.choose_chunk(env_now[need], chunks)
+                chosen, info = self.choose_chunk(
+                    env_now[need], chunks, self._last_action[need], self._has_last[need]
+                )
                 self.safety_stats["replans_none_safe"] += int((~info["any_safe"]).sum())
                 self.safety_stats["escapes"] += int(info["escaped"].sum())
             else:
@@ -426,6 +450,8 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             self.safety_stats["filter_interventions"] += int(changed.sum())
             if self.config.replan_on_intervention:  # the plan met a barrier: replan at the next step
                 self._plan_pos[torch.from_numpy(changed)] = n_act
+        self._last_action = action.detach().to(self._last_action.dtype).clone()
+        self._has_last[:] = True
         return action
 
     def get_optim_params(self) -> dict:

@@ -14,7 +14,11 @@ new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escap
 both, both + escapes ("escapes": ``escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
 also replaces sampled chunks that make too little progress; without it, only when none is safe);
 with ``--dagger CKPT`` the same model after a DAgger round; with ``--n-action-steps N`` the new
-model executing N instead of its trained number of actions per replan (an action-execution change).
+model executing N instead of its trained number of actions per replan (an action-execution change);
+"+ blending": ``replan_blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
+executed one, ``core.replan_blend``; the other rows run without it); with ``--student CKPT`` a
+distilled few-step checkpoint (``python -m lerobot_formation.distill``) standard and with its best
+safety layer.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     """(label, checkpoint, controller, n_action_steps override, policy config overrides)."""
     adv = {"escape_advantage": args.escape_advantage}
     no_adv = {"escape_advantage": None}  # escape manoeuvres only when no sampled chunk is safe
+    blend = {"replan_blend_steps": args.blend_steps}
     rows = [("PAC", None, "pac", None, {}), ("MPPI", None, "mppi", None, {})]
     if args.old:
         rows += [("old default, standard", args.old, "diffusion", None, {})]
@@ -48,6 +53,35 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
             (f"{tag}, CBF filter", path, "diffusion-cbf", None, {}),
             (f"{tag}, best-of-{args.candidates} + CBF", path, "diffusion-safe", None, no_adv),
             (f"{tag}, best-of-{args.candidates} + CBF + escapes", path, "diffusion-safe", None, adv),
+        ]
+        if args.blend_steps:
+            rows += [
+                (f"{tag}, standard + blending", path, "diffusion", None, blend),
+                (
+                    f"{tag}, best-of-{args.candidates} + escapes + blending",
+                    path,
+                    "diffusion-bestof",
+                    None,
+                    {**adv, **blend},
+                ),
+                (
+                    f"{tag}, best-of-{args.candidates} + CBF + escapes + blending",
+                    path,
+                    "diffusion-safe",
+                    None,
+                    {**adv, **blend},
+                ),
+            ]
+    if args.student:
+        rows += [
+            ("distilled 1-step student, standard", args.student, "diffusion", None, {}),
+            (
+                f"distilled 1-step student, best-of-{args.candidates} + escapes + blending",
+                args.student,
+                "diffusion-bestof",
+                None,
+                {**adv, **blend},
+            ),
         ]
     if args.n_action_steps:
         best = args.dagger or args.new
@@ -97,6 +131,13 @@ def main(argv: list[str] | None = None) -> int:
         default=0.1,
         help="escape_advantage [m] of the '+ escapes' rows (policy config field)",
     )
+    ap.add_argument(
+        "--blend-steps",
+        type=int,
+        default=4,
+        help="replan_blend_steps of the '+ blending' rows (policy config field; 0: no such rows)",
+    )
+    ap.add_argument("--student", default=None, help="a distilled few-step checkpoint (its own rows)")
     ap.add_argument("--n-action-steps", type=int, default=None)
     ap.add_argument("--rows", default=None, help="only these rows: exact labels separated by ';'")
     ap.add_argument("--out", default="outputs/ablation")
@@ -128,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                 trained[path] = {
                     "n_action_steps": cfg.n_action_steps,
                     "escape_advantage": cfg.escape_advantage,
+                    "replan_blend_steps": 0,  # rows without "blending" run without it
                 }
             bundle = bundles[path]
             settings = {**trained[path], **({"n_action_steps": n_act} if n_act else {}), **overrides}

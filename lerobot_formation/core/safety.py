@@ -39,6 +39,7 @@ import numpy as np
 
 from lerobot_formation.core.footprint import sequence_clearance
 from lerobot_formation.core.navigation import cost_to_go
+from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import FAR
 
 BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
@@ -80,6 +81,7 @@ def select_chunk(
     window: float = 6.0,
     escape: bool = True,
     escape_advantage: float | None = None,
+    blend: tuple[np.ndarray, np.ndarray, int] | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -89,12 +91,16 @@ def select_chunk(
     With ``escape_advantage`` (metres), a safe primitive is also kept when its progress beats every
     safe sampled chunk's by that much: a team the policy keeps pressing against an obstacle (its
     chunks safe only because they barely move) goes round it instead of timing out there.
-    ``info["choice"]`` is the kept index (K + j for primitive j).
+    ``info["choice"]`` is the kept index (K + j for primitive j). ``blend`` = (last executed action
+    (B, 2), whether there is one (B,), m): the primitives are blended into the executed action as the
+    caller blended the sampled chunks (``core.replan_blend``), so what is scored is what will run.
     """
     B, K, T = candidates.shape[:3]
     pool = candidates
     if escape:
         prim = np.broadcast_to(ESCAPE_PRIMITIVES[None, :, None, :], (B, len(ESCAPE_PRIMITIVES), T, 2))
+        if blend is not None:
+            prim = blend_replan(prim, *blend)
         pool = np.concatenate([candidates, prim], axis=1)
     pose = np.broadcast_to(BODY_POSE, (B, 3))
     clear, end = sequence_clearance(pose, pool, obstacles, template, dt, agent_radius)
