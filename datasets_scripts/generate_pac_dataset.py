@@ -49,7 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state, get_encoding
+from lerobot_formation.core.observation import STATE_DIM, STATE_NAMES, observe, observed_velocities
+from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
 from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACController, rollout
 from lerobot_formation.core.scene import (
     SCENE_PRESETS,
@@ -67,7 +68,6 @@ from lerobot_formation.threads import add_threads_argument, apply_threads
 FPS = 10
 MAX_OBSTACLES = 5
 PAPER_EPISODES = 1878
-STATE_NAMES = ["x", "y", "cos_phi", "sin_phi", "x_dot", "y_dot", "omega"]
 
 
 def dataset_features(obstacle_encoding: str = "grid", scene_slots: int = MAX_OBSTACLES) -> dict:
@@ -75,7 +75,7 @@ def dataset_features(obstacle_encoding: str = "grid", scene_slots: int = MAX_OBS
     obstacle of every scene, whatever the observation encodes)."""
     grid_names = get_encoding(obstacle_encoding).names(get_encoding(obstacle_encoding).slots(None))
     return {
-        "observation.state": {"dtype": "float32", "shape": (7,), "names": STATE_NAMES},
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
         "observation.environment_state": {
             "dtype": "float32",
             "shape": (len(grid_names),),
@@ -100,36 +100,23 @@ def episode_frames(
     n = int(rec.steps[b])
     poses = rec.poses[b, :n]
     actions = rec.actions[b, :n]
-    # Velocity observed at t is the one applied over step t-1 (zero at the start), as in the env.
-    prev_phi = np.concatenate([poses[:1, 2], poses[:-1, 2]])
-    prev_a = np.concatenate([np.zeros((1, 2)), actions[:-1]])
-    vel = np.stack([prev_a[:, 0] * np.cos(prev_phi), prev_a[:, 0] * np.sin(prev_phi), prev_a[:, 1]], axis=-1)
-    vel[0] = 0.0
-    state = np.concatenate([poses[:, :2], np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3]), vel], axis=1)
-    if get_encoding(obstacle_encoding).egocentric:  # moves with the team: one row per frame
-        env = environment_state(
-            np.repeat(scenes.obstacles[b : b + 1], n, axis=0),
-            np.repeat(scenes.mask[b : b + 1], n, axis=0),
-            np.repeat(scenes.goal[b : b + 1], n, axis=0),
-            obstacle_encoding,
-            pose=poses,
-        )
-    else:
-        env = np.repeat(
-            environment_state(
-                scenes.obstacles[b : b + 1], scenes.mask[b : b + 1], scenes.goal[b : b + 1], obstacle_encoding
-            ),
-            n,
-            axis=0,
-        )
+    one = slice(b, b + 1)  # the episode's scene, observed at each of its n poses
+    seen = observe(
+        poses,
+        observed_velocities(poses, actions),
+        scenes.obstacles[one],
+        scenes.mask[one],
+        scenes.goal[one],
+        obstacle_encoding,
+    )
     real = scenes.obstacles[b][scenes.mask[b]]
     if len(real) > scene_slots:
         raise ValueError(f"scene {b} has {len(real)} obstacles, more than the dataset's {scene_slots} slots")
     obs_list = np.zeros((scene_slots, 3), np.float32)
     obs_list[: len(real)] = real
     return {
-        "observation.state": state.astype(np.float32),
-        "observation.environment_state": env,
+        "observation.state": seen["agent_pos"],
+        "observation.environment_state": seen["environment_state"],
         "action": actions.astype(np.float32),
         "scene.seed": np.full((n, 1), scenes.seeds[b], dtype=np.int64),
         "scene.obstacles": np.repeat(obs_list.reshape(1, -1), n, axis=0),

@@ -131,9 +131,9 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path):
     """One episode, same noise: the engine's controller and the policy's select_action (the path of
     lerobot-eval) give the same actions, replans and filter interventions."""
     from lerobot_formation.core.dynamics import FormationParams, initial_state, step
+    from lerobot_formation.core.observation import midpoint_state
     from lerobot_formation.core.scene import scenes_from_list
     from lerobot_formation.diffusion_controller import DiffusionController, load_policy
-    from lerobot_formation.env import midpoint_state
 
     path = _checkpoint(tmp_path, num_candidates=3, safety_filter="cbf")
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
@@ -147,7 +147,7 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path):
     for _ in range(30):
         a_engine = engine.act(state, np.array([0]))
         obs = {
-            OBS_STATE: torch.from_numpy(midpoint_state(state)),
+            OBS_STATE: torch.from_numpy(midpoint_state(state.pose, state.velocity)),
             OBS_ENV_STATE: torch.from_numpy(
                 environment_state(scene.obstacles, scene.mask, scene.goal, "nearest", pose=state.pose)
             ),
