@@ -24,10 +24,12 @@ import json
 import time
 from pathlib import Path
 
-from lerobot_formation.bench import controller_results, make_controller, parse_scenes
+from lerobot_formation.bench_results import controller_results
+from lerobot_formation.controllers import make_controller
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START
 from lerobot_formation.evaluation import evaluate
+from lerobot_formation.scene_sets import parse_scenes
 
 
 def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:

@@ -22,10 +22,10 @@ import pytest
 
 from datasets_scripts import generate_pac_dataset as gen_mod
 from lerobot_formation.bench import main as bench_main
-from lerobot_formation.bench import parse_scenes
 from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.scene import SceneConfig, load_scenes, sample_scenes, scenes_from_list
 from lerobot_formation.env import FormationEnv
+from lerobot_formation.scene_sets import parse_scenes
 from lerobot_formation.vector_env import FormationVectorEnv
 
 ROOT = Path(__file__).resolve().parents[1]
