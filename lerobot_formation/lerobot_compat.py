@@ -180,7 +180,7 @@ def unpatch_dataset_reader() -> None:
         del DatasetReader.__getstate__
 
 
-# -- dataset writer (datasets_scripts/generate_pac_dataset.py) --------------------------------------
+# -- dataset writer (datasets_scripts/lerobot_writer.py) ---------------------------------------------
 @contextlib.contextmanager
 def skip_noop_image_embedding(features: dict):
     """LeRobot's writer runs ``embed_images`` (a row-by-row ``datasets.map``, ~1 ms per frame) on every

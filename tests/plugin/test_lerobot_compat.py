@@ -6,8 +6,10 @@ import logging
 import numpy as np
 import pytest
 
-from datasets_scripts import generate_pac_dataset as gen
+from datasets_scripts.dataset_frames import dataset_features
+from datasets_scripts.lerobot_writer import write_episode
 from lerobot_formation import fast_reads, lerobot_compat
+from lerobot_formation.env import TASK
 
 
 @pytest.fixture
@@ -46,7 +48,7 @@ def test_untested_version_embeds_images_and_writes_frame_by_frame(untested):
     from lerobot.datasets import dataset_writer
 
     stock = dataset_writer.embed_images
-    with lerobot_compat.skip_noop_image_embedding(gen.dataset_features()):
+    with lerobot_compat.skip_noop_image_embedding(dataset_features()):
         assert dataset_writer.embed_images is stock
 
     class Recorder:  # the two LeRobotDataset calls of the stock path
@@ -61,16 +63,16 @@ def test_untested_version_embeds_images_and_writes_frame_by_frame(untested):
 
     frames = {"action": np.zeros((3, 2), np.float32), "observation.state": np.ones((3, 7), np.float32)}
     ds = Recorder()
-    gen.write_episode(ds, frames, fast=True)
+    write_episode(ds, frames, fast=True)
     assert len(ds.frames) == 3 and ds.saved == [{}]
-    assert ds.frames[0]["task"] == gen.TASK and set(ds.frames[0]) == {"action", "observation.state", "task"}
+    assert ds.frames[0]["task"] == TASK and set(ds.frames[0]) == {"action", "observation.state", "task"}
 
 
 def test_tested_version_skips_the_noop_embedding():
     from lerobot.datasets import dataset_writer
 
     stock = dataset_writer.embed_images
-    with lerobot_compat.skip_noop_image_embedding(gen.dataset_features()):
+    with lerobot_compat.skip_noop_image_embedding(dataset_features()):
         assert dataset_writer.embed_images is not stock
     assert dataset_writer.embed_images is stock
     image = {"image": {"dtype": "image", "shape": (8, 8, 3), "names": None}}
