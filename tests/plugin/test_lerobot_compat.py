@@ -78,3 +78,57 @@ def test_tested_version_skips_the_noop_embedding():
     image = {"image": {"dtype": "image", "shape": (8, 8, 3), "names": None}}
     with lerobot_compat.skip_noop_image_embedding(image):
         assert dataset_writer.embed_images is stock
+
+
+def test_weights_loaded_hook_runs_after_the_parent_load_and_is_off_for_another_signature(monkeypatch, caplog):
+    """``add_weights_loaded_hook`` wraps the parent's ``_load_as_safetensor`` (subclasses included);
+    a parent with other arguments keeps its own loading, after one logged warning."""
+    monkeypatch.setattr(lerobot_compat, "_warned", set())
+    calls = []
+
+    class Stock:
+        @classmethod
+        def _load_as_safetensor(cls, model, model_file, map_location, strict):
+            calls.append(("stock", cls.__name__, model_file))
+            return model
+
+    class Policy(Stock):
+        pass
+
+    class Child(Policy):
+        pass
+
+    lerobot_compat.add_weights_loaded_hook(Policy, lambda model, f: calls.append(("hook", f)) or model + 1)
+    assert Child._load_as_safetensor(1, "w.safetensors", "cpu", False) == 2
+    assert calls == [("stock", "Child", "w.safetensors"), ("hook", "w.safetensors")]
+
+    class OtherStock:
+        @classmethod
+        def _load_as_safetensor(cls, model, model_file, device):
+            return model
+
+    class OtherPolicy(OtherStock):
+        pass
+
+    with caplog.at_level(logging.WARNING, logger=lerobot_compat.__name__):
+        lerobot_compat.add_weights_loaded_hook(OtherPolicy, lambda model, f: model + 1)
+    assert OtherPolicy._load_as_safetensor(1, "w.safetensors", "cpu") == 1
+    assert "OtherPolicy loads without its check" in caplog.text
+
+
+def test_queued_history_is_the_batch_until_observations_are_pushed():
+    import torch
+    from plugin_helpers import N_OBS, obs_batch, tiny_config
+
+    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+
+    policy = FormationDiffusionPolicy(tiny_config())
+    policy.reset()
+    offline = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in obs_batch().items()}
+    assert lerobot_compat.queued_history(policy, offline) is offline
+    first, second = obs_batch(seed=1), obs_batch(seed=2)
+    lerobot_compat.push_observation(policy, first)
+    lerobot_compat.push_observation(policy, second)
+    history = lerobot_compat.queued_history(policy, first)
+    for key in first:
+        assert torch.equal(history[key], torch.stack([first[key], second[key]], dim=1))
