@@ -4,20 +4,18 @@ import numpy as np
 import pytest
 import torch
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
-from plugin_helpers import HORIZON, N_OBS, formation_features, tiny_config
+from plugin_helpers import (
+    HORIZON,
+    N_OBS,
+    formation_features,
+    nearest_config,
+    save_nearest_checkpoint,
+    tiny_config,
+)
 
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.scene import FAR
 from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-
-
-def nearest_config(**overrides):
-    inputs, outputs = formation_features(env_dim=50)
-    kw = dict(
-        input_features=inputs, output_features=outputs, obstacle_encoding="nearest", fixed_action_bounds=True
-    )
-    kw.update(overrides)
-    return tiny_config(**kw)
 
 
 def _env_state(obstacles, pose=(0.0, 0.0, np.pi / 2), goal=(0.0, 8.0)):
@@ -106,27 +104,6 @@ def test_action_normalisation_round_trips_the_fixed_bounds():
     torch.testing.assert_close(policy.unnormalize_action(norm), raw)
 
 
-def _checkpoint(tmp_path, **overrides):
-    """A tiny untrained 'nearest' policy saved with its processors, as lerobot-train saves one."""
-    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
-
-    torch.manual_seed(0)
-    cfg = nearest_config(**overrides)
-    policy = FormationDiffusionPolicy(cfg)
-    stats = {
-        OBS_STATE: {
-            "min": torch.tensor([-3.0, -3, -1, -1, -0.6, -0.6, -1.5]),
-            "max": torch.tensor([9.0, 9, 1, 1, 0.6, 0.6, 1.5]),
-        },
-        "action": {"min": torch.zeros(2), "max": torch.ones(2)},  # replaced by the fixed bounds
-    }
-    pre, post = make_formation_diffusion_pre_post_processors(cfg, stats)
-    policy.save_pretrained(tmp_path)
-    pre.save_pretrained(tmp_path)
-    post.save_pretrained(tmp_path)
-    return tmp_path
-
-
 def test_engine_and_select_action_run_the_same_safety_layer(tmp_path):
     """One episode, same noise: the engine's controller and the policy's select_action (the path of
     lerobot-eval) give the same actions, replans and filter interventions."""
@@ -135,7 +112,7 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path):
     from lerobot_formation.core.scene import scenes_from_list
     from lerobot_formation.diffusion_controller import DiffusionController, load_policy
 
-    path = _checkpoint(tmp_path, num_candidates=3, safety_filter="cbf")
+    path = save_nearest_checkpoint(tmp_path, num_candidates=3, safety_filter="cbf")
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
     params = FormationParams()
     engine = DiffusionController(path, candidates=3, safety_filter="cbf", seed=7, params=params)
