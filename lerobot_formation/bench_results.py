@@ -24,6 +24,15 @@ def _clean(x):
     return x
 
 
+def safety_rates(stats: dict) -> dict:
+    """The safety layer's intervention rates from a controller's ``stats`` counts: CBF-changed
+    actions per step, replans with no safe candidate per replan."""
+    return {
+        "filter_intervention_rate": stats["filter_interventions"] / max(stats["steps"], 1),
+        "replans_none_safe_rate": stats["replans_none_safe"] / max(stats["replans"], 1),
+    }
+
+
 def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
     per = episode_metrics(rec, scenes.start, scenes.goal)
     summary = summarize(per)

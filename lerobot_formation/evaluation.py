@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from lerobot_formation.bench_figures import write_comparison_figure, write_figures
-from lerobot_formation.bench_results import controller_results
+from lerobot_formation.bench_results import controller_results, safety_rates
 from lerobot_formation.controllers import make_controller
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import Controller, EpisodeRecords, rollout
@@ -63,10 +63,7 @@ def run_set(
         entry = controller_results(rec, scenes)
         entry["wall_time_s"] = time.perf_counter() - t0
         if getattr(ctrl, "stats", None):  # the safety layer's interventions
-            st = dict(ctrl.stats)
-            st["filter_intervention_rate"] = st["filter_interventions"] / max(st["steps"], 1)
-            st["replans_none_safe_rate"] = st["replans_none_safe"] / max(st["replans"], 1)
-            entry["safety"] = st
+            entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
         entry["scenes"] = label
         if figures:
             entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes)

@@ -68,27 +68,29 @@ def _untested(what: str) -> bool:
     return True
 
 
+def _private(obj, name: str, owner: str, needed_by: str):
+    """``obj.<name>``, a private LeRobot attribute with no stock fallback; a clear error naming what
+    needs it if this LeRobot has none."""
+    value = getattr(obj, name, None)
+    if value is None:
+        raise RuntimeError(
+            f"LeRobot {lerobot_version()}'s {owner} has no {name} (written for {TESTED}); "
+            f"{needed_by} needs an update of lerobot_compat.py"
+        )
+    return value
+
+
 def global_conditioning(model, batch: dict[str, Tensor]) -> Tensor:
     """``DiffusionModel._prepare_global_conditioning``: the FiLM conditioning vector (B, cond) of a
     batch of normalised observation histories (B, n_obs_steps, ...). There is no public method that
     returns it; ``generate_actions`` computes it and samples in one go."""
-    fn = getattr(model, "_prepare_global_conditioning", None)
-    if fn is None:
-        raise RuntimeError(
-            f"LeRobot {lerobot_version()}'s DiffusionModel has no _prepare_global_conditioning "
-            f"(written for {TESTED}); batched candidate sampling needs an update of lerobot_compat.py"
-        )
+    fn = _private(model, "_prepare_global_conditioning", "DiffusionModel", "batched candidate sampling")
     return fn(batch)
 
 
 def _queues(policy) -> dict:
-    queues = getattr(policy, "_queues", None)
-    if not isinstance(queues, dict):
-        raise RuntimeError(
-            f"LeRobot {lerobot_version()}'s DiffusionPolicy keeps no _queues dict (written for {TESTED}); "
-            "the safety layer and the lean inference path need an update of lerobot_compat.py"
-        )
-    return queues
+    needed_by = "the safety layer and the lean inference path"
+    return _private(policy, "_queues", "DiffusionPolicy", needed_by)
 
 
 def push_observation(policy, batch: dict[str, Tensor]) -> None:
@@ -173,12 +175,7 @@ def train_dataloader_worker_kwargs(cfg) -> dict:
     ``_dataloader_worker_kwargs``: prefetch factor, persistent workers, multiprocessing context)."""
     from lerobot.scripts import lerobot_train
 
-    fn = getattr(lerobot_train, "_dataloader_worker_kwargs", None)
-    if fn is None:
-        raise RuntimeError(
-            f"LeRobot {lerobot_version()}'s lerobot_train has no _dataloader_worker_kwargs (written for "
-            f"{TESTED}); the throughput benchmark needs an update of lerobot_compat.py"
-        )
+    fn = _private(lerobot_train, "_dataloader_worker_kwargs", "lerobot_train", "the throughput benchmark")
     return fn(cfg)
 
 
