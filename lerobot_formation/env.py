@@ -121,7 +121,8 @@ def _finite_or_none(x) -> float | None:
 
 
 class FormationEnv(gym.Env):
-    """Single-team formation navigation; see the module docstring for the full specification."""
+    """Single-team formation navigation, stepped by the engine's ``core.rollout.Teams`` (one team); see the
+    module docstring for the full specification."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
@@ -196,13 +197,13 @@ class FormationEnv(gym.Env):
         a = np.asarray(action)
         if a.shape != (2,):
             raise ValueError(f"action must have shape (2,) [v, omega], got {a.shape}")
-        step = self.teams.step(a[None])
+        transition = self.teams.step(a[None])
         self._path.append(self._positions())
-        terminated = bool(step.terminated[0])
+        terminated = bool(transition.terminated[0])
         if terminated:
-            self._ended = "success" if step.outcome[0] == SUCCESS else "collision"
-        info = self._info(step.outcome, step.agent_clearance, step.midpoint_clearance)
-        return self._obs(), float(step.reward[0]), terminated, False, info
+            self._ended = "success" if transition.outcome[0] == SUCCESS else "collision"
+        info = self._info(transition.outcome, transition.agent_clearance, transition.midpoint_clearance)
+        return self._obs(), float(transition.reward[0]), terminated, False, info
 
     def render(self):
         if self.render_mode != "rgb_array" or self.scene is None:

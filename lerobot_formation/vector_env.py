@@ -100,11 +100,11 @@ class FormationVectorEnv(VectorEnv):
     def step(self, actions):
         if self.teams is None:
             raise RuntimeError("call reset() before step()")
-        step = self.teams.step(actions)
-        terminated = step.terminated
-        truncated = self.teams.truncated(step, self.max_episode_steps)
+        transition = self.teams.step(actions)
+        terminated = transition.terminated
+        truncated = self.teams.truncated(transition, self.max_episode_steps)
         obs = self.teams.observe()
-        infos = self._info(step.outcome, step.agent_clearance, step.midpoint_clearance)
+        infos = self._info(transition.outcome, transition.agent_clearance, transition.midpoint_clearance)
         done = terminated | truncated
         if done.any():
             idx = np.flatnonzero(done)
@@ -116,7 +116,7 @@ class FormationVectorEnv(VectorEnv):
             seeds = self.np_random.integers(0, high, size=len(idx))
             self.teams.load(idx, self._scenes_for(seeds))
             obs = self.teams.observe()
-        return obs, step.reward.astype(np.float64), terminated, truncated, infos
+        return obs, transition.reward.astype(np.float64), terminated, truncated, infos
 
     def _info(self, outcome, clear, mid) -> dict[str, np.ndarray]:
         info = self.teams.info(outcome, clear, mid)

@@ -316,11 +316,11 @@ def rollout(
     rec.put(slice(None), 0, frame_record(teams.state, scenes.obstacles, params))
     live = np.arange(B)  # the teams' episodes (global indices)
     for t in range(T):
-        step_ = teams.step(controller.act(teams.state, live))
-        rec.put(live, t, step_record(step_.prev_pose, teams.state, step_.action, params))
+        transition = teams.step(controller.act(teams.state, live))
+        rec.put(live, t, step_record(transition.prev_pose, teams.state, transition.action, params))
         rec.put(live, t + 1, frame_record(teams.state, teams.scenes.obstacles, params))
-        ended = step_.terminated
-        rec.outcome[live[ended]] = step_.outcome[ended]
+        ended = transition.terminated
+        rec.outcome[live[ended]] = transition.outcome[ended]
         rec.steps[live[ended]] = t + 1
         if progress is not None:
             progress(int(ended.sum()))
