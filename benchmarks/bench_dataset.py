@@ -16,8 +16,10 @@ from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from datasets_scripts import generate_pac_dataset as gen  # noqa: E402
+from datasets_scripts import dataset_frames, lerobot_writer, pac_episodes  # noqa: E402
+from datasets_scripts.generate_pac_dataset import PAPER_EPISODES  # noqa: E402
 from lerobot_formation.core.dynamics import FormationParams  # noqa: E402
+from lerobot_formation.lerobot_compat import skip_noop_image_embedding  # noqa: E402
 
 
 def write_only(episodes, root: Path, fast: bool) -> float:
@@ -29,32 +31,34 @@ def write_only(episodes, root: Path, fast: bool) -> float:
 
     hf_datasets.disable_progress_bars()
     t0 = time.perf_counter()
-    ds = LeRobotDataset.create("local/bench", gen.FPS, gen.dataset_features(), root=root, use_videos=False)
-    ctx = gen.skip_noop_image_embedding(ds.meta.features) if fast else contextlib.nullcontext()
+    ds = LeRobotDataset.create(
+        "local/bench", dataset_frames.FPS, dataset_frames.dataset_features(), root=root, use_videos=False
+    )
+    ctx = skip_noop_image_embedding(ds.meta.features) if fast else contextlib.nullcontext()
     with ctx:
         for frames in episodes:
-            gen.write_episode(ds, frames, fast=fast)
+            lerobot_writer.write_episode(ds, frames, fast=fast)
         ds.finalize()
     return time.perf_counter() - t0
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--episodes", type=int, default=gen.PAPER_EPISODES)
+    ap.add_argument("--episodes", type=int, default=PAPER_EPISODES)
     ap.add_argument("--write-episodes", type=int, default=200, help="episodes for the writer comparison")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_dataset_"))
     try:
         # 1. The whole dataset, as the CLI makes it.
-        s = gen.generate(tmp / "full", "local/bench_full", args.episodes, progress=False)
+        s = lerobot_writer.generate(tmp / "full", "local/bench_full", args.episodes, progress=False)
         print(
             f"full dataset: {s['episodes']} episodes, {s['frames']} frames, {s['mb']:.1f} MB in {s['seconds']:.1f} s "
             f"({s['episodes'] / s['seconds']:.1f} episodes/s, {s['frames'] / s['seconds']:,.0f} frames/s); "
             f"PAC success while generating {s['pac_success_rate']:.1%}"
         )
         # 2. Writer only, same episodes both ways.
-        g = gen.Generator(FormationParams(), batch_size=args.write_episodes + 10)
-        eps = list(g.episodes(gen.seed_stream(0, 1, 0), args.write_episodes))
+        g = pac_episodes.Generator(FormationParams(), batch_size=args.write_episodes + 10)
+        eps = list(g.episodes(pac_episodes.seed_stream(0, 1, 0), args.write_episodes))
         frames = sum(len(e["action"]) for e in eps)
         fast = write_only(eps, tmp / "fast", fast=True)
         slow = write_only(eps, tmp / "slow", fast=False)

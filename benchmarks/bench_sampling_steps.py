@@ -3,11 +3,11 @@
 One checkpoint (``--policy.path``, default pretrained/formation_diffusion_safe) is loaded once; for each
 step count of ``--steps`` (default 1,2,3,5,10) a controller (``--controller``, default the standard
 "diffusion"; any diffusion controller of ``lerobot-formation-bench``, e.g. "diffusion-bestof") is
-made with ``bench.make_controller`` (``num_inference_steps`` = that count: DDIM on the training betas,
+made with ``controllers.make_controller`` (``num_inference_steps`` = that count: DDIM on the training betas,
 ``diffusion_controller.set_inference_steps``) and run by the batched engine (``evaluation.evaluate``)
 on every scene set of ``--scenes`` (default ``dataset:100``, the first 100 episodes of the training
 data, from the checkpoint's dataset_scenes.json, and ``random:100``, unseen scenes of seeds from
-``--seed`` = core.scene.UNSEEN_SEED_START). Success is ``bench.controller_results``' success rate
+``--seed`` = core.scene.UNSEEN_SEED_START). Success is ``bench_results.controller_results``' success rate
 with its Wilson 95 % interval. The policy's noise is seeded (``--seed-policy``), so every setting
 sees the same scenes and the same first noise draw.
 
@@ -202,10 +202,12 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
-    from lerobot_formation.bench import CONTROLLERS, controller_results, make_controller, parse_scenes
+    from lerobot_formation.bench_results import controller_results
+    from lerobot_formation.controllers import CONTROLLERS, make_controller
     from lerobot_formation.core.dynamics import FormationParams
     from lerobot_formation.diffusion_controller import load_policy
     from lerobot_formation.evaluation import evaluate
+    from lerobot_formation.scene_sets import parse_scenes
 
     if args.controller not in CONTROLLERS:
         ap.error(f"unknown controller {args.controller!r}; choose from {CONTROLLERS}")

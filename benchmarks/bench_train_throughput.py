@@ -128,7 +128,8 @@ class Trainer:
     def dataloader(self, num_workers: int, prefetch_factor: int, persistent_workers: bool):
         """The DataLoader exactly as lerobot-train builds it, for these worker options."""
         from lerobot.datasets import EpisodeAwareSampler
-        from lerobot.scripts.lerobot_train import _dataloader_worker_kwargs
+
+        from lerobot_formation.lerobot_compat import train_dataloader_worker_kwargs
 
         cfg, ds = self.cfg, self.dataset
         cfg.num_workers, cfg.prefetch_factor, cfg.persistent_workers = (
@@ -153,7 +154,7 @@ class Trainer:
             sampler=sampler,
             pin_memory=False,
             drop_last=False,
-            **_dataloader_worker_kwargs(cfg),
+            **train_dataloader_worker_kwargs(cfg),
         )
         return self.accelerator.prepare(loader), len(sampler)
 

@@ -11,8 +11,8 @@ from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim, get_encoding
-from lerobot_formation.env import STATE_DIM
 
 ACTION_DIM = 2  # [v, omega]
 # observation.environment_state sizes of each encoding at its default slot count.

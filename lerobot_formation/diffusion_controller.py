@@ -27,10 +27,10 @@ import torch
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.footprint import select_safest
 from lerobot_formation.core.navigation import cost_to_go
+from lerobot_formation.core.observation import STATE_DIM, observe
 from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import Scenes
-from lerobot_formation.env import midpoint_state
 
 
 class CheckpointError(ValueError):
@@ -209,7 +209,7 @@ class DiffusionController:
         else:
             self.env_state = np.zeros((B, get_encoding(self.encoding).dim(self.max_obstacles)), np.float32)
         self.env_history = np.zeros((B, self.n_obs, self.env_state.shape[1]), np.float32)
-        self.history = np.zeros((B, self.n_obs, 7), np.float32)
+        self.history = np.zeros((B, self.n_obs, STATE_DIM), np.float32)
         self.started = np.zeros(B, dtype=bool)
         self.queue = np.zeros((B, self.n_act, 2))
         self.queue_pos = np.full(B, self.n_act)
@@ -267,14 +267,18 @@ class DiffusionController:
         return cand[np.arange(n), choice, : self.n_act]
 
     def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
-        obs = midpoint_state(state)
         s = self.scenes
-        if self.egocentric:  # as the env observes it: recomputed at the current pose
-            env = environment_state(
-                s.obstacles[idx], s.mask[idx], s.goal[idx], self.encoding, self.max_obstacles, pose=state.pose
-            )
-        else:
-            env = self.env_state[idx]
+        seen = observe(  # as the env observes it; a world-frame encoding is the one of reset()
+            state.pose,
+            state.velocity,
+            s.obstacles[idx],
+            s.mask[idx],
+            s.goal[idx],
+            self.encoding,
+            self.max_obstacles,
+            world_state=None if self.egocentric else self.env_state[idx],
+        )
+        obs, env = seen["agent_pos"], seen["environment_state"]
         new = ~self.started[idx]
         if new.any():  # first observation fills the history, as LeRobot's populate_queues does
             self.history[idx[new]] = obs[new][:, None]

@@ -65,21 +65,13 @@ from gymnasium import spaces
 
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.dynamics import FormationParams, FormationState
-from lerobot_formation.core.obstacle_grid import environment_state, environment_state_dim, get_encoding
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, step_outcome, step_reward
+from lerobot_formation.core.observation import STATE_DIM
+from lerobot_formation.core.obstacle_grid import environment_state_dim
+from lerobot_formation.core.rollout import SUCCESS, Teams
 from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes, scenes_from_list
 from lerobot_formation.render import Renderer
 
 TASK = "Navigate the four-robot formation to the goal without collisions."
-STATE_DIM = 7
-
-
-def midpoint_state(state: FormationState) -> np.ndarray:
-    """``agent_pos`` observation (B, 7): [x, y, cos phi, sin phi, x', y', omega]."""
-    p = state.pose
-    return np.concatenate([p[:, :2], np.cos(p[:, 2:3]), np.sin(p[:, 2:3]), state.velocity], axis=1).astype(
-        np.float32
-    )
 
 
 def observation_spaces(obstacle_encoding: str, max_obstacles: int | None = None) -> spaces.Dict:
@@ -129,7 +121,8 @@ def _finite_or_none(x) -> float | None:
 
 
 class FormationEnv(gym.Env):
-    """Single-team formation navigation; see the module docstring for the full specification."""
+    """Single-team formation navigation, stepped by the engine's ``core.rollout.Teams`` (one team); see the
+    module docstring for the full specification."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
@@ -166,8 +159,12 @@ class FormationEnv(gym.Env):
         self.task_description = TASK
         self._renderer = Renderer(render_size) if render_mode == "rgb_array" else None
         self.scene: Scenes | None = None
-        self.state: FormationState | None = None
+        self.teams: Teams | None = None  # the episode: core.rollout.Teams of one team
         self._ended: str | None = None  # "success" / "collision" once the episode has terminated
+
+    @property
+    def state(self) -> FormationState | None:
+        return self.teams.state if self.teams is not None else None
 
     # -- gym API ---------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -185,37 +182,28 @@ class FormationEnv(gym.Env):
         else:
             s = seed if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
             self.scene = sample_scenes([s], self.scene_config)
-        self.state = dynamics.initial_state(self.scene.start, self.params)
-        self._egocentric = get_encoding(self.obstacle_encoding).egocentric
-        self._env_state = None  # encoded by _obs(): once per scene, or every step if egocentric
-        self._path = [dynamics.agent_positions(self.state)[0]]
-        self._steps = 0
+        self.teams = Teams(self.scene, self.params, self.obstacle_encoding, self.max_obstacles)
+        self._path = [self._positions()]
         self._ended = None
-        outcome, clear, mid = step_outcome(self.state, self.scene.obstacles, self.scene.goal, self.params)
-        return self._obs(), self._info(outcome, clear, mid)
+        return self._obs(), self._info(*self.teams.outcome())
 
     def step(self, action):
         if self.state is None:
             raise RuntimeError("call reset() before step()")
         if self._ended is not None:
             raise RuntimeError(
-                f"the episode has ended ({self._ended} at step {self._steps}); call reset() before step()"
+                f"the episode has ended ({self._ended} at step {int(self.teams.steps[0])}); call reset() before step()"
             )
         a = np.asarray(action)
         if a.shape != (2,):
             raise ValueError(f"action must have shape (2,) [v, omega], got {a.shape}")
-        a = dynamics.check_action(a[None], 1)
-        prev_pose = self.state.pose
-        self.state = dynamics.step(self.state, a, self.params)
-        self._steps += 1
-        self._path.append(dynamics.agent_positions(self.state)[0])
-        outcome, clear, mid = step_outcome(self.state, self.scene.obstacles, self.scene.goal, self.params)
-        o = int(outcome[0])
-        reward = float(step_reward(prev_pose, self.state.pose, self.scene.goal, outcome)[0])
-        terminated = o in (SUCCESS, COLLISION)
+        transition = self.teams.step(a[None])
+        self._path.append(self._positions())
+        terminated = bool(transition.terminated[0])
         if terminated:
-            self._ended = "success" if o == SUCCESS else "collision"
-        return self._obs(), reward, terminated, False, self._info(outcome, clear, mid)
+            self._ended = "success" if transition.outcome[0] == SUCCESS else "collision"
+        info = self._info(transition.outcome, transition.agent_clearance, transition.midpoint_clearance)
+        return self._obs(), float(transition.reward[0]), terminated, False, info
 
     def render(self):
         if self.render_mode != "rgb_array" or self.scene is None:
@@ -233,24 +221,18 @@ class FormationEnv(gym.Env):
 
     # -- helpers ---------------------------------------------------------------------------------
     def _obs(self) -> dict[str, np.ndarray]:
-        if self._env_state is None or self._egocentric:  # the body-frame encoding moves with the team
-            self._env_state = environment_state(
-                self.scene.obstacles,
-                self.scene.mask,
-                self.scene.goal,
-                self.obstacle_encoding,
-                self.max_obstacles,
-                pose=self.state.pose,
-            )
-        return {"agent_pos": midpoint_state(self.state)[0], "environment_state": self._env_state[0].copy()}
+        return {key: value[0] for key, value in self.teams.observe().items()}
+
+    def _positions(self) -> np.ndarray:
+        return dynamics.agent_positions(self.teams.state)[0]
 
     def _info(self, outcome, clear, mid) -> dict[str, Any]:
-        pos = dynamics.agent_positions(self.state)
+        info = self.teams.info(outcome, clear, mid)
         return {
-            "is_success": bool(outcome[0] == SUCCESS),
-            "is_collision": bool(outcome[0] == COLLISION),
-            "formation_error": float(dynamics.formation_error(pos, self.params.graph)[0]),
-            "clearance": _finite_or_none(clear[0].min()),  # None: the scene has no obstacle
-            "midpoint_clearance": _finite_or_none(mid[0]),
-            "scene_seed": int(self.scene.seeds[0]),
+            "is_success": bool(info["is_success"][0]),
+            "is_collision": bool(info["is_collision"][0]),
+            "formation_error": float(info["formation_error"][0]),
+            "clearance": _finite_or_none(info["clearance"][0]),  # None: the scene has no obstacle
+            "midpoint_clearance": _finite_or_none(info["midpoint_clearance"][0]),
+            "scene_seed": int(info["scene_seed"][0]),
         }

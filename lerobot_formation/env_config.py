@@ -27,9 +27,10 @@ from lerobot.envs.utils import FreezeAfterEpisodeEnd
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.configuration_formation_diffusion import config_error
+from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
-from lerobot_formation.env import STATE_DIM, FormationEnv
+from lerobot_formation.env import FormationEnv
 from lerobot_formation.episode_metrics import FormationEpisodeMetrics, new_run_id
 from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
 

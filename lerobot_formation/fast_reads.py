@@ -74,7 +74,7 @@ class _LowDimTable:
     def __init__(self, reader):
         table = reader.hf_dataset.data
         self.columns = {key: _column_tensor(table, key) for key in table.column_names}
-        episodes = reader._meta.episodes
+        episodes = lerobot_compat.reader_meta(reader).episodes
         ep_index = np.asarray(episodes.data.column("episode_index").to_numpy(), dtype=np.int64)
         n = int(ep_index.max()) + 1 if len(ep_index) else 0
         self.ep_from = np.zeros(n, np.int64)
@@ -84,7 +84,7 @@ class _LowDimTable:
         self.deltas = {k: np.asarray(d, dtype=np.int64) for k, d in (reader.delta_indices or {}).items()}
         # Selected episodes only: the table's rows are relative, the windows absolute.
         self.abs_to_rel = None
-        if reader._absolute_to_relative_idx is not None:
+        if lerobot_compat.reader_relative_rows(reader) is not None:
             absolute = self.columns["index"].numpy()
             self.abs_to_rel = np.full(int(absolute.max()) + 1, -1, np.int64)
             self.abs_to_rel[absolute] = np.arange(len(absolute))
@@ -104,22 +104,10 @@ def _getstate(self) -> dict:
     return state
 
 
-def _fast_path_ok(reader) -> bool:
-    meta = reader._meta
-    return (
-        len(meta.video_keys) == 0
-        and len(meta.camera_keys) == 0
-        and not reader._image_depth_units
-        and reader._image_transforms is None
-        and reader.hf_dataset is not None
-        and reader.hf_dataset._indices is None
-    )
-
-
 def _fast_get_item(self, idx) -> dict:
     table = self.__dict__.get("_formation_table")
     if table is None:
-        if self.__dict__.get("_formation_slow") or not _fast_path_ok(self):
+        if self.__dict__.get("_formation_slow") or not lerobot_compat.reader_is_low_dim(self):
             return lerobot_compat.stock_reader_method("get_item")(self, idx)
         try:
             table = self._formation_table = _LowDimTable(self)
@@ -142,13 +130,13 @@ def _fast_get_item(self, idx) -> dict:
     task_idx = int(item["task_index"])
     task = table.tasks.get(task_idx)
     if task is None:
-        task = table.tasks[task_idx] = self._meta.tasks.iloc[task_idx].name
+        task = table.tasks[task_idx] = lerobot_compat.reader_meta(self).tasks.iloc[task_idx].name
     item["task"] = task
     return item
 
 
 def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
-    if len(self._meta.video_keys) > 0 or self.hf_dataset is None or self.hf_dataset._indices is not None:
+    if len(lerobot_compat.reader_meta(self).video_keys) > 0 or not lerobot_compat.reader_table_is_plain(self):
         return lerobot_compat.stock_reader_method("_query_hf_dataset")(self, query_indices)
     cache = self.__dict__.setdefault("_formation_columns", {})
     result: dict = {}
@@ -158,11 +146,8 @@ def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
                 cache[key] = _column_tensor(self.hf_dataset.data, key)
             except Exception:  # an unusual column type: LeRobot's own path
                 return lerobot_compat.stock_reader_method("_query_hf_dataset")(self, query_indices)
-        rel = (
-            q_idx
-            if self._absolute_to_relative_idx is None
-            else [self._absolute_to_relative_idx[i] for i in q_idx]
-        )
+        relative = lerobot_compat.reader_relative_rows(self)
+        rel = q_idx if relative is None else [relative[i] for i in q_idx]
         result[key] = cache[key][torch.as_tensor(rel, dtype=torch.long)]
     return result
 

@@ -5,23 +5,29 @@ the stock behaviour is used where one exists (with one logged warning per use), 
 names what changed. The uses:
 
 - ``global_conditioning``: ``DiffusionModel._prepare_global_conditioning`` (batched candidate sampling);
+- ``push_observation`` / ``queued_history``: ``DiffusionPolicy._queues``, the observation history
+  ``select_action`` keeps (the safety layer's ``select_action`` and the lean ``predict_action_chunk``);
+- ``add_weights_loaded_hook``: wraps ``PreTrainedPolicy._load_as_safetensor``, the one method that
+  knows the weights file (the EMA check of ``formation_diffusion``);
 - ``denoiser_parts``: what ``DiffusionModel.conditional_sample`` loops over (the U-Net, the noise
   scheduler, the step count), for the lean inference path (``inference_backend``);
 - ``caller_policy_config``: the caller's frame of ``make_env_pre_post_processors``;
+- ``train_dataloader_worker_kwargs``: ``lerobot_train._dataloader_worker_kwargs`` (the training
+  throughput benchmark builds lerobot-train's DataLoader);
 - ``install_offline_dataset_root_check``: wraps ``DatasetConfig.__post_init__``;
 - ``patch_dataset_reader``: replaces ``DatasetReader.get_item`` / ``_query_hf_dataset`` with the fast
-  low-dimensional reads of ``fast_reads.py``;
+  low-dimensional reads of ``fast_reads.py``, which read the reader's private state through
+  ``reader_meta``, ``reader_relative_rows`` and ``reader_is_low_dim``;
 - ``skip_noop_image_embedding``: skips ``dataset_writer.embed_images`` for datasets without images;
 - ``save_episode_buffer``: hands ``LeRobotDataset.save_episode`` a pre-built episode buffer (LeRobot's
   internal layout) instead of one ``add_frame`` call per frame.
 
-``FormationDiffusionPolicy._load_as_safetensor`` (modeling_formation_diffusion.py) also overrides a
-private LeRobot method; it stays with the policy it belongs to.
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -62,17 +68,75 @@ def _untested(what: str) -> bool:
     return True
 
 
+def _private(obj, name: str, owner: str, needed_by: str):
+    """``obj.<name>``, a private LeRobot attribute with no stock fallback; a clear error naming what
+    needs it if this LeRobot has none."""
+    value = getattr(obj, name, None)
+    if value is None:
+        raise RuntimeError(
+            f"LeRobot {lerobot_version()}'s {owner} has no {name} (written for {TESTED}); "
+            f"{needed_by} needs an update of lerobot_compat.py"
+        )
+    return value
+
+
 def global_conditioning(model, batch: dict[str, Tensor]) -> Tensor:
     """``DiffusionModel._prepare_global_conditioning``: the FiLM conditioning vector (B, cond) of a
     batch of normalised observation histories (B, n_obs_steps, ...). There is no public method that
     returns it; ``generate_actions`` computes it and samples in one go."""
-    fn = getattr(model, "_prepare_global_conditioning", None)
-    if fn is None:
-        raise RuntimeError(
-            f"LeRobot {lerobot_version()}'s DiffusionModel has no _prepare_global_conditioning "
-            f"(written for {TESTED}); batched candidate sampling needs an update of lerobot_compat.py"
-        )
+    fn = _private(model, "_prepare_global_conditioning", "DiffusionModel", "batched candidate sampling")
     return fn(batch)
+
+
+def _queues(policy) -> dict:
+    needed_by = "the safety layer and the lean inference path"
+    return _private(policy, "_queues", "DiffusionPolicy", needed_by)
+
+
+def push_observation(policy, batch: dict[str, Tensor]) -> None:
+    """Append one observation (B, ...) to ``DiffusionPolicy._queues``, the n_obs_steps history that
+    ``select_action`` keeps (LeRobot's ``populate_queues``: the first one fills the history)."""
+    from lerobot.policies.utils import populate_queues
+
+    policy._queues = populate_queues(_queues(policy), batch)
+
+
+def queued_history(policy, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The keys of ``batch`` as histories (B, n_obs_steps, ...) stacked from the policy's queues, as
+    ``DiffusionPolicy.predict_action_chunk`` takes them; ``batch`` itself (an offline batch of
+    histories) while the queues are empty."""
+    import torch
+
+    queues = _queues(policy)
+    if not any(len(q) > 0 for q in queues.values()):
+        return batch
+    return {k: torch.stack(list(queues[k]), dim=1) for k in batch if k in queues}
+
+
+def add_weights_loaded_hook(policy_cls: type, hook: Callable) -> None:
+    """Run ``hook(model, model_file) -> model`` after LeRobot's ``_load_as_safetensor`` loads a
+    ``model.safetensors`` into ``policy_cls`` (and its subclasses): ``from_pretrained`` resolves the
+    weights file (local or hub) and hands it to that private classmethod only. On a LeRobot whose
+    ``_load_as_safetensor`` is missing or takes other arguments the hook is off (one logged warning)."""
+    parent = getattr(super(policy_cls, policy_cls), "_load_as_safetensor", None)
+    expected = ["model", "model_file", "map_location", "strict"]
+    if parent is None or list(inspect.signature(parent).parameters) != expected:
+        if "weights hook" not in _warned:
+            _warned.add("weights hook")
+            logger.warning(
+                "LeRobot %s has no _load_as_safetensor(model, model_file, map_location, strict) (written "
+                "for %s): %s loads without its check of the weights file",
+                lerobot_version(),
+                TESTED,
+                policy_cls.__name__,
+            )
+        return
+
+    def load(cls, model, model_file: str, map_location: str, strict: bool):
+        model = super(policy_cls, cls)._load_as_safetensor(model, model_file, map_location, strict)
+        return hook(model, model_file)
+
+    policy_cls._load_as_safetensor = classmethod(load)
 
 
 def denoiser_parts(model):
@@ -104,6 +168,15 @@ def caller_policy_config():
     if frame.f_code.co_name != "make_env_pre_post_processors":
         return None
     return frame.f_locals.get("policy_cfg")
+
+
+def train_dataloader_worker_kwargs(cfg) -> dict:
+    """The DataLoader worker options ``lerobot-train`` passes for a ``TrainPipelineConfig`` (its private
+    ``_dataloader_worker_kwargs``: prefetch factor, persistent workers, multiprocessing context)."""
+    from lerobot.scripts import lerobot_train
+
+    fn = _private(lerobot_train, "_dataloader_worker_kwargs", "lerobot_train", "the throughput benchmark")
+    return fn(cfg)
 
 
 def install_offline_dataset_root_check() -> None:
@@ -161,6 +234,35 @@ def patch_dataset_reader(get_item: Callable, query_hf_dataset: Callable, getstat
     return True
 
 
+def reader_meta(reader):
+    """``DatasetReader._meta``: the dataset's ``LeRobotDatasetMetadata`` (episodes, tasks, keys)."""
+    return reader._meta
+
+
+def reader_relative_rows(reader):
+    """``DatasetReader._absolute_to_relative_idx``: absolute frame index -> row of the reader's table
+    when it holds selected episodes only, else None."""
+    return reader._absolute_to_relative_idx
+
+
+def reader_table_is_plain(reader) -> bool:
+    """The reader's Hugging Face table is loaded and not an index mapping (``Dataset._indices``: a
+    ``select``ed view), so its Arrow rows are its rows."""
+    return reader.hf_dataset is not None and reader.hf_dataset._indices is None
+
+
+def reader_is_low_dim(reader) -> bool:
+    """No video, camera, depth feature or image transform, and a plain table: the fast reads apply."""
+    meta = reader._meta
+    return (
+        len(meta.video_keys) == 0
+        and len(meta.camera_keys) == 0
+        and not reader._image_depth_units
+        and reader._image_transforms is None
+        and reader_table_is_plain(reader)
+    )
+
+
 def stock_reader_method(name: str) -> Callable:
     """LeRobot's own ``DatasetReader.<name>`` (``get_item`` or ``_query_hf_dataset``), patched or not."""
     if name in _stock_reader:
@@ -180,7 +282,7 @@ def unpatch_dataset_reader() -> None:
         del DatasetReader.__getstate__
 
 
-# -- dataset writer (datasets_scripts/generate_pac_dataset.py) --------------------------------------
+# -- dataset writer (datasets_scripts/lerobot_writer.py) ---------------------------------------------
 @contextlib.contextmanager
 def skip_noop_image_embedding(features: dict):
     """LeRobot's writer runs ``embed_images`` (a row-by-row ``datasets.map``, ~1 ms per frame) on every

@@ -45,7 +45,6 @@ import torch
 from diffusers.schedulers.scheduling_ddim import DDIMScheduler
 from diffusers.training_utils import EMAModel
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel, DiffusionPolicy
-from lerobot.policies.utils import populate_queues
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from safetensors import safe_open
 from torch import Tensor
@@ -55,7 +54,13 @@ from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
 from lerobot_formation.core.replan_blend import blend_replan
-from lerobot_formation.lerobot_compat import denoiser_parts, global_conditioning
+from lerobot_formation.lerobot_compat import (
+    add_weights_loaded_hook,
+    denoiser_parts,
+    global_conditioning,
+    push_observation,
+    queued_history,
+)
 
 EMA_PREFIX = "ema_diffusion."
 logger = logging.getLogger(__name__)
@@ -413,7 +418,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             return super().select_action(batch, noise=noise)
         batch = {k: v for k, v in batch.items() if k != ACTION}
         env_now = batch[OBS_ENV_STATE]
-        self._queues = populate_queues(self._queues, batch)
+        push_observation(self, batch)
         B, n_act = len(env_now), self.config.n_action_steps
         if self._plan is None or len(self._plan) != B:
             self._plan = torch.zeros(B, n_act, self.config.action_feature.shape[0], device=env_now.device)
@@ -422,7 +427,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             self._has_last = torch.zeros(B, dtype=torch.bool)
         need = torch.nonzero(self._plan_pos >= n_act).flatten()
         if len(need):
-            stacked = {k: torch.stack(list(self._queues[k]), dim=1)[need] for k in batch if k in self._queues}
+            stacked = {k: v[need] for k, v in queued_history(self, batch).items()}
             self._check_observation_sizes(stacked)
             chunks = self.sample_action_chunks(stacked, self.config.num_candidates, noise=noise)
             chunks = blend_replan(
@@ -489,8 +494,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         """
         self._check_observation_sizes(batch)
         if self.config.inference_backend != "eager":
-            if any(len(q) > 0 for q in self._queues.values()):
-                batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in batch if k in self._queues}
+            batch = queued_history(self, batch)
             model = self.inference_model
             full = self._sample(model, global_conditioning(model, batch), noise)
             start = self.config.n_obs_steps - 1  # as DiffusionModel.generate_actions slices
@@ -498,10 +502,9 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         if self.ema_diffusion is None or self.training:
             self._sync_timestep_spacing(self.diffusion)
             return super().predict_action_chunk(batch, noise=noise)
-        # As DiffusionPolicy does: stack the observation history (B, n_obs_steps, ...) from the
-        # queues select_action fills, or take an offline batch as given. No image features here.
-        if any(len(q) > 0 for q in self._queues.values()):
-            batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in batch if k in self._queues}
+        # As DiffusionPolicy does: the observation history (B, n_obs_steps, ...) from the queues
+        # select_action fills, or an offline batch as given. No image features here.
+        batch = queued_history(self, batch)
         self._sync_timestep_spacing(self.ema_diffusion)
         return self.ema_diffusion.generate_actions(batch, noise=noise)
 
@@ -518,18 +521,23 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                     f"{feature.shape[0]}.{hint}"
                 )
 
-    @classmethod
-    def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
-        model = super()._load_as_safetensor(model, model_file, map_location, strict)
-        if model.ema_diffusion is not None:
-            with safe_open(model_file, framework="pt") as f:
-                has_ema = any(k.startswith(EMA_PREFIX) for k in f.keys())  # noqa: SIM118
-            if not has_ema:
-                logging.warning(
-                    "%s holds no EMA weights (trained with use_ema=false?): the EMA starts from the live "
-                    "weights with ema_step=0.",
-                    model_file,
-                )
-                model.ema_diffusion.load_state_dict(model.diffusion.state_dict())
-                model.ema_step.zero_()
-        return model
+
+def _ema_from_live_if_missing(model: FormationDiffusionPolicy, model_file: str) -> FormationDiffusionPolicy:
+    """After LeRobot loads ``model_file``: a checkpoint without EMA weights (trained with
+    use_ema=false) starts the EMA from the live weights, with a warning, instead of from the
+    initial ones."""
+    if model.ema_diffusion is not None:
+        with safe_open(model_file, framework="pt") as f:
+            has_ema = any(k.startswith(EMA_PREFIX) for k in f.keys())  # noqa: SIM118
+        if not has_ema:
+            logging.warning(
+                "%s holds no EMA weights (trained with use_ema=false?): the EMA starts from the live "
+                "weights with ema_step=0.",
+                model_file,
+            )
+            model.ema_diffusion.load_state_dict(model.diffusion.state_dict())
+            model.ema_step.zero_()
+    return model
+
+
+add_weights_loaded_hook(FormationDiffusionPolicy, _ema_from_live_if_missing)

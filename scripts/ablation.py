@@ -28,10 +28,12 @@ import json
 import time
 from pathlib import Path
 
-from lerobot_formation.bench import controller_results, make_controller, parse_scenes
+from lerobot_formation.bench_results import controller_results, safety_rates
+from lerobot_formation.controllers import make_controller
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START
 from lerobot_formation.evaluation import evaluate
+from lerobot_formation.scene_sets import parse_scenes
 
 
 def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
@@ -190,10 +192,8 @@ def main(argv: list[str] | None = None) -> int:
             entry.pop("episodes")
             entry["wall_time_s"] = time.perf_counter() - t0
             if getattr(ctrl, "stats", None):
-                st = ctrl.stats
-                entry["filter_intervention_rate"] = st["filter_interventions"] / max(st["steps"], 1)
-                entry["replans_none_safe_rate"] = st["replans_none_safe"] / max(st["replans"], 1)
-                entry["escape_rate"] = st["escapes"] / max(st["replans"], 1)
+                entry.update(safety_rates(ctrl.stats))
+                entry["escape_rate"] = ctrl.stats["escapes"] / max(ctrl.stats["replans"], 1)
             results[label][s] = entry
             lo, hi = entry["success_ci95"]
             print(

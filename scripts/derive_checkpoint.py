@@ -7,7 +7,10 @@
 adds a processor step (``egocentric_state``, ``egocentric_obstacles``) cannot be switched on from the
 command line for a fine-tune. This copies the weights, sets the options in config.json and rebuilds
 both processors with ``make_formation_diffusion_pre_post_processors`` from the checkpoint's own
-normalisation statistics. Written to a temporary folder, then renamed into place.
+normalisation statistics; every other file of the folder (model card, ``dataset_scenes.json``, ...) is
+copied as it is. Written to a temporary folder, then renamed into place, so ``dest`` may be the
+checkpoint itself: ``--set escape_advantage=0.1 --set inference_backend=trace`` on an exported
+policy changes those two fields in place.
 """
 
 from __future__ import annotations
@@ -23,6 +26,10 @@ def parse_value(text: str):
         return json.loads(text)
     except json.JSONDecodeError:
         return text
+
+
+def _same_text(a: Path, b: Path) -> bool:
+    return a.is_file() and b.is_file() and a.read_text() == b.read_text()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,12 +65,24 @@ def main(argv: list[str] | None = None) -> int:
     tmp = args.dest.parent / f".{args.dest.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    processor_files = {p.name for p in src.glob("policy_*processor*")}
     try:
-        shutil.copy(src / "model.safetensors", tmp / "model.safetensors")
+        for path in sorted(src.iterdir()):
+            if path.is_file() and path.name not in processor_files | {"config.json"}:
+                shutil.copy(path, tmp / path.name)
         (tmp / "config.json").write_text(json.dumps(raw, indent=4))
         pre, post = make_formation_diffusion_pre_post_processors(cfg, dataset_stats=norm.stats)
         pre.save_pretrained(tmp)
         post.save_pretrained(tmp)
+        if all(
+            _same_text(src / n, tmp / n) for n in ("policy_preprocessor.json", "policy_postprocessor.json")
+        ):
+            # The same steps with the same statistics: keep the checkpoint's own files, byte for byte
+            # (a rebuilt normalizer stores 1-element statistics with another shape).
+            for path in tmp.glob("policy_*processor*"):
+                path.unlink()
+            for name in sorted(processor_files):
+                shutil.copy(src / name, tmp / name)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

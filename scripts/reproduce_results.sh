@@ -75,12 +75,7 @@ $BIN/lerobot-train --config_path=outputs/train_safe/checkpoints/last/pretrained_
   --dataset.root=data/formation_wide_dagger 2>&1 | tee $OUT/train_safe_resume.log
 $PY scripts/export_pretrained.py outputs/train_safe/checkpoints/072000/pretrained_model $SAFE \
   --dataset.root data/formation_wide_dagger --card $SAFE/README.md
-$PY - <<'PYEOF'
-import json, pathlib
-p = pathlib.Path("pretrained/formation_diffusion_safe/config.json")
-c = json.loads(p.read_text()); c.update(escape_advantage=0.1, inference_backend="trace")
-p.write_text(json.dumps(c, indent=4))
-PYEOF
+$PY scripts/derive_checkpoint.py $SAFE $SAFE --set escape_advantage=0.1 --set inference_backend=trace
 $PY scripts/ablation.py --new $SAFE --old $MODEL --sets random:100 --n-action-steps 4 --out outputs/ablation_random
 $PY scripts/ablation.py --new $SAFE --sets hard:100 --n-action-steps 4 --out outputs/ablation_hard \
   --rows "PAC;MPPI;new, standard;new, best-of-10;new, best-of-10 + escapes;new, CBF filter;new, best-of-10 + CBF;new, best-of-10 + CBF + escapes;new, both + escapes, 4 actions per replan"

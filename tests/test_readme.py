@@ -387,7 +387,7 @@ def check_command(cmd: Command) -> list[str]:
             problems.append(f"{program} rejects {args}: {err.getvalue().strip().splitlines()[-1]}")
     controllers = cmd.value("--controllers")
     if controllers and program in ("lerobot-formation-bench", "python -m lerobot_formation.demo"):
-        from lerobot_formation.bench import CONTROLLERS
+        from lerobot_formation.controllers import CONTROLLERS
 
         problems += [f"unknown controller {c!r}" for c in controllers.split(",") if c not in CONTROLLERS]
     return problems

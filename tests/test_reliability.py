@@ -21,11 +21,13 @@ import numpy as np
 import pytest
 
 from datasets_scripts import generate_pac_dataset as gen_mod
+from datasets_scripts import lerobot_writer
+from datasets_scripts.safe_destination import remove_stale_temporaries, rename_noreplace
 from lerobot_formation.bench import main as bench_main
-from lerobot_formation.bench import parse_scenes
 from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.scene import SceneConfig, load_scenes, sample_scenes, scenes_from_list
 from lerobot_formation.env import FormationEnv
+from lerobot_formation.scene_sets import parse_scenes
 from lerobot_formation.vector_env import FormationVectorEnv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -132,16 +134,16 @@ def test_second_generation_into_the_same_root_fails(tmp_path, capsys):
 
 def test_generation_refuses_a_destination_that_appeared_meanwhile(tmp_path, monkeypatch):
     root = tmp_path / "ds"
-    write = gen_mod.write_episode
+    write = lerobot_writer.write_episode
 
     def write_then_appear(ds, frames, fast=True):  # another run finishes first
         write(ds, frames, fast)
         root.mkdir(exist_ok=True)
         (root / "theirs.txt").write_text("the other run's dataset")
 
-    monkeypatch.setattr(gen_mod, "write_episode", write_then_appear)
+    monkeypatch.setattr(lerobot_writer, "write_episode", write_then_appear)
     with pytest.raises(FileExistsError, match="appeared while this run was generating.*--overwrite"):
-        gen_mod.generate(root, "local/x", 2, workers=0, progress=False)
+        lerobot_writer.generate(root, "local/x", 2, workers=0, progress=False)
     assert sorted(p.name for p in root.iterdir()) == ["theirs.txt"]  # not replaced
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # our temporary folder removed
 
@@ -150,7 +152,7 @@ def test_rename_never_replaces_even_an_empty_folder(tmp_path):
     (tmp_path / "src").mkdir()
     (tmp_path / "dst").mkdir()  # os.rename would silently replace it
     with pytest.raises(FileExistsError):
-        gen_mod.rename_noreplace(tmp_path / "src", tmp_path / "dst")
+        rename_noreplace(tmp_path / "src", tmp_path / "dst")
     assert (tmp_path / "src").is_dir()
 
 
@@ -160,13 +162,13 @@ def test_live_writer_refused_stale_temporaries_removed(tmp_path):
     try:
         (tmp_path / f".ds.tmp-{sleeper.pid}").mkdir()
         with pytest.raises(FileExistsError, match=f"another generation \\(pid {sleeper.pid}\\) is writing"):
-            gen_mod.generate(root, "local/x", 2, workers=0, progress=False)
+            lerobot_writer.generate(root, "local/x", 2, workers=0, progress=False)
     finally:
         sleeper.kill()
         sleeper.wait()
     # now that process is gone: its folder is stale, and a .old- one of a dead run too
     (tmp_path / f".ds.old-{sleeper.pid}").mkdir()
-    removed = gen_mod.remove_stale_temporaries(root)
+    removed = remove_stale_temporaries(root)
     assert sorted(p.name for p in removed) == [f".ds.old-{sleeper.pid}", f".ds.tmp-{sleeper.pid}"]
     assert list(tmp_path.iterdir()) == []
 

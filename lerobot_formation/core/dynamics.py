@@ -229,6 +229,13 @@ def step_midpoint(pose: np.ndarray, action: np.ndarray, dt) -> np.ndarray:
     )
 
 
+def midpoint_velocity(pose: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """Midpoint velocity [x', y', omega] (..., 3) over a step from ``pose`` (..., 3) with the (clipped)
+    ``action`` (..., 2): the unicycle's [v cos phi, v sin phi, omega] at the step's start heading."""
+    v, w, phi = action[..., 0], action[..., 1], pose[..., 2]
+    return np.stack([v * np.cos(phi), v * np.sin(phi), w], axis=-1)
+
+
 def rollout_poses(pose: np.ndarray, actions: np.ndarray, dt: float) -> np.ndarray:
     """Midpoint poses after each action of candidate sequences, pose (B, 3), actions (B, C, T, 2) ->
     (B, C, T, 3): ``step_midpoint`` repeated T times, written as cumulative sums (one array operation
@@ -338,7 +345,6 @@ def step(state: FormationState, action: np.ndarray, params: FormationParams | No
     pose0 = state.pose
     # Leader poses at every sub-step end tau_k = k h, k = 1..n: (n, B, 3).
     tau = (h * np.arange(1, n + 1))[:, None]
-    v, w, phi0 = a[:, 0], a[:, 1], pose0[:, 2]
     poses = step_midpoint(pose0, a, tau)
     leaders = leader_positions(poses)  # (n, B, 2, 2)
     # The law at sub-step k uses the leader positions at its start: tau_{k-1}.
@@ -368,11 +374,9 @@ def step(state: FormationState, action: np.ndarray, params: FormationParams | No
             f"(inner_dt={params.inner_dt}, literal_paper_sign={params.literal_paper_sign}); "
             "explicit Euler needs inner_dt <= 1e-3 with the paper's gains (erratum 2)"
         )
-    new_pose = poses[-1]
-    vel = np.stack([v * np.cos(phi0), v * np.sin(phi0), w], axis=-1)
     return FormationState(
-        pose=new_pose,
-        velocity=vel,
+        pose=poses[-1],
+        velocity=midpoint_velocity(pose0, a),
         follower_pos=fp,
         follower_theta=th,
         follower_vel=(fp - state.follower_pos) / params.dt,

@@ -18,12 +18,14 @@ empty slots are zeros (present = 0): 2 + 4 max_obstacles values. A scene with mo
 the nearest ones are observed, as a range sensor would. It depends on the midpoint pose, so it is
 recomputed every step.
 
-Adding an encoding: write its ``encode`` and ``names`` and add one ``register(ObstacleEncoding(...))``
-line at the bottom of this file.
+Adding an encoding: one new file that defines ``ENCODING = ObstacleEncoding(...)`` (its ``encode``
+and ``names``), and one line at the bottom of this file, ``register("package.module:ENCODING",
+"name")``: the file is imported when the encoding is first used (it may import this module).
 """
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -146,18 +148,33 @@ class ObstacleEncoding:
         return self.fixed + self.per_slot * self.slots(max_obstacles)
 
 
-ENCODING_REGISTRY: dict[str, ObstacleEncoding] = {}
+# Encodings by name: an ObstacleEncoding, or the "module:attribute" path of one (imported when first used).
+ENCODING_REGISTRY: dict[str, ObstacleEncoding | str] = {}
 
 
-def register(encoding: ObstacleEncoding) -> ObstacleEncoding:
-    ENCODING_REGISTRY[encoding.name] = encoding
-    return encoding
+def register(encoding: ObstacleEncoding | str, name: str | None = None) -> None:
+    """Register an encoding under its name, or the ``"module:attribute"`` path of one under ``name``."""
+    if isinstance(encoding, str):
+        if not name:
+            raise ValueError(f"register({encoding!r}) needs the encoding's name")
+        ENCODING_REGISTRY[name] = encoding
+    else:
+        ENCODING_REGISTRY[encoding.name] = encoding
 
 
 def get_encoding(name: str) -> ObstacleEncoding:
     if name not in ENCODING_REGISTRY:
         raise ValueError(f"obstacle encoding must be one of {tuple(ENCODING_REGISTRY)}, got {name!r}")
-    return ENCODING_REGISTRY[name]
+    encoding = ENCODING_REGISTRY[name]
+    if isinstance(encoding, str):  # "module:attribute": import it now, once
+        module, _, attr = encoding.partition(":")
+        encoding = getattr(importlib.import_module(module), attr)
+        if encoding.name != name:
+            raise ValueError(
+                f"{ENCODING_REGISTRY[name]} is the encoding {encoding.name!r}, registered as {name!r}"
+            )
+        ENCODING_REGISTRY[name] = encoding
+    return encoding
 
 
 def environment_state_dim(encoding: str = "grid", max_obstacles: int | None = None) -> int:
@@ -182,4 +199,5 @@ register(
     ObstacleEncoding("grid+list", 5, 3, GRID_SIZE * GRID_SIZE + 2, False, _encode_grid_list, _grid_list_names)
 )
 register(ObstacleEncoding("nearest", 12, 4, 2, True, _encode_nearest, _nearest_names))
+# An encoding in its own file: register("package.module:ENCODING", "its-name") here.
 ENCODINGS = tuple(ENCODING_REGISTRY)

@@ -1,5 +1,10 @@
-"""Closed-loop rollouts of B episodes at once: the batched engine under the env, the bench and the
-dataset generator.
+"""Closed-loop rollouts of B episodes at once: the batched engine under the env, the vector env, the
+bench and the dataset generator.
+
+``Teams`` is the one episode path: B teams in their scenes, stepped by one ``dynamics.step`` call,
+then judged by ``step_outcome`` and rewarded by ``step_reward``. ``rollout`` (the engine),
+``FormationEnv`` (B = 1) and ``FormationVectorEnv`` all step through it; observations come from
+``core.observation``.
 
 An episode ends on success (midpoint within ``goal_tolerance`` of the goal, no collision), on
 collision (any agent disc touching any obstacle; collision wins if both happen in one step), or on
@@ -28,6 +33,8 @@ from lerobot_formation.core.dynamics import (
     step,
 )
 from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
+from lerobot_formation.core.observation import observe
+from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.pac import PACConfig, PathAwareController
 from lerobot_formation.core.scene import Scenes
 
@@ -83,6 +90,138 @@ def step_reward(prev_pose: np.ndarray, pose: np.ndarray, goal: np.ndarray, outco
     """The envs' reward (B,): progress toward the goal in metres, +1 on success, -1 on collision."""
     progress = goal_distance(prev_pose, goal) - goal_distance(pose, goal)
     return progress + (outcome == SUCCESS) - (outcome == COLLISION)
+
+
+@dataclass
+class Transition:
+    """One control step of B teams (``Teams.step``).
+
+    Attributes:
+        prev_pose: (B, 3) midpoint poses before the step.
+        action: (B, 2) the checked action, before clipping.
+        outcome: (B,) RUNNING, SUCCESS or COLLISION.
+        reward: (B,) ``step_reward``.
+        agent_clearance: (B, N) agent-disc gaps to the nearest obstacle (+inf: no obstacle).
+        midpoint_clearance: (B,) midpoint to the nearest obstacle surface (+inf: no obstacle).
+    """
+
+    prev_pose: np.ndarray
+    action: np.ndarray
+    outcome: np.ndarray
+    reward: np.ndarray
+    agent_clearance: np.ndarray
+    midpoint_clearance: np.ndarray
+
+    @property
+    def terminated(self) -> np.ndarray:
+        """(B,) the episode ended on success or collision."""
+        return self.outcome != RUNNING
+
+
+class Teams:
+    """B teams in their scenes, stepped together: the one episode path (see the module docstring).
+
+    Args:
+        scenes: one scene per team (copied: ``load`` writes into the copy).
+        obstacle_encoding, max_obstacles: what ``observe`` encodes (``core.observation``).
+
+    Attributes:
+        state: the teams' ``FormationState``; ``steps`` (B,) control steps since each team's reset.
+    """
+
+    def __init__(
+        self,
+        scenes: Scenes,
+        params: FormationParams | None = None,
+        obstacle_encoding: str = "grid",
+        max_obstacles: int | None = None,
+    ):
+        self.params = params or FormationParams()
+        self.scenes = scenes.copy()
+        self.encoding = obstacle_encoding
+        self.max_obstacles = max_obstacles
+        self.egocentric = get_encoding(obstacle_encoding).egocentric
+        self.state = initial_state(self.scenes.start, self.params)
+        self.steps = np.zeros(len(scenes), dtype=np.int64)
+        self._world_state: np.ndarray | None = None  # world-frame encodings, once per scene
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def observe(self) -> dict[str, np.ndarray]:
+        """``core.observation.observe`` of every team (arrays the caller may keep)."""
+        s = self.scenes
+        obs = observe(
+            self.state.pose,
+            self.state.velocity,
+            s.obstacles,
+            s.mask,
+            s.goal,
+            self.encoding,
+            self.max_obstacles,
+            world_state=self._world_state,
+        )
+        if not self.egocentric:
+            self._world_state = obs["environment_state"]
+            obs["environment_state"] = self._world_state.copy()
+        return obs
+
+    def outcome(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``step_outcome`` of the teams where they stand."""
+        return step_outcome(self.state, self.scenes.obstacles, self.scenes.goal, self.params)
+
+    def step(self, action) -> Transition:
+        """Validate ``action`` (B, 2) (``check_action``: a bad one changes nothing), step every team."""
+        a = check_action(action, len(self))
+        prev = self.state
+        self.state = step(prev, a, self.params)
+        self.steps += 1
+        outcome, clear, mid = self.outcome()
+        reward = step_reward(prev.pose, self.state.pose, self.scenes.goal, outcome)
+        return Transition(prev.pose, a, outcome, reward, clear, mid)
+
+    def truncated(self, transition: Transition, max_steps: int) -> np.ndarray:
+        """(B,) the time limit ended the episode (and no success or collision did)."""
+        return (self.steps >= max_steps) & ~transition.terminated
+
+    def keep(self, rows: np.ndarray) -> None:
+        """Keep only the teams ``rows`` (an index or mask), in that order: the engine drops ended ones."""
+        self.state = self.state[rows]
+        self.scenes = self.scenes[rows]
+        self.steps = self.steps[rows]
+        if self._world_state is not None:
+            self._world_state = self._world_state[rows]
+
+    def load(self, idx: np.ndarray, new: Scenes) -> None:
+        """Put scenes ``new`` into the slots ``idx`` (padded to this batch's obstacle rows) and reset
+        their teams: the vector env's autoreset."""
+        new = new.padded(self.scenes.obstacles.shape[1])
+        s = self.scenes
+        s.obstacles[idx], s.mask[idx], s.goal[idx], s.start[idx], s.seeds[idx] = (
+            new.obstacles,
+            new.mask,
+            new.goal,
+            new.start,
+            new.seeds,
+        )
+        self.state.set(idx, initial_state(new.start, self.params))
+        self.steps[idx] = 0
+        if self._world_state is not None:
+            self._world_state[idx] = environment_state(
+                new.obstacles, new.mask, new.goal, self.encoding, self.max_obstacles
+            )
+
+    def info(self, outcome: np.ndarray, clear: np.ndarray, mid: np.ndarray) -> dict[str, np.ndarray]:
+        """The envs' info values (B,) for ``outcome`` and the clearances of ``step_outcome``:
+        clearance (smallest agent gap) and midpoint_clearance are +inf in a scene with no obstacle."""
+        return {
+            "is_success": outcome == SUCCESS,
+            "is_collision": outcome == COLLISION,
+            "formation_error": formation_error(agent_positions(self.state), self.params.graph),
+            "clearance": clear.min(axis=1),
+            "midpoint_clearance": mid,
+            "scene_seed": self.scenes.seeds.copy(),
+        }
 
 
 @dataclass
@@ -172,27 +311,22 @@ def rollout(
         steps=np.full(B, T, dtype=np.int64),
         dt=params.dt,
     )
-    state = initial_state(scenes.start, params)
+    teams = Teams(scenes, params)
     controller.reset(scenes)
-    rec.put(slice(None), 0, frame_record(state, scenes.obstacles, params))
-    live = np.arange(B)
+    rec.put(slice(None), 0, frame_record(teams.state, scenes.obstacles, params))
+    live = np.arange(B)  # the teams' episodes (global indices)
     for t in range(T):
-        obs, goal = scenes.obstacles[live], scenes.goal[live]
-        a = check_action(controller.act(state, live), len(live))
-        prev = state
-        state = step(state, a, params)
-        rec.put(live, t, step_record(prev.pose, state, a, params))
-        rec.put(live, t + 1, frame_record(state, obs, params))
-        outcome, _, _ = step_outcome(state, obs, goal, params)
-        ended = outcome != RUNNING
-        rec.outcome[live[ended]] = outcome[ended]
+        transition = teams.step(controller.act(teams.state, live))
+        rec.put(live, t, step_record(transition.prev_pose, teams.state, transition.action, params))
+        rec.put(live, t + 1, frame_record(teams.state, teams.scenes.obstacles, params))
+        ended = transition.terminated
+        rec.outcome[live[ended]] = transition.outcome[ended]
         rec.steps[live[ended]] = t + 1
         if progress is not None:
             progress(int(ended.sum()))
         if ended.any():
-            keep = ~ended
-            live = live[keep]
-            state = state[keep]
+            live = live[~ended]
+            teams.keep(~ended)
         if len(live) == 0:
             break
     if progress is not None and len(live):

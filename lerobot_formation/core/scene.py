@@ -184,14 +184,23 @@ class Scenes:
             )
         return out
 
+    def padded(self, M: int) -> Scenes:
+        """The same scenes with M obstacle rows (M >= the current count; new rows are padding)."""
+        mask = np.pad(self.mask, ((0, 0), (0, M - self.mask.shape[1])))
+        return Scenes(_pad(self.obstacles, M), mask, self.goal, self.start, self.seeds)
+
+    def copy(self) -> Scenes:
+        return Scenes(
+            *(np.array(a, copy=True) for a in (self.obstacles, self.mask, self.goal, self.start, self.seeds))
+        )
+
     @staticmethod
     def concat(parts: list[Scenes]) -> Scenes:
         M = max(p.obstacles.shape[1] for p in parts)
-        obstacles = np.concatenate([_pad(p.obstacles, M) for p in parts])
-        mask = np.concatenate([np.pad(p.mask, ((0, 0), (0, M - p.mask.shape[1]))) for p in parts])
+        parts = [p.padded(M) for p in parts]
         return Scenes(
-            obstacles,
-            mask,
+            np.concatenate([p.obstacles for p in parts]),
+            np.concatenate([p.mask for p in parts]),
             np.concatenate([p.goal for p in parts]),
             np.concatenate([p.start for p in parts]),
             np.concatenate([p.seeds for p in parts]),

@@ -5,7 +5,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from datasets_scripts.generate_pac_dataset import episode_frames
+from datasets_scripts.dataset_frames import episode_frames
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.footprint import select_safest, sequence_clearance
 from lerobot_formation.core.formation_graph import FormationGraph

@@ -13,15 +13,19 @@ import pytest
 import yaml
 
 from datasets_scripts import generate_pac_dataset as gen
+from datasets_scripts import lerobot_writer
+from datasets_scripts.dataset_frames import episode_frames
+from datasets_scripts.hub_folder import push_to_folder
 from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.core.scene import sample_scenes, scenes_from_frames
+from lerobot_formation.env import TASK
 
 REPO = "local/formation_test"
 N = 10
 
 
 def _generate(root: Path, **kw):
-    return gen.generate(root, REPO, N, progress=False, **kw)
+    return lerobot_writer.generate(root, REPO, N, progress=False, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -59,14 +63,14 @@ def test_round_trip_through_lerobot_dataset(tiny):
     seed = int(item["scene.seed"])
     scene = sample_scenes([seed])
     rec = rollout(scene, PACController())
-    frames = gen.episode_frames(rec, scene, 0, "grid")
+    frames = episode_frames(rec, scene, 0, "grid")
     n = int(ep["length"])
     assert n == len(frames["action"])
     for t in (0, 1, n // 2, n - 1):
         it = ds[int(ep["dataset_from_index"]) + t]
         for key in ("observation.state", "observation.environment_state", "action"):
             np.testing.assert_array_equal(it[key].numpy(), frames[key][t])
-    assert item["task"] == gen.TASK
+    assert item["task"] == TASK
 
 
 def test_scenes_rebuild_from_frames(tiny):
@@ -74,7 +78,7 @@ def test_scenes_rebuild_from_frames(tiny):
 
     ds = LeRobotDataset(REPO, root=tiny)
     first = [ds[int(e["dataset_from_index"])] for e in ds.meta.episodes]
-    scenes = gen.scenes_from_frames(
+    scenes = scenes_from_frames(
         np.stack([f["scene.obstacles"].numpy() for f in first]),
         np.stack([f["scene.goal"].numpy() for f in first]),
         np.stack([f["scene.start"].numpy() for f in first]),
@@ -131,7 +135,7 @@ def test_fast_writer_equals_add_frame_loop(tiny, tmp_path):
 def test_interrupted_run_leaves_nothing_and_rerun_works(tmp_path, monkeypatch):
     root = tmp_path / "ds"
     calls = {"n": 0}
-    real = gen.write_episode
+    real = lerobot_writer.write_episode
 
     def interrupting(ds, frames, fast=True):
         calls["n"] += 1
@@ -139,12 +143,12 @@ def test_interrupted_run_leaves_nothing_and_rerun_works(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         real(ds, frames, fast)
 
-    monkeypatch.setattr(gen, "write_episode", interrupting)
+    monkeypatch.setattr(lerobot_writer, "write_episode", interrupting)
     with pytest.raises(KeyboardInterrupt):
         _generate(root)
     assert not root.exists()
     assert list(tmp_path.iterdir()) == []  # no temporary folder left behind either
-    monkeypatch.setattr(gen, "write_episode", real)
+    monkeypatch.setattr(lerobot_writer, "write_episode", real)
     assert _generate(root)["episodes"] == N
 
 
@@ -171,7 +175,7 @@ def test_bad_arguments(argv, match, capsys):
 
 def test_hub_folder_card_and_offline_load(tiny, tmp_path, monkeypatch):
     summary = json.loads((tiny / "meta" / "generation.json").read_text())
-    dest = gen.push_to_folder(tiny, tmp_path / "hub", REPO, summary, "lerobot-formation-generate ...", False)
+    dest = push_to_folder(tiny, tmp_path / "hub", REPO, summary, "lerobot-formation-generate ...", False)
     assert dest == tmp_path / "hub" / REPO
     text = (dest / "README.md").read_text()
     front = yaml.safe_load(text.split("---")[1])
@@ -230,7 +234,7 @@ def test_shards_are_valid_and_disjoint(tmp_path):
     seeds = []
     for i in range(2):
         root = tmp_path / f"shard{i}"
-        gen.generate(root, REPO, 6, num_shards=2, shard_index=i, progress=False)
+        lerobot_writer.generate(root, REPO, 6, num_shards=2, shard_index=i, progress=False)
         ds = LeRobotDataset(REPO, root=root)
         assert ds.meta.total_episodes == 3
         seeds.append({int(ds[int(e["dataset_from_index"])]["scene.seed"]) for e in ds.meta.episodes})

@@ -55,3 +55,35 @@ def obs_batch(batch_size=4, seed=1):
         OBS_STATE: torch.randn(batch_size, 7, generator=g),
         OBS_ENV_STATE: torch.rand(batch_size, 51, generator=g),
     }
+
+
+def nearest_config(**overrides) -> FormationDiffusionConfig:
+    """``tiny_config`` of an egocentric 'nearest' policy with fixed action bounds (the safety layer's)."""
+    inputs, outputs = formation_features(env_dim=50)
+    kw = dict(
+        input_features=inputs, output_features=outputs, obstacle_encoding="nearest", fixed_action_bounds=True
+    )
+    kw.update(overrides)
+    return tiny_config(**kw)
+
+
+def save_nearest_checkpoint(path, **overrides):
+    """A tiny untrained 'nearest' policy saved with its processors, as lerobot-train saves one."""
+    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+
+    torch.manual_seed(0)
+    cfg = nearest_config(**overrides)
+    policy = FormationDiffusionPolicy(cfg)
+    stats = {
+        OBS_STATE: {
+            "min": torch.tensor([-3.0, -3, -1, -1, -0.6, -0.6, -1.5]),
+            "max": torch.tensor([9.0, 9, 1, 1, 0.6, 0.6, 1.5]),
+        },
+        ACTION: {"min": torch.zeros(2), "max": torch.ones(2)},  # replaced by the fixed bounds
+    }
+    pre, post = make_formation_diffusion_pre_post_processors(cfg, stats)
+    policy.save_pretrained(path)
+    pre.save_pretrained(path)
+    post.save_pretrained(path)
+    return path

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from datasets_scripts import generate_pac_dataset as gen
+from datasets_scripts import lerobot_writer
 from lerobot_formation import fast_reads
 
 REPO = "local/fast_reads"
@@ -15,7 +15,7 @@ REPO = "local/fast_reads"
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
     r = tmp_path_factory.mktemp("fr") / "ds"
-    gen.generate(r, REPO, 6, progress=False)
+    lerobot_writer.generate(r, REPO, 6, progress=False)
     return r
 
 

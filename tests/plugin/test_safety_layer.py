@@ -4,20 +4,18 @@ import numpy as np
 import pytest
 import torch
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
-from plugin_helpers import HORIZON, N_OBS, formation_features, tiny_config
+from plugin_helpers import (
+    HORIZON,
+    N_OBS,
+    formation_features,
+    nearest_config,
+    save_nearest_checkpoint,
+    tiny_config,
+)
 
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.scene import FAR
 from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-
-
-def nearest_config(**overrides):
-    inputs, outputs = formation_features(env_dim=50)
-    kw = dict(
-        input_features=inputs, output_features=outputs, obstacle_encoding="nearest", fixed_action_bounds=True
-    )
-    kw.update(overrides)
-    return tiny_config(**kw)
 
 
 def _env_state(obstacles, pose=(0.0, 0.0, np.pi / 2), goal=(0.0, 8.0)):
@@ -106,38 +104,19 @@ def test_action_normalisation_round_trips_the_fixed_bounds():
     torch.testing.assert_close(policy.unnormalize_action(norm), raw)
 
 
-def _checkpoint(tmp_path, **overrides):
-    """A tiny untrained 'nearest' policy saved with its processors, as lerobot-train saves one."""
-    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
-
-    torch.manual_seed(0)
-    cfg = nearest_config(**overrides)
-    policy = FormationDiffusionPolicy(cfg)
-    stats = {
-        OBS_STATE: {
-            "min": torch.tensor([-3.0, -3, -1, -1, -0.6, -0.6, -1.5]),
-            "max": torch.tensor([9.0, 9, 1, 1, 0.6, 0.6, 1.5]),
-        },
-        "action": {"min": torch.zeros(2), "max": torch.ones(2)},  # replaced by the fixed bounds
-    }
-    pre, post = make_formation_diffusion_pre_post_processors(cfg, stats)
-    policy.save_pretrained(tmp_path)
-    pre.save_pretrained(tmp_path)
-    post.save_pretrained(tmp_path)
-    return tmp_path
-
-
 @pytest.mark.parametrize(("k", "safety_filter", "blend"), [(3, "cbf", 0), (3, "cbf", 3), (1, "none", 2)])
 def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_filter, blend):
     """One episode, same noise: the engine's controller and the policy's select_action (the path of
     lerobot-eval) give the same actions, replans and filter interventions, with and without replan
     blending (the engine blends physical actions, select_action normalised ones)."""
     from lerobot_formation.core.dynamics import FormationParams, initial_state, step
+    from lerobot_formation.core.observation import midpoint_state
     from lerobot_formation.core.scene import scenes_from_list
     from lerobot_formation.diffusion_controller import DiffusionController, load_policy
-    from lerobot_formation.env import midpoint_state
 
-    path = _checkpoint(tmp_path, num_candidates=k, safety_filter=safety_filter, replan_blend_steps=blend)
+    path = save_nearest_checkpoint(
+        tmp_path, num_candidates=k, safety_filter=safety_filter, replan_blend_steps=blend
+    )
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
     params = FormationParams()
     engine = DiffusionController(path, candidates=k, safety_filter=safety_filter, seed=7, params=params)
@@ -149,7 +128,7 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_
     for _ in range(30):
         a_engine = engine.act(state, np.array([0]))
         obs = {
-            OBS_STATE: torch.from_numpy(midpoint_state(state)),
+            OBS_STATE: torch.from_numpy(midpoint_state(state.pose, state.velocity)),
             OBS_ENV_STATE: torch.from_numpy(
                 environment_state(scene.obstacles, scene.mask, scene.goal, "nearest", pose=state.pose)
             ),
@@ -173,7 +152,9 @@ def test_a_negative_or_nan_escape_advantage_is_refused_with_its_value():
 
 
 def test_replan_blend_steps_is_checked_with_its_value():
-    with pytest.raises(ValueError, match=r"replan_blend_steps must be in \[0, 15\] \(the chunk's length\), got 16"):
+    with pytest.raises(
+        ValueError, match=r"replan_blend_steps must be in \[0, 15\] \(the chunk's length\), got 16"
+    ):
         nearest_config(replan_blend_steps=16)
     cfg = nearest_config(replan_blend_steps=3)
     assert cfg.plans_per_episode and not cfg.safety_layer

@@ -1,0 +1,73 @@
+"""What a PAC dataset holds: its LeRobot features and the frames of one recorded episode.
+
+The observations are ``core.observation``'s, the builder the env uses, so a policy trained on the
+dataset sees in the env what it saw in training (``tests/core/test_house.py`` checks it frame by
+frame).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lerobot_formation.core.observation import STATE_DIM, STATE_NAMES, observe, observed_velocities
+from lerobot_formation.core.obstacle_grid import get_encoding
+from lerobot_formation.core.rollout import EpisodeRecords
+from lerobot_formation.core.scene import Scenes
+
+FPS = 10
+MAX_OBSTACLES = 5
+
+
+def dataset_features(obstacle_encoding: str = "grid", scene_slots: int = MAX_OBSTACLES) -> dict:
+    """LeRobot features of a PAC dataset; ``scene_slots`` obstacle rows in ``scene.obstacles`` (every
+    obstacle of every scene, whatever the observation encodes)."""
+    grid_names = get_encoding(obstacle_encoding).names(get_encoding(obstacle_encoding).slots(None))
+    return {
+        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
+        "observation.environment_state": {
+            "dtype": "float32",
+            "shape": (len(grid_names),),
+            "names": grid_names,
+        },
+        "action": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
+        "scene.seed": {"dtype": "int64", "shape": (1,), "names": None},
+        "scene.obstacles": {
+            "dtype": "float32",
+            "shape": (3 * scene_slots,),
+            "names": [f"obstacle_{k}_{c}" for k in range(scene_slots) for c in ("x", "y", "r")],
+        },
+        "scene.goal": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+        "scene.start": {"dtype": "float32", "shape": (3,), "names": ["x", "y", "phi"]},
+    }
+
+
+def episode_frames(
+    rec: EpisodeRecords, scenes: Scenes, b: int, obstacle_encoding: str, scene_slots: int = MAX_OBSTACLES
+) -> dict[str, np.ndarray]:
+    """The frames of episode b as arrays (n, ...): observation before action t, and action t."""
+    n = int(rec.steps[b])
+    poses = rec.poses[b, :n]
+    actions = rec.actions[b, :n]
+    one = slice(b, b + 1)  # the episode's scene, observed at each of its n poses
+    seen = observe(
+        poses,
+        observed_velocities(poses, actions),
+        scenes.obstacles[one],
+        scenes.mask[one],
+        scenes.goal[one],
+        obstacle_encoding,
+    )
+    real = scenes.obstacles[b][scenes.mask[b]]
+    if len(real) > scene_slots:
+        raise ValueError(f"scene {b} has {len(real)} obstacles, more than the dataset's {scene_slots} slots")
+    obs_list = np.zeros((scene_slots, 3), np.float32)
+    obs_list[: len(real)] = real
+    return {
+        "observation.state": seen["agent_pos"],
+        "observation.environment_state": seen["environment_state"],
+        "action": actions.astype(np.float32),
+        "scene.seed": np.full((n, 1), scenes.seeds[b], dtype=np.int64),
+        "scene.obstacles": np.repeat(obs_list.reshape(1, -1), n, axis=0),
+        "scene.goal": np.repeat(scenes.goal[b : b + 1].astype(np.float32), n, axis=0),
+        "scene.start": np.repeat(scenes.start[b : b + 1].astype(np.float32), n, axis=0),
+    }

@@ -1,0 +1,82 @@
+"""The bench's results: per-controller metrics, ``results.json`` and ``tables.md``."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_formation.controllers import needs_policy
+from lerobot_formation.core.metrics import episode_metrics, summarize
+from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
+from lerobot_formation.core.scene import SamplingReport, Scenes
+from lerobot_formation.paper_tables import adaptive_table, three_way_table
+
+
+def _clean(x):
+    if isinstance(x, float | np.floating):
+        return None if not np.isfinite(x) else float(x)
+    if isinstance(x, np.integer | np.bool_):
+        return x.item()
+    return x
+
+
+def safety_rates(stats: dict) -> dict:
+    """The safety layer's intervention rates from a controller's ``stats`` counts: CBF-changed
+    actions per step, replans with no safe candidate per replan."""
+    return {
+        "filter_intervention_rate": stats["filter_interventions"] / max(stats["steps"], 1),
+        "replans_none_safe_rate": stats["replans_none_safe"] / max(stats["replans"], 1),
+    }
+
+
+def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
+    per = episode_metrics(rec, scenes.start, scenes.goal)
+    summary = summarize(per)
+    episodes = []
+    for b in range(len(rec)):
+        e = {
+            "seed": int(scenes.seeds[b]),
+            "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
+            "steps": int(rec.steps[b]),
+        }
+        e.update({k: _clean(v[b]) for k, v in per.items() if k not in ("success", "collision", "timeout")})
+        episodes.append(e)
+    summary["episodes"] = episodes
+    return summary
+
+
+def write_results(
+    out: Path, results: dict, label: str, args, report: SamplingReport, error: str | None = None
+):
+    """results.json and tables.md of the controllers in ``results``; ``error`` marks a run that stopped
+    early (``meta.incomplete``, ``meta.error``), with what finished before it."""
+    # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
+    # other scene sets under "by_scenes".
+    payload = dict(results.get(label, {}))
+    payload["by_scenes"] = {k: v for k, v in results.items()}
+    payload["meta"] = {
+        "scenes": args.scenes,
+        "unseen": args.unseen,
+        "seed": args.seed,
+        "policy_path": args.policy_path,
+        "candidates": args.candidates,
+        "num_inference_steps": args.num_inference_steps,
+        "date": time.strftime("%Y-%m-%d"),
+        "scene_sampling": report.as_dict() if report.drawn else None,
+        "incomplete": error is not None,
+        "error": error,
+    }
+    tmp = out / "results.json.tmp"
+    tmp.write_text(json.dumps(payload, indent=1, default=_clean))
+    os.replace(tmp, out / "results.json")
+    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({args.scenes})")]
+    sets = {k: v for k, v in results.items() if any(needs_policy(c) for c in v)}
+    if sets:
+        tables.append(adaptive_table(sets, {label: args.scenes, "unseen": args.unseen or ""}))
+    if error is not None:
+        tables.append(f"**Incomplete run**: {error}\n")
+    (out / "tables.md").write_text("\n".join(tables))
