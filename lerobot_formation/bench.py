@@ -349,7 +349,8 @@ def adaptive_table(by_set: dict[str, dict], specs: dict[str, str] | None = None)
     return "\n".join(lines) + "\n"
 
 
-def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes) -> list[str]:
+def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes, title: str = "") -> list[str]:
+    """The per-controller figures, files named ``name``_*.png, titled ``title`` (default ``name``)."""
     from lerobot_formation.plots import (
         plot_failures,
         plot_final_error_histogram,
@@ -357,37 +358,44 @@ def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes) -> 
         plot_trajectories,
     )
 
+    title = title or name
     shown = list(range(min(6, len(rec))))  # the same first scenes for every controller
     files = [
-        plot_trajectories(rec, scenes, shown, out / f"{name}_trajectories.png", title=name),
-        plot_formation_errors(rec, shown, out / f"{name}_formation_error.png", title=name, scenes=scenes),
-        plot_final_error_histogram(rec, out / f"{name}_final_error_hist.png", title=name),
+        plot_trajectories(rec, scenes, shown, out / f"{name}_trajectories.png", title=title),
+        plot_formation_errors(rec, shown, out / f"{name}_formation_error.png", title=title, scenes=scenes),
+        plot_final_error_histogram(rec, out / f"{name}_final_error_hist.png", title=title),
     ]
     if (rec.outcome != 1).any():
-        files.append(plot_failures(rec, scenes, out / f"{name}_failures.png", title=name))
+        files.append(plot_failures(rec, scenes, out / f"{name}_failures.png", title=title))
     return [f.name for f in files]
 
 
 def write_comparison_figure(
-    out: Path, label: str, records: dict[str, EpisodeRecords], scenes: Scenes, spec: str = ""
+    out: Path,
+    label: str,
+    records: dict[str, EpisodeRecords],
+    scenes: Scenes,
+    spec: str = "",
+    seed: int = UNSEEN_SEED_START,
 ) -> str:
-    from lerobot_formation.plots import comparison_scenes, plot_controller_comparison
+    from lerobot_formation.plots import comparison_scenes, plot_controller_comparison, scene_set_label
 
     path = out / f"controllers_{label}.png"
-    paper_protocol = spec.split(":")[0] in ("random", "dataset", "")
-    title = SET_TITLES.get(label, label) if paper_protocol else f"{spec} scenes (unseen)"
+    title = scene_set_label(spec, seed) if spec else label
     return plot_controller_comparison(records, scenes, comparison_scenes(records, 3), path, title=title).name
 
 
-def write_success_figure(out: Path, results: dict[str, dict]) -> str:
-    from lerobot_formation.plots import plot_success_rates
+def write_success_figure(out: Path, results: dict[str, dict], specs: dict[str, str], seed: int) -> str:
+    from lerobot_formation.plots import plot_success_rates, scene_set_label
 
-    counts = {
-        f"{s} scenes": {
+    # Each set named by what it is (the demo's two sets are both unseen; the second is the hard suite).
+    counts = {}
+    for s, res in results.items():
+        name = scene_set_label(specs[s], seed)
+        name = f"{name} ({specs[s]})" if name in counts else name  # e.g. random:50 and random:20
+        counts[name] = {
             c: (round(r["success_rate"] * r["n_episodes"]), r["n_episodes"]) for c, r in res.items()
         }
-        for s, res in results.items()
-    }
     return plot_success_rates(counts, out / "success_rates.png").name
 
 
@@ -402,6 +410,7 @@ def run_set(
     """Run the controllers ``names`` on ``scenes``; each finished controller's entry is put into
     ``into`` (default: a new dict, returned) at once, so a later failure keeps it."""
     results, records = (into if into is not None else {}), {}
+    spec = (args.unseen if label == "unseen" else args.scenes) or ""
     for name in names:
         t0 = time.perf_counter()
         try:
@@ -420,7 +429,10 @@ def run_set(
             entry["safety"] = st
         entry["scenes"] = label
         if figures:
-            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes)
+            from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
+
+            title = f"{name} on {scene_set_label(spec, args.seed)}" if spec else ""
+            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
             records[name] = rec
         results[name] = entry
         lo, hi = entry["success_ci95"]
@@ -430,8 +442,7 @@ def run_set(
             flush=True,
         )
     if figures and len(records) > 1:
-        spec = args.unseen if label == "unseen" else args.scenes
-        shared = write_comparison_figure(out, label, records, scenes, spec or "")
+        shared = write_comparison_figure(out, label, records, scenes, spec, args.seed)
         for entry in results.values():
             entry["figures"].append(shared)
     return results
@@ -565,7 +576,8 @@ def main(argv: list[str] | None = None) -> int:
         raise
     if not args.no_figures:
         figures = sorted({f for res in results.values() for r in res.values() for f in r["figures"]})
-        figures.append(write_success_figure(out, results))
+        specs = {label: args.scenes, "unseen": args.unseen or ""}
+        figures.append(write_success_figure(out, results, specs, args.seed))
         print(f"figures in {out}: {', '.join(figures)}")
     if report.drawn:
         print(
