@@ -154,6 +154,8 @@ def test_histogram_title_gives_the_true_number_of_successful_runs(pac_run, captu
     assert "55 successful runs (of 60 episodes)" in fig._suptitle.get_text()
     _assert_labelled(fig)
     assert sum(p.get_height() for p in fig.axes[0].patches) == 55
+    # bins drawn with white edges, so two neighbours of one height stay two bars
+    assert all(tuple(p.get_edgecolor()) == (1.0, 1.0, 1.0, 1.0) for ax in fig.axes[:2] for p in ax.patches)
 
 
 def test_formation_errors_are_labelled_by_scene(pac_run, captured, tmp_path):

@@ -266,7 +266,8 @@ def plot_final_error_histogram(
         (axs[1], ve, "tab:orange", "final follower velocity error [m/s]"),
     ):
         if len(values):
-            ax.hist(values, bins=int(np.clip(len(values) // 3, 5, 20)), color=color)
+            # White edges: two neighbouring bins of one height would otherwise read as one wide bin.
+            ax.hist(values, bins=int(np.clip(len(values) // 3, 5, 20)), color=color, edgecolor="white")
         else:
             ax.text(0.5, 0.5, "no successful run", ha="center", va="center", transform=ax.transAxes)
         ax.set(xlabel=xlabel, ylabel="episodes")
