@@ -118,3 +118,20 @@ def test_lerobot_eval_video_ends_on_the_outcome_frame(monkeypatch, tmp_path):
     # LeRobot's own slice stops before the ending step: no banner.
     assert np.median(banner_rows(stock[-1]), axis=(0, 1)).tolist() != list(OUTCOME_COLORS["timeout"])
     np.testing.assert_array_equal(ours[:-1], stock[1:])  # the same frames, shifted by one
+
+
+def test_a_gym_made_env_gets_the_same_overlay_outside_its_time_limit():
+    import gymnasium as gym
+
+    import lerobot_formation
+    from lerobot_formation.render import EpisodeOverlay
+
+    env = EpisodeOverlay(gym.make(lerobot_formation.ENV_ID, render_mode="rgb_array", max_episode_steps=8))
+    env.reset(options={"scene": SCENES["timeout"]})
+    for _ in range(8):
+        *_, terminated, truncated, _ = env.step(STRAIGHT)
+    assert truncated and not terminated
+    assert env._outcome == ("timeout", TEXTS["timeout"])
+    np.testing.assert_array_equal(
+        np.median(banner_rows(env.render()), axis=(0, 1)), OUTCOME_COLORS["timeout"]
+    )
