@@ -135,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         raise
     if not args.no_figures:
         figures = sorted({f for res in results.values() for r in res.values() for f in r["figures"]})
-        figures.append(write_success_figure(out, results))
+        specs = {label: args.scenes, "unseen": args.unseen or ""}
+        figures.append(write_success_figure(out, results, specs, args.seed))
         print(f"figures in {out}: {', '.join(figures)}")
     if report.drawn:
         print(

@@ -7,8 +7,10 @@ ones win: ``--scenes random:100 --unseen hard:100`` is the full protocol)."""
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
+from lerobot_formation.bench import build_parser
 from lerobot_formation.bench import main as bench_main
 
 PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "formation_diffusion_safe"
@@ -26,7 +28,14 @@ def main(argv: list[str] | None = None) -> int:
         ]  # fmt: skip
     else:
         defaults = ["--controllers", "pac,mppi", "--scenes", "random:100", "--out", "outputs/demo"]
-    return bench_main(defaults + argv)
+    start = time.time()
+    code = bench_main(defaults + argv)
+    args = build_parser().parse_args(defaults + argv)
+    if code == 0 and not args.no_figures:  # the last line names what to open
+        out = Path(args.out)
+        pngs = sorted(p.name for p in out.glob("*.png") if p.stat().st_mtime >= start - 1)
+        print(f"demo: {len(pngs)} figures in {out}: {', '.join(pngs)}")
+    return code
 
 
 if __name__ == "__main__":

@@ -3,12 +3,13 @@
 ``lerobot-eval --env.type=formation`` and ``lerobot-train --env.type=formation --env_eval_freq=N``
 get a vector env of ``FormationEnv`` teams. Each sub-env is
 
-    FreezeAfterEpisodeEnd(FormationEpisodeMetrics(TimeLimit(FormationEnv(**gym_kwargs), episode_length)))
+    FreezeAfterEpisodeEnd(EpisodeOverlay(FormationEpisodeMetrics(TimeLimit(FormationEnv(**gym_kwargs), episode_length))))
 
 built directly by a picklable factory (no gym registry lookup, so ``AsyncVectorEnv`` workers started
 with ``forkserver`` need nothing but the import that unpickling the factory does; that import also
 registers the gym id and this config). ``FreezeAfterEpisodeEnd`` is LeRobot's: a sub-env that has
-finished stops simulating while the rest of the batch runs on. ``FormationEpisodeMetrics`` adds the
+finished stops simulating while the rest of the batch runs on. ``EpisodeOverlay`` (``render.py``) writes the
+time and, at the end, the outcome on the rendered frames (the eval videos). ``FormationEpisodeMetrics`` adds the
 formation metrics (see ``lerobot_formation.episode_metrics``: ``info["final_info"]
 ["formation_metrics"]`` and, with ``episode_metrics_path``, one JSON line per episode).
 """
@@ -33,6 +34,7 @@ from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
 from lerobot_formation.env import FormationEnv
 from lerobot_formation.episode_metrics import FormationEpisodeMetrics, new_run_id
 from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
+from lerobot_formation.render import EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
 # A --dataset.root that does not exist, offline: one clear error at start-up, not a hub traceback.
@@ -84,7 +86,9 @@ class FormationEnvFactory:
         env = FormationEpisodeMetrics(
             env, log_path=self.episode_metrics_path, run_id=self.run_id, env_index=self.env_index
         )
-        return FreezeAfterEpisodeEnd(env)
+        # Outside the TimeLimit, so a truncation shows as the timeout; inside the freeze, so a finished
+        # sub-env keeps rendering its last frame with the outcome.
+        return FreezeAfterEpisodeEnd(EpisodeOverlay(env))
 
 
 @EnvConfig.register_subclass("formation")

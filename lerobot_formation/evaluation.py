@@ -51,6 +51,7 @@ def run_set(
     """Run the controllers ``names`` on ``scenes``; each finished controller's entry is put into
     ``into`` (default: a new dict, returned) at once, so a later failure keeps it."""
     results, records = (into if into is not None else {}), {}
+    spec = (args.unseen if label == "unseen" else args.scenes) or ""
     for name in names:
         t0 = time.perf_counter()
         try:
@@ -66,7 +67,10 @@ def run_set(
             entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
         entry["scenes"] = label
         if figures:
-            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes)
+            from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
+
+            title = f"{name} on {scene_set_label(spec, args.seed)}" if spec else ""
+            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
             records[name] = rec
         results[name] = entry
         lo, hi = entry["success_ci95"]
@@ -76,8 +80,7 @@ def run_set(
             flush=True,
         )
     if figures and len(records) > 1:
-        spec = args.unseen if label == "unseen" else args.scenes
-        shared = write_comparison_figure(out, label, records, scenes, spec or "")
+        shared = write_comparison_figure(out, label, records, scenes, spec, args.seed)
         for entry in results.values():
             entry["figures"].append(shared)
     return results

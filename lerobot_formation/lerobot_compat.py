@@ -20,7 +20,8 @@ names what changed. The uses:
   ``reader_meta``, ``reader_relative_rows`` and ``reader_is_low_dim``;
 - ``skip_noop_image_embedding``: skips ``dataset_writer.embed_images`` for datasets without images;
 - ``save_episode_buffer``: hands ``LeRobotDataset.save_episode`` a pre-built episode buffer (LeRobot's
-  internal layout) instead of one ``add_frame`` call per frame.
+  internal layout) instead of one ``add_frame`` call per frame;
+- ``keep_final_eval_frame``: wraps ``lerobot_eval.rollout`` so eval videos end on the outcome frame.
 
 """
 
@@ -322,4 +323,48 @@ def save_episode_buffer(ds, frames: dict[str, np.ndarray], task: str) -> bool:
     }
     buf.update(frames)
     ds.save_episode(episode_data=buf)
+    return True
+
+
+def keep_final_eval_frame() -> bool:
+    """Make ``lerobot-eval``'s videos of formation envs end on the frame that shows the outcome.
+
+    LeRobot 0.6.1's ``eval_policy`` renders after the reset and after every step, then writes
+    ``frames[: done_index + 1]`` of each episode: the reset frame and the frames *before* the ending
+    step, never the frame after it. For a vector env whose metadata has ``render.FINAL_FRAME_KEY``
+    (our ``EpisodeOverlay`` sets it) this wraps ``lerobot_eval.rollout`` so that the render after the
+    reset is skipped: frame k is then the one after step k and the written slice ends on the ending
+    step (the video starts at t = 0.1 s). Other envs keep LeRobot's frames. Patches only a
+    ``lerobot_eval`` already imported (every CLI that evaluates has imported it before it imports the
+    plugins); returns True if the patch is in place.
+    """
+    import functools
+    import sys
+
+    module = sys.modules.get("lerobot.scripts.lerobot_eval")
+    if module is None or _untested("eval videos ending on the outcome frame"):
+        return False
+    original = module.rollout
+    if getattr(original, "_formation_final_frame", False):
+        return True
+    from lerobot_formation.render import FINAL_FRAME_KEY
+
+    @functools.wraps(original)
+    def rollout(*args, **kwargs):
+        env = kwargs["env"] if "env" in kwargs else args[0]
+        render = kwargs.get("render_callback")
+        if render is not None and (getattr(env, "metadata", None) or {}).get(FINAL_FRAME_KEY):
+            seen_reset = []
+
+            def after_first(e, render=render):
+                if seen_reset:
+                    render(e)
+                else:  # the first call is the render after the reset
+                    seen_reset.append(True)
+
+            kwargs["render_callback"] = after_first
+        return original(*args, **kwargs)
+
+    rollout._formation_final_frame = True  # type: ignore[attr-defined]
+    module.rollout = rollout
     return True

@@ -12,6 +12,8 @@ It also shortens one LeRobot warning (``quiet_torchcodec_warning``): on a machin
 shared libraries, every ``DatasetConfig`` / ``LeRobotDataset`` LeRobot makes tries ``import
 torchcodec`` and logs the whole ~35-line loading traceback, twice per ``lerobot-train`` run. This
 project's datasets have no videos, so the decoder never matters; the warning becomes one line.
+And it makes ``lerobot-eval``'s videos of formation envs end on the frame with the outcome
+(``lerobot_compat.keep_final_eval_frame``).
 """
 
 import logging
@@ -54,3 +56,6 @@ import lerobot_formation.configuration_formation_diffusion  # noqa: E402, F401
 import lerobot_formation.env_config  # noqa: E402, F401
 import lerobot_formation.fast_reads  # noqa: E402, F401  (fast windowed reads for low-dim datasets)
 import lerobot_formation.processor_formation_diffusion  # noqa: E402, F401  (registers the processor step)
+from lerobot_formation.lerobot_compat import keep_final_eval_frame  # noqa: E402
+
+keep_final_eval_frame()  # lerobot-eval's videos end on the frame with the outcome (render.EpisodeOverlay)

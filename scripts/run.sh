@@ -8,6 +8,12 @@
 # Threads: OMP_NUM_THREADS and MKL_NUM_THREADS default to 1 (the models are tiny; more threads on a
 # small or shared machine oversubscribe the cores); set them, or LEROBOT_FORMATION_THREADS, or pass
 # --threads N to the demo, to use more.
+# Torch: on a machine without an NVIDIA GPU (no working nvidia-smi) setup first installs the CPU build
+# of torch and torchvision from the PyTorch CPU index (far smaller than PyPI's ~5.7 GB CUDA build with
+# its nvidia-* wheels); if that index cannot be reached it says so in one line and PyPI's CUDA build is
+# installed as usual. LEROBOT_FORMATION_TORCH=cuda always takes PyPI's build, =cpu takes the CPU index
+# even with a GPU (default: auto). LEROBOT_FORMATION_TORCH_INDEX overrides the index URL. The choice is
+# made when .venv is set up: to switch, remove .venv first.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
@@ -35,6 +41,36 @@ find_python() {
   return 1
 }
 
+# pyproject's torch range; torchvision's is lerobot 0.6.1's (each torchvision pins one torch release,
+# so pip picks a matching pair from the one index).
+TORCH_SPECS=('torch>=2.7,<2.12' 'torchvision>=0.22,<0.27')
+TORCH_CPU_INDEX="${LEROBOT_FORMATION_TORCH_INDEX:-https://download.pytorch.org/whl/cpu}"
+
+install_cpu_torch() {
+  local choice="${LEROBOT_FORMATION_TORCH:-auto}"
+  case "$choice" in
+    cuda) return 0 ;;
+    auto) if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then return 0; fi ;;
+    cpu) ;;
+    *) echo "error: LEROBOT_FORMATION_TORCH must be auto, cpu or cuda, got '$choice'" >&2; exit 2 ;;
+  esac
+  # Probe the index first (5 s, no retries), so an unreachable one costs seconds, not pip's retry loop.
+  if ! .venv/bin/python - "$TORCH_CPU_INDEX/torch/" <<'PY' 2>/dev/null; then
+import sys, urllib.request
+urllib.request.urlopen(sys.argv[1], timeout=5).close()
+PY
+    echo "note: the PyTorch CPU index $TORCH_CPU_INDEX is unreachable; installing the CUDA build of torch from PyPI"
+    return 0
+  fi
+  echo "no NVIDIA GPU (or LEROBOT_FORMATION_TORCH=cpu): installing the CPU build of torch from $TORCH_CPU_INDEX"
+  local log
+  if log="$(.venv/bin/python -m pip install -q --timeout 15 --retries 0 --index-url "$TORCH_CPU_INDEX" "${TORCH_SPECS[@]}" 2>&1)"; then
+    printf '%s\n' "$log" | grep -v -e "^WARNING: Location" -e '^$' || true
+  else
+    echo "note: the CPU build could not be installed (${log##*$'\n'}); installing the CUDA build of torch from PyPI"
+  fi
+}
+
 setup() {
   local stamp=.venv/.installed
   local want
@@ -49,6 +85,8 @@ setup() {
     "$py" -m venv .venv
   fi
   .venv/bin/python -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
+  # An installed torch satisfies the project's pins, so the next install keeps it.
+  .venv/bin/python -c 'import torch' 2>/dev/null || install_cpu_torch
   .venv/bin/python -m pip install -q -e '.[dev]' 2>&1 | grep -v "^WARNING: Location" || true
   if [ -d plugin_shim ]; then
     .venv/bin/python -m pip install -q --no-deps ./plugin_shim 2>&1 | grep -v "^WARNING: Location" || true

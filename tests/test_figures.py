@@ -11,7 +11,7 @@ from lerobot_formation.core import metrics
 from lerobot_formation.core.dynamics import FormationParams, agent_positions, initial_state
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords, PACController, rollout
-from lerobot_formation.core.scene import sample_scenes, scenes_from_list
+from lerobot_formation.core.scene import Scenes, sample_scenes, scenes_from_list
 from lerobot_formation.plots import figures
 
 PAPER_START = [0.0, 0.0, np.pi / 2]  # midpoint at the origin, heading +y
@@ -90,6 +90,11 @@ def _assert_labelled(fig):
 def test_scene_label_is_the_seed_or_the_index_in_the_scene_set(mixed, pac_run):
     assert figures.scene_label(mixed[0], 1) == "scene 1"
     assert figures.scene_label(pac_run[0], 2) == "seed 1000002"
+    twice = Scenes.concat([pac_run[0][:2], pac_run[0][:2]])  # the hard suite: each preset from seed S on
+    assert [figures.scene_label(twice, b) for b in (1, 3)] == [
+        "scene 1, seed 1000001",
+        "scene 3, seed 1000001",
+    ]
 
 
 def test_collision_point_names_the_agent_whose_clearance_went_negative(mixed):
@@ -137,7 +142,7 @@ def test_trajectories_show_up_to_six_labelled_panels(pac_run, captured, tmp_path
     (fig,) = captured
     assert len(_panels(fig)) == 6
     _assert_labelled(fig)
-    assert _panels(fig)[0].get_title().startswith("seed 1000000: success")
+    assert _panels(fig)[0].get_title().startswith("scene 0, seed 1000000: success")  # scenes repeat
 
 
 def test_histogram_title_gives_the_true_number_of_successful_runs(pac_run, captured, tmp_path):
@@ -149,6 +154,8 @@ def test_histogram_title_gives_the_true_number_of_successful_runs(pac_run, captu
     assert "55 successful runs (of 60 episodes)" in fig._suptitle.get_text()
     _assert_labelled(fig)
     assert sum(p.get_height() for p in fig.axes[0].patches) == 55
+    # bins drawn with white edges, so two neighbours of one height stay two bars
+    assert all(tuple(p.get_edgecolor()) == (1.0, 1.0, 1.0, 1.0) for ax in fig.axes[:2] for p in ax.patches)
 
 
 def test_formation_errors_are_labelled_by_scene(pac_run, captured, tmp_path):
@@ -156,7 +163,8 @@ def test_formation_errors_are_labelled_by_scene(pac_run, captured, tmp_path):
     figures.plot_formation_errors(rec, [0, 1], tmp_path / "e.png", scenes=scenes)
     (fig,) = captured
     _assert_labelled(fig)
-    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["seed 1000000", "seed 1000001"]
+    (legend,) = fig.legends  # one for both panels
+    assert [t.get_text() for t in legend.get_texts()] == ["seed 1000000", "seed 1000001"]
 
 
 def test_controllers_side_by_side_on_the_same_scenes(mixed, captured, tmp_path):
@@ -234,3 +242,37 @@ def test_bench_writes_the_success_chart_and_lists_the_figures(tmp_path, capsys):
     assert (tmp_path / "success_rates.png").stat().st_size > 1000
     assert "success_rates.png" in out and "pac_random_trajectories.png" in out
     assert not (tmp_path / "controllers_random.png").exists()  # one controller: nothing side by side
+
+
+def test_success_chart_names_each_scene_set_by_what_it_is(captured, tmp_path):
+    from lerobot_formation.bench import write_success_figure
+    from lerobot_formation.core.scene import UNSEEN_SEED_START
+
+    entry = {"success_rate": 0.5, "n_episodes": 4}
+    results = {"random": {"diffusion": entry}, "unseen": {"diffusion": entry}}
+    write_success_figure(tmp_path, results, {"random": "random:4", "unseen": "hard:4"}, UNSEEN_SEED_START)
+    write_success_figure(tmp_path, results, {"random": "random:4", "unseen": "random:2"}, 0)
+    legends = [[t.get_text() for t in fig.axes[0].get_legend().get_texts()] for fig in captured]
+    assert legends == [
+        [
+            "paper-distribution scenes, unseen seeds (4 episodes)",
+            "hard suite (gates, blockers, dense, other goals), unseen seeds (4 episodes)",
+        ],
+        # two sets of the same kind stay two entries, named by their specs
+        [
+            "paper-distribution scenes, seeds from 0 (4 episodes)",
+            "paper-distribution scenes, seeds from 0 (random:2) (4 episodes)",
+        ],
+    ]
+    assert figures.scene_set_label("dataset:100") == "dataset episodes' scenes"
+    assert figures.scene_set_label("outputs/dagger/scenes.json") == "scenes of scenes.json"
+
+
+def test_success_chart_says_not_run_where_a_controller_skipped_a_set(captured, tmp_path):
+    figures.plot_success_rates(
+        {"a": {"pac": (1, 2), "diffusion": (2, 2)}, "b": {"diffusion": (0, 2)}}, tmp_path / "s.png"
+    )
+    (fig,) = captured
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert texts.count("not run") == 1  # pac on set b; diffusion's 0 % is a bar with its count
+    assert "0 %\n0/2" in texts

@@ -10,6 +10,7 @@ from lerobot_formation.plots.figures import (
     plot_success_rates,
     plot_trajectories,
     scene_label,
+    scene_set_label,
 )
 
 __all__ = [
@@ -22,4 +23,5 @@ __all__ = [
     "plot_success_rates",
     "plot_trajectories",
     "scene_label",
+    "scene_set_label",
 ]

@@ -1,11 +1,13 @@
 """Matplotlib figures of batched rollouts (EpisodeRecords + Scenes), in the spirit of the paper's Fig. 3-4.
 
 Every panel has labelled axes with units. A scene is named by its seed, or by its index in the scene
-set when it has none (seed -1: scenes given by hand or read from a scenes file), see ``scene_label``.
+set when it has none (seed -1: scenes given by hand or read from a scenes file) or shares it with
+another scene of the set, see ``scene_label``.
 """
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -23,7 +25,7 @@ from lerobot_formation.core.formation_graph import FormationGraph  # noqa: E402
 from lerobot_formation.core.geometry import agent_clearances  # noqa: E402
 from lerobot_formation.core.metrics import wilson_interval  # noqa: E402
 from lerobot_formation.core.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TIMEOUT, EpisodeRecords  # noqa: E402
-from lerobot_formation.core.scene import Scenes  # noqa: E402
+from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes  # noqa: E402
 
 AGENT_COLORS = ("tab:blue", "tab:cyan", "tab:orange", "tab:purple")
 OUTCOME_COLORS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
@@ -32,14 +34,24 @@ MAX_FAILURE_PANELS = 9
 
 
 def scene_label(scenes: Scenes, b: int) -> str:
-    """``"seed 1000003"``, or ``"scene 12"`` (index in the scene set) for a scene without a seed."""
+    """``"seed 1000003"``, or ``"scene 12"`` (index in the scene set) for a scene without a seed, or
+    ``"scene 4, seed 1000000"`` for a seed that more than one scene of the set has (the hard suite
+    draws the same seeds from each of its presets, in the order of ``HARD_PRESETS``)."""
     seed = int(scenes.seeds[b])
-    return f"seed {seed}" if seed >= 0 else f"scene {b}"
+    if seed < 0:
+        return f"scene {b}"
+    return f"scene {b}, seed {seed}" if np.count_nonzero(scenes.seeds == seed) > 1 else f"seed {seed}"
 
 
 def _grid(n: int, max_cols: int = 3) -> tuple[int, int]:
     cols = max(1, min(max_cols, n))
     return int(np.ceil(max(n, 1) / cols)), cols
+
+
+def _suptitle(fig, text: str, fontsize: float = 12) -> None:
+    """The figure title, broken into lines that fit the figure's width (a long scene-set name)."""
+    per_line = int(fig.get_size_inches()[0] * 72 / (0.55 * fontsize))  # ~0.55 em per character
+    fig.suptitle(textwrap.fill(text, per_line), fontsize=fontsize)
 
 
 def _save(fig, path: str | Path, dpi: int = 110) -> Path:
@@ -135,7 +147,10 @@ def _draw_episode(
     ax.set(xlim=xlim, ylim=ylim, xlabel="x [m]", ylabel="y [m]")
     ax.tick_params(labelsize=7)
     head = title if title is not None else scene_label(scenes, b)
-    ax.set_title(f"{head}: {detail}, {int(rec.steps[b]) * rec.dt:.1f} s", fontsize=9)
+    text = f"{head}: {detail}, {int(rec.steps[b]) * rec.dt:.1f} s"
+    if len(text) > 48:  # about what fits over a PANEL-wide axis at 9 pt
+        text = f"{head}\n{detail}, {int(rec.steps[b]) * rec.dt:.1f} s"
+    ax.set_title(text, fontsize=9)
 
 
 PANEL = 3.7  # [in] side of one scene panel
@@ -164,7 +179,7 @@ def _finish_panels(fig, graph: FormationGraph, title: str, extra: Sequence = ())
     lines = int(np.ceil(len(handles) / per_line))
     ncol = int(np.ceil(len(handles) / lines))
     fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
-    fig.suptitle(title, fontsize=11)
+    _suptitle(fig, title, fontsize=11)
     fig.tight_layout(rect=(0, 0.25 * lines / height, 1, 1))
 
 
@@ -228,9 +243,10 @@ def plot_formation_errors(
     )
     for ax in axs:
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
+    # One legend beside both panels (the same episodes, the same colours), clear of the curves.
+    fig.legend(*axs[0].get_legend_handles_labels(), loc="center right", fontsize=7, title="episode")
+    _suptitle(fig, title)
+    fig.tight_layout(rect=(0, 0, 0.83, 1))
     return _save(fig, path)
 
 
@@ -250,7 +266,8 @@ def plot_final_error_histogram(
         (axs[1], ve, "tab:orange", "final follower velocity error [m/s]"),
     ):
         if len(values):
-            ax.hist(values, bins=int(np.clip(len(values) // 3, 5, 20)), color=color)
+            # White edges: two neighbouring bins of one height would otherwise read as one wide bin.
+            ax.hist(values, bins=int(np.clip(len(values) // 3, 5, 20)), color=color, edgecolor="white")
         else:
             ax.text(0.5, 0.5, "no successful run", ha="center", va="center", transform=ax.transAxes)
         ax.set(xlabel=xlabel, ylabel="episodes")
@@ -258,7 +275,7 @@ def plot_final_error_histogram(
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
     head = f"{title}: " if title else ""
-    fig.suptitle(f"{head}final errors of {len(ok)} successful runs (of {len(rec)} episodes)")
+    _suptitle(fig, f"{head}final errors of {len(ok)} successful runs (of {len(rec)} episodes)")
     fig.tight_layout()
     return _save(fig, path)
 
@@ -353,13 +370,39 @@ def _limits_across(records: Mapping[str, EpisodeRecords], scenes: Scenes, b: int
     return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
 
 
+# What each kind of bench scene set is, for legends (``--scenes`` / ``--unseen`` specs, ``bench.py``).
+SCENE_SET_KINDS = {
+    "random": "paper-distribution scenes",
+    "paper": "paper-distribution scenes",
+    "hard": "hard suite (gates, blockers, dense, other goals)",
+    "gates": "gates preset (a wall with one gap)",
+    "blockers": "blockers preset (an obstacle on the straight line)",
+    "dense": "dense preset (8-10 obstacles)",
+    "goals": "goals preset (other goals and start headings)",
+    "wide": "wide preset (a mix of all presets)",
+}
+
+
+def scene_set_label(spec: str, seed: int = UNSEEN_SEED_START) -> str:
+    """What a bench scene set is, e.g. ``"paper-distribution scenes, unseen seeds"`` for ``random:50``
+    (``seed`` is the bench's ``--seed``: seeds from ``UNSEEN_SEED_START`` on are in no dataset)."""
+    kind = spec.split(":")[0] if ":" in spec else None
+    if kind == "dataset":
+        return "dataset episodes' scenes"
+    if kind not in SCENE_SET_KINDS:
+        return f"scenes of {Path(spec).name}"
+    seeds = "unseen seeds" if seed >= UNSEEN_SEED_START else f"seeds from {seed}"
+    return f"{SCENE_SET_KINDS[kind]}, {seeds}"
+
+
 def plot_success_rates(
     counts: Mapping[str, Mapping[str, tuple[int, int]]], path: str | Path, title: str = ""
 ) -> Path:
     """Success rate per controller and scene set, bars with Wilson 95 % intervals.
 
     Args:
-        counts: ``{scene set: {controller: (successes, episodes)}}``.
+        counts: ``{scene set label: {controller: (successes, episodes)}}``; the legend shows each label
+            with its episode count.
     """
     sets = list(counts)
     names = list(dict.fromkeys(c for s in sets for c in counts[s]))
@@ -368,7 +411,9 @@ def plot_success_rates(
     for k, s in enumerate(sets):
         xs, rates, lows, highs, texts = [], [], [], [], []
         for i, name in enumerate(names):
-            if name not in counts[s]:
+            if name not in counts[s]:  # say so: an empty slot would read as 0 %
+                x = i + (k - (len(sets) - 1) / 2) * width
+                ax.text(x, 2, "not run", ha="center", va="bottom", fontsize=7, color="0.45", rotation=90)
                 continue
             succ, n = counts[s][name]
             lo, hi = wilson_interval(int(succ), int(n))
