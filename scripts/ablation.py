@@ -139,6 +139,12 @@ def main(argv: list[str] | None = None) -> int:
         default=4,
         help="replan_blend_steps of the '+ blending' rows (policy config field; 0: no such rows)",
     )
+    ap.add_argument(
+        "--num-inference-steps",
+        type=int,
+        default=None,
+        help="DDIM steps of every diffusion row (default: each checkpoint's own num_inference_steps)",
+    )
     ap.add_argument("--student", default=None, help="a distilled few-step checkpoint (its own rows)")
     ap.add_argument("--n-action-steps", type=int, default=None)
     ap.add_argument("--rows", default=None, help="only these rows: exact labels separated by ';'")
@@ -150,7 +156,10 @@ def main(argv: list[str] | None = None) -> int:
     sets = [s for s in args.sets.split(",") if s]
     scenes = {s: parse_scenes(s, args.seed) for s in sets}
     bench_args = argparse.Namespace(
-        candidates=args.candidates, num_inference_steps=None, seed_policy=0, policy_path=None
+        candidates=args.candidates,
+        num_inference_steps=args.num_inference_steps,
+        seed_policy=0,
+        policy_path=None,
     )
     from lerobot_formation.diffusion_controller import load_policy
 

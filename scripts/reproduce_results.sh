@@ -76,13 +76,29 @@ $BIN/lerobot-train --config_path=outputs/train_safe/checkpoints/last/pretrained_
 $PY scripts/export_pretrained.py outputs/train_safe/checkpoints/072000/pretrained_model $SAFE \
   --dataset.root data/formation_wide_dagger --card $SAFE/README.md
 $PY scripts/derive_checkpoint.py $SAFE $SAFE --set escape_advantage=0.1 --set inference_backend=trace
-$PY scripts/ablation.py --new $SAFE --old $MODEL --sets random:100 --n-action-steps 4 --out outputs/ablation_random
-$PY scripts/ablation.py --new $SAFE --sets hard:100 --n-action-steps 4 --out outputs/ablation_hard \
+# The levers at the trained sampler (DDIM-10), each alone and together:
+$PY scripts/ablation.py --new $SAFE --old $MODEL --sets random:100 --n-action-steps 4 --num-inference-steps 10 \
+  --out outputs/ablation_random
+$PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --num-inference-steps 10 --out outputs/ablation_blend \
+  --rows "new, standard + blending;new, best-of-10 + escapes + blending;new, best-of-10 + CBF + escapes + blending"
+$PY scripts/ablation.py --new $SAFE --sets hard:100 --n-action-steps 4 --num-inference-steps 10 --out outputs/ablation_hard \
   --rows "PAC;MPPI;new, standard;new, best-of-10;new, best-of-10 + escapes;new, CBF filter;new, best-of-10 + CBF;new, best-of-10 + CBF + escapes;new, both + escapes, 4 actions per replan"
 $PY benchmarks/bench_eval_speed.py --policy.path $SAFE --episodes 500 --stock 50:sync --threads 1 \
   --out outputs/eval_500 | tee $OUT/eval_500.log
 $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger --sets random:100,hard:100 \
   --rows "new + DAgger, standard;new + DAgger, best-of-10;new + DAgger, standard, 4 actions per replan" \
   --n-action-steps 4 --out outputs/ablation_dagger
-$PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --out $OUT/sampling_steps.json | tee $OUT/sampling_steps.log
+# Few-step sampling (issue 10): DDIM steps and spacings, and a distilled one-step student
+$PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 1,2,3,4,5,10 --spacings leading,trailing \
+  --out $OUT/sampling_steps_spacing.json | tee $OUT/sampling_steps_spacing.log
+$PY -m lerobot_formation.distill --teacher $SAFE --dataset.root data/formation_wide_dagger --student-steps 1 \
+  --steps 2000 --lr 3e-4 --batch-size 256 --save-every 200 --out outputs/distill_1step --threads 1
+$PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 2,3,4,10 \
+  --student outputs/distill_1step/pretrained_model --out $OUT/sampling_steps_student.json | tee $OUT/sampling_steps_student.log
+# The shipped sampler and execution: DDIM-4 (within noise of DDIM-10 above) and replan blending over 4 actions
+$PY scripts/derive_checkpoint.py $SAFE $SAFE --set num_inference_steps=4 --set replan_blend_steps=4
+$PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --out outputs/ablation_default \
+  --rows "new, standard + blending;new, best-of-10 + escapes + blending;new, best-of-10 + CBF + escapes + blending"
+$PY benchmarks/bench_replan_latency.py --parts cd --lean-steps 4 3 10 --student outputs/distill_1step/pretrained_model \
+  --threads 1 --lean-repeats 20 | tee $OUT/replan_latency.log
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time.log
