@@ -95,9 +95,9 @@ $PY -m lerobot_formation.distill --teacher $SAFE --dataset.root data/formation_w
   --steps 2000 --lr 3e-4 --batch-size 256 --save-every 200 --out outputs/distill_1step --threads 1
 $PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 2,3,4,10 \
   --student outputs/distill_1step/pretrained_model --out $OUT/sampling_steps_student.json | tee $OUT/sampling_steps_student.log
-# The shipped sampler and execution: DDIM-4 (within noise of DDIM-10 above) and replan blending over 4 actions
-$PY scripts/derive_checkpoint.py $SAFE $SAFE --set num_inference_steps=4 --set replan_blend_steps=4
-$PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --out outputs/ablation_default \
+# The shipped sampler and execution: DDIM-4 (within noise of DDIM-10 above) and replan blending over 8 actions
+$PY scripts/derive_checkpoint.py $SAFE $SAFE --set num_inference_steps=4 --set replan_blend_steps=8
+$PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --blend-steps 8 --out outputs/ablation_default8 \
   --rows "new, standard + blending;new, best-of-10 + escapes + blending;new, best-of-10 + CBF + escapes + blending"
 $PY benchmarks/bench_replan_latency.py --parts cd --lean-steps 4 3 10 --student outputs/distill_1step/pretrained_model \
   --threads 1 --lean-repeats 20 | tee $OUT/replan_latency.log
