@@ -94,9 +94,15 @@ SCALE = {
         "--unseen": {"random:100": "random:1"},
     },
     "python -m datasets_scripts.dagger_scenes": {"--rollouts": "4"},
+    "python -m lerobot_formation.distill": {"--steps": "2", "--batch-size": "8"},
+    "python benchmarks/bench_sampling_steps.py": {"--steps": "1"},
 }
 # Size flags a README command leaves at a large default: added after the program name.
-ADD_IF_MISSING = {"lerobot-formation-generate": ["--episodes", "4"], "lerobot-train": ["--steps=2"]}
+ADD_IF_MISSING = {
+    "lerobot-formation-generate": ["--episodes", "4"],
+    "lerobot-train": ["--steps=2"],
+    "python benchmarks/bench_sampling_steps.py": ["--scenes", "random:2", "--reference", "1"],
+}
 RESUMED_STEPS = "4"  # a resumed run (--resume=true) goes on from its 2 steps to this
 # Paths that follow from the scaling: the last checkpoint of a --steps=2 run is 000002.
 PATHS = {"checkpoints/032000/": "checkpoints/000002/"}
@@ -108,7 +114,8 @@ NOT_RUN = {
     "formation_diffusion_paper.json": "the paper-size network (U-Net 256-512-1024): minutes per step on a CPU",
     "accelerate launch --multi_gpu": "needs GPUs",
 }
-LINKED = ("configs", "pretrained")  # repository folders the commands read, linked into the run folder
+# repository folders the commands read, linked into the run folder
+LINKED = ("configs", "pretrained", "benchmarks")
 
 
 # --- parsing the README --------------------------------------------------------------------------
@@ -568,6 +575,10 @@ def test_the_substitution_table_fits_the_readme_and_keeps_every_run_small():
             if cmd.program == "lerobot-formation-bench":
                 counts = re.findall(r":(\d+)", f"{cmd.value('--scenes')} {cmd.value('--unseen') or ''}")
                 assert all(int(n) <= 4 for n in counts), cmd.line
+            if cmd.program == "python -m lerobot_formation.distill":
+                assert int(cmd.value("--steps")) <= 4, cmd.line
+            if cmd.program == "python benchmarks/bench_sampling_steps.py":
+                assert cmd.value("--scenes") == "random:2" and cmd.value("--steps") == "1", cmd.line
             if "--rollouts" in cmd.flags():
                 assert int(cmd.value("--rollouts")) <= 4, cmd.line
 
