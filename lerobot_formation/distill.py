@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
     from lerobot.datasets.factory import resolve_delta_timestamps
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
     from lerobot_formation.diffusion_controller import CheckpointError, load_policy
     from lerobot_formation.lerobot_compat import global_conditioning
@@ -192,23 +192,19 @@ def main(argv: list[str] | None = None) -> int:
     tcfg = teacher.config
     if tcfg.prediction_type != "epsilon" and tcfg.timestep_spacing == "trailing":
         logger.warning("the teacher is itself a distilled student (%s)", teacher_path)
-    root = args.dataset_root
+    train_cfg = teacher_path / "train_config.json"
+    trained_on = json.loads(train_cfg.read_text())["dataset"] if train_cfg.is_file() else {}
+    root = args.dataset_root or trained_on.get("root")
     if root is None:
-        train_cfg = teacher_path / "train_config.json"
-        if not train_cfg.is_file():
-            ap.error(f"--dataset.root is needed: {teacher_path} has no train_config.json to take it from")
-        root = json.loads(train_cfg.read_text())["dataset"]["root"]
+        ap.error(f"--dataset.root is needed: {teacher_path} has no train_config.json to take it from")
     if not Path(root).is_dir():
         ap.error(f"--dataset.root {root} does not exist (regenerate it with its command in the README)")
-    repo_id = (
-        json.loads((teacher_path / "train_config.json").read_text())["dataset"]["repo_id"]
-        if (teacher_path / "train_config.json").is_file()
-        else "local/dataset"
-    )
+    repo_id = trained_on.get("repo_id") or "local/dataset"
 
     torch.manual_seed(args.seed)
-    meta_probe = LeRobotDataset(repo_id, root=root)
-    delta = {k: v for k, v in resolve_delta_timestamps(tcfg, meta_probe.meta).items() if k != "action"}
+    # the observation windows only (no action chunks), from the metadata: the dataset is read once
+    meta = LeRobotDatasetMetadata(repo_id, root=root)
+    delta = {k: v for k, v in resolve_delta_timestamps(tcfg, meta).items() if k != "action"}
     dataset = LeRobotDataset(repo_id, root=root, delta_timestamps=delta)
     loader = torch.utils.data.DataLoader(
         dataset,
