@@ -22,6 +22,12 @@ Run (full size, ~1 h with every stock setting at 100 episodes of the default pol
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_eval_speed.py \\
         --policy.path pretrained/<name> --episodes 100
 
+**The safety layer** (``--candidates K``, ``--safety-filter none|cbf``): both paths run the policy's own
+best-of-K and filter (config fields ``num_candidates`` / ``safety_filter``): the engine as the bench's
+``diffusion-bestof`` / ``diffusion-safe`` controllers, the stock run with ``--policy.num_candidates=K
+--policy.safety_filter=...``. With K = 1 and no filter (the defaults) both run standard sampling.
+The two success rates are compared with a pooled two-proportion z-test (``within noise``: |z| < 1.96).
+
 ``--quick`` is a smoke run (10 episodes of 60 steps, three stock settings). The last line is the
 ratio of the best stock time to the engine's.
 """
@@ -75,16 +81,15 @@ def parse_stock(spec: str) -> list[tuple[str, int | None, bool | None]]:
     return out
 
 
-def run_stock(
-    name: str,
+def stock_command(
+    args: argparse.Namespace,
     batch: int | None,
     use_async: bool | None,
-    args: argparse.Namespace,
     scenes_file: Path,
     encoding: str,
     out: Path,
-    threads: int,
-) -> dict:
+) -> list[str]:
+    """The ``lerobot-eval`` command line of one stock setting (the safety layer's flags included)."""
     cmd = [
         str(BIN / "lerobot-eval"),
         f"--policy.path={args.policy_path}",
@@ -97,8 +102,24 @@ def run_stock(
         f"--eval.n_episodes={args.episodes}",
         f"--output_dir={out}",
     ]
+    if args.candidates != 1 or args.safety_filter != "none":
+        cmd += [f"--policy.num_candidates={args.candidates}", f"--policy.safety_filter={args.safety_filter}"]
     if batch is not None:
         cmd += [f"--eval.batch_size={batch}", f"--eval.use_async_envs={'true' if use_async else 'false'}"]
+    return cmd
+
+
+def run_stock(
+    name: str,
+    batch: int | None,
+    use_async: bool | None,
+    args: argparse.Namespace,
+    scenes_file: Path,
+    encoding: str,
+    out: Path,
+    threads: int,
+) -> dict:
+    cmd = stock_command(args, batch, use_async, scenes_file, encoding, out)
     env = {
         **os.environ,
         "HF_HUB_OFFLINE": "1",
@@ -136,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episode-length", type=int, default=600, help="control steps before a timeout")
     ap.add_argument("--stock", default=None, help=f"lerobot-eval settings (default: {DEFAULT_STOCK})")
     add_threads_argument(ap, "torch threads, both paths")
+    ap.add_argument("--candidates", type=int, default=1, help="best-of-K of the policy's safety layer")
+    ap.add_argument(
+        "--safety-filter", choices=("none", "cbf"), default="none", help="the policy's per-action filter"
+    )
     ap.add_argument("--out", default=None, help="keep lerobot-eval's outputs here (default: a temp dir)")
     ap.add_argument(
         "--quick", action="store_true", help="smoke run: 10 episodes of 60 steps, 3 stock settings"
@@ -149,10 +174,14 @@ def main(argv: list[str] | None = None) -> int:
         stock = parse_stock(args.stock or DEFAULT_STOCK)
     except ValueError as e:
         ap.error(str(e))
+    if args.candidates < 1:
+        ap.error(f"--candidates must be >= 1, got {args.candidates}")
+    safety = args.candidates != 1 or args.safety_filter != "none"
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
     from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.metrics import two_proportion_z
     from lerobot_formation.core.rollout import SUCCESS
     from lerobot_formation.core.scene import save_scenes
     from lerobot_formation.diffusion_controller import DiffusionController
@@ -173,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     save_scenes(scenes, scenes_file)
     print(
         f"{args.episodes} episodes of at most {args.episode_length} steps, policy {args.policy_path} "
+        f"(safety layer: K={args.candidates}, filter {args.safety_filter}) "
         f"(env encoding {encoding!r}), scenes {args.scenes or f'random:{args.episodes}'} -> {scenes_file}; "
         f"torch threads {threads}, {os.cpu_count()} CPUs",
         flush=True,
@@ -180,7 +210,12 @@ def main(argv: list[str] | None = None) -> int:
 
     # Engine.
     t0 = time.perf_counter()
-    ctrl = DiffusionController(args.policy_path)
+    if safety:  # the policy's own safety layer, as lerobot-eval's --policy.num_candidates/safety_filter
+        ctrl = DiffusionController(
+            args.policy_path, candidates=args.candidates, safety_filter=args.safety_filter
+        )
+    else:
+        ctrl = DiffusionController(args.policy_path)
     load_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     rec = evaluate(ctrl, scenes, FormationParams(max_steps=args.episode_length))
@@ -218,6 +253,15 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(out, ignore_errors=True)
     if not results:
         return 0
+    n = len(scenes)
+    for r in results:
+        z = two_proportion_z(
+            round(engine_success * n), n, round(r["success"] * r["n_episodes"]), r["n_episodes"]
+        )
+        print(
+            f"success engine {engine_success:.1%} vs lerobot-eval {r['name']} {r['success']:.1%}: "
+            f"z = {z:+.2f} ({'within noise' if abs(z) < 1.96 else 'NOT within noise'})"
+        )
     best = min(results, key=lambda r: r["eval_s"])
     default = next((r for r in results if r["name"] == "default"), None)
     if default is not None:

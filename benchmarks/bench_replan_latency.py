@@ -110,10 +110,11 @@ def paper_policy(config_path: Path):
     return policy, pre, post
 
 
-def stock_replan_s(policy, pre, post, env_dim: int, repeats: int) -> float:
-    """One replan through the stock select_action for one episode (empty queue -> generate_actions)."""
+def stock_replan_s(policy, pre, post, env_dim: int, repeats: int, obs: dict | None = None) -> float:
+    """One replan through the stock select_action for one episode (empty queue -> generate_actions), on
+    ``obs`` (a LeRobot observation batch of one) or a random one."""
     g = torch.Generator().manual_seed(0)
-    obs = {
+    obs = obs or {
         "observation.state": torch.randn(1, 7, generator=g),
         "observation.environment_state": torch.rand(1, env_dim, generator=g),
     }
@@ -285,6 +286,90 @@ def student_part(teacher_path: str, student_path: str, candidates: list[int], re
     )
 
 
+def episode_replans_ms(policy, pre, post, encoding: str, seeds, scorer=None) -> tuple[list[float], list]:
+    """Run one B=1 episode per seed (unseen paper scenes) through ``FormationEnv`` and the policy's
+    ``select_action`` (pre/post processors), as ``lerobot-eval`` steps it; return the duration [ms] of
+    every call that replanned (sampled and, with K > 1, scored a new chunk) and the actions taken.
+    ``scorer``: a replacement for ``core.safety.cost_to_go_at`` (the baseline), else the shipped one.
+    Torch's generator is seeded per episode, so two scorers that keep the same chunks take the same
+    actions."""
+    from lerobot.envs.utils import preprocess_observation
+
+    from lerobot_formation.core import safety
+    from lerobot_formation.env import FormationEnv
+
+    env = FormationEnv(obstacle_encoding=encoding)
+    shipped = safety.cost_to_go_at
+    safety.cost_to_go_at = scorer or shipped
+    times, actions = [], []
+    try:
+        for seed in seeds:
+            obs, _ = env.reset(seed=int(seed))
+            policy.reset()
+            torch.manual_seed(int(seed))
+            done = False
+            while not done:
+                batch = pre(preprocess_observation({k: v[None] for k, v in obs.items()}))
+                before = policy.safety_stats["replans"]
+                t0 = time.perf_counter()
+                with torch.inference_mode():
+                    action = post(policy.select_action(batch))
+                dt = time.perf_counter() - t0
+                if policy.safety_stats["replans"] > before:
+                    times.append(1e3 * dt)
+                a = action[0].numpy()
+                actions.append(a)
+                obs, _, terminated, truncated, _ = env.step(a)
+                done = terminated or truncated
+    finally:
+        safety.cost_to_go_at = shipped
+    return times, actions
+
+
+def safety_part(path: str, k: int, scenes: int) -> str:
+    """Print part (e); return its headline: the replan latency at B=1 through ``select_action`` over
+    whole episodes of ``scenes`` unseen paper scenes (``episode_replans_ms``), standard (K = 1) and with
+    the safety layer's best-of-K (sampling the K candidates, then the scorer: footprint, cost-to-go
+    progress, escape manoeuvres). The scorer's cost-to-go stops once the cells it reads are exact
+    (``navigation.cost_to_go_at``); the baseline, in the same run, computes the whole field to
+    convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions)."""
+    from lerobot_formation.core import navigation
+    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.diffusion_controller import load_policy
+
+    policy, pre, post = load_policy(path)
+    cfg = policy.config
+    cfg.inference_backend = "trace"
+    seeds = UNSEEN_SEED_START + np.arange(scenes)
+
+    def whole_field(obstacles, goal, points, rows=None, **kw):
+        return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows)
+
+    runs = {}
+    for label, kk, scorer in (("K=1", 1, None), (f"K={k}", k, None), (f"K={k}, whole field", k, whole_field)):
+        cfg.num_candidates = kk
+        runs[label] = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, scorer)
+    same = np.array_equal(np.asarray(runs[f"K={k}"][1]), np.asarray(runs[f"K={k}, whole field"][1]))
+    print(
+        f"(e) safety layer: every replan at B=1 through select_action (pre/post processors) over whole "
+        f"episodes of {scenes} unseen paper scenes; {path} (DDIM {cfg.num_inference_steps}, traced U-Net):"
+    )
+    med = {}
+    for label, (times, _) in runs.items():
+        med[label] = statistics.median(times)
+        print(
+            f"    {label:<22} {len(times):4d} replans: median {med[label]:6.2f} ms, mean "
+            f"{statistics.fmean(times):6.2f} ms, 90th percentile {np.percentile(times, 90):6.2f} ms"
+        )
+    base, ours = med[f"K={k}, whole field"], med[f"K={k}"]
+    print(f"    the same actions with both scorers: {same}")
+    return (
+        f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms "
+        f"(whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x), K=1 {med['K=1']:.1f} ms (medians; "
+        f"{torch.get_num_threads()} thread(s))"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--policy.path", dest="policy_path", default=None, help="default model (part b)")
@@ -304,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         help="a distilled few-step checkpoint (python -m lerobot_formation.distill): part (d) times it "
         "against --policy.path (default pretrained/formation_diffusion_safe) through select_action",
     )
+    ap.add_argument("--safety-scenes", type=int, default=10, help="unseen scenes of part (e)")
     args = ap.parse_args(argv)
     if args.quick:
         args.repeats, args.batch, args.lean_repeats = 1, min(args.batch, 10), min(args.lean_repeats, 5)
@@ -347,6 +433,9 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("part (d) needs --student PATH (a distilled checkpoint)")
         path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(student_part(path, args.student, args.lean_candidates, 10 * args.repeats))
+    if "e" in args.parts:
+        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
+        print(safety_part(path, max(args.lean_candidates), args.safety_scenes))
     return 0
 
 

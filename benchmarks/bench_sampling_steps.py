@@ -83,9 +83,9 @@ def int_list(text: str) -> list[int]:
 def same_rate(x1: int, n1: int, x2: int, n2: int, z_crit: float = 1.96) -> bool:
     """Whether two success counts x1/n1 and x2/n2 are within sampling noise of each other: the pooled
     two-proportion z-test does not reject equal rates at 5 % (two-sided, |z| < 1.96)."""
-    p = (x1 + x2) / (n1 + n2)
-    se = (p * (1 - p) * (1 / n1 + 1 / n2)) ** 0.5
-    return se == 0 or abs(x1 / n1 - x2 / n2) / se < z_crit
+    from lerobot_formation.core.metrics import two_proportion_z
+
+    return abs(two_proportion_z(x1, n1, x2, n2)) < z_crit
 
 
 def within_noise(results: dict[str, dict[str, dict]], reference: str) -> list[str]:

@@ -37,6 +37,7 @@ gradients, so DDP neither reduces nor waits for them.
 
 from __future__ import annotations
 
+import functools
 import logging
 import warnings
 
@@ -63,6 +64,18 @@ from lerobot_formation.lerobot_compat import (
 )
 
 EMA_PREFIX = "ema_diffusion."
+
+
+@functools.cache
+def _safety_geometry() -> tuple[np.ndarray, float, float]:
+    """The formation template (N, 2), dt and agent radius the safety layer assumes: the env's defaults
+    (built once: ``FormationParams`` checks the graph's rigidity, ~0.7 ms, at every construction)."""
+    params = FormationParams()
+    template = np.asarray(params.graph.template)
+    template.flags.writeable = False
+    return template, params.dt, params.agent_radius
+
+
 logger = logging.getLogger(__name__)
 
 
@@ -325,8 +338,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         return (action.float() - low) / (high - low) * 2 - 1
 
     def _safety_geometry(self):
-        params = FormationParams()
-        return np.asarray(params.graph.template), params.dt, params.agent_radius
+        return _safety_geometry()
 
     def _observed_obstacles(self, env_state) -> tuple[np.ndarray, np.ndarray]:
         """Goal (B, 2) and obstacles (B, M, 3) in the body frame from a raw ``nearest`` observation."""

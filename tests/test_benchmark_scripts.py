@@ -49,6 +49,22 @@ def test_help(script, flags):
         assert flag in proc.stdout, f"{script} --help lacks {flag!r}:\n{proc.stdout}"
 
 
+def test_eval_speed_stock_command_carries_the_safety_layer(tmp_path):
+    import argparse
+
+    m = _script("benchmarks/bench_eval_speed.py")
+    args = argparse.Namespace(
+        policy_path="ckpt", episode_length=60, episodes=10, candidates=1, safety_filter="none"
+    )
+    plain = m.stock_command(args, 10, False, tmp_path / "s.json", "nearest", tmp_path / "o")
+    assert not any(c.startswith("--policy.num_candidates") for c in plain)
+    assert "--eval.batch_size=10" in plain and "--eval.use_async_envs=false" in plain
+    args.candidates, args.safety_filter = 10, "cbf"
+    safe = m.stock_command(args, None, None, tmp_path / "s.json", "nearest", tmp_path / "o")
+    assert "--policy.num_candidates=10" in safe and "--policy.safety_filter=cbf" in safe
+    assert not any(c.startswith("--eval.batch_size") for c in safe)
+
+
 def test_sampling_steps_helpers():
     m = _script("benchmarks/bench_sampling_steps.py")
     assert m.int_list("10, 1,2,2") == [10, 1, 2]

@@ -93,6 +93,16 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def two_proportion_z(x1: int, n1: int, x2: int, n2: int) -> float:
+    """Pooled two-proportion z statistic of success counts x1 of n1 and x2 of n2 episodes (0 when
+    both rates are 0 or 1); |z| < 1.96: the two rates are within sampling noise at 5 % (two-sided)."""
+    if n1 < 1 or n2 < 1 or not (0 <= x1 <= n1 and 0 <= x2 <= n2):
+        raise ValueError(f"need 0 <= x <= n and n >= 1, got x1={x1}, n1={n1}, x2={x2}, n2={n2}")
+    p = (x1 + x2) / (n1 + n2)
+    se = math.sqrt(p * (1 - p) * (1 / n1 + 1 / n2))
+    return 0.0 if se == 0 else (x1 / n1 - x2 / n2) / se
+
+
 def _masked_sum(x: np.ndarray, m: np.ndarray) -> np.ndarray:
     return np.where(m, x, 0.0).sum(axis=1)
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from lerobot_formation.core.footprint import sequence_clearance
-from lerobot_formation.core.navigation import cost_to_go
+from lerobot_formation.core.navigation import cost_to_go_at
 from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import FAR
 
@@ -144,16 +144,26 @@ def cost_to_go_progress(
     Straight-line progress is greedy: it keeps the candidate that heads at the goal through an obstacle
     until every candidate collides, and drops the ones that start to go round it. The cost-to-go
     (``navigation.cost_to_go``, cells within 0.9 m of an obstacle three times dearer, as MPPI's goal
-    cost) is the length of the way round. It is computed on a window of +-``window`` m; a goal beyond
-    it is replaced by the window's point in the goal's direction.
+    cost) is the length of the way round. It is computed on a fixed grid of +-(``window`` + 1) m; a
+    goal beyond +-(``window`` - 1) m is replaced by that square's point in the goal's direction, so the
+    grid never grows around it and one episode's scores do not depend on the other episodes of a batch.
+    Only the start and the end cells are read, so the wavefront stops as soon as they are exact
+    (``navigation.cost_to_go_at``).
     """
     B, K = end.shape[:2]
     reach = np.abs(goal).max(axis=-1)
-    g = goal * np.minimum(1.0, window / np.maximum(reach, 1e-9))[:, None]
-    ctg = cost_to_go(obstacles, g, inflate=0.9, wall_cost=3.0, bounds=(-window - 1.0, window + 1.0))
-    start = ctg.at(np.zeros((B, 2)))
-    stop = ctg.at(end.reshape(B * K, 2), rows=np.repeat(np.arange(B), K)).reshape(B, K)
-    return start[:, None] - stop
+    g = goal * np.minimum(1.0, (window - 1.0) / np.maximum(reach, 1e-9))[:, None]
+    points = np.concatenate([np.zeros((B, 1, 2)), end], axis=1).reshape(B * (K + 1), 2)
+    ctg = cost_to_go_at(
+        obstacles,
+        g,
+        points,
+        rows=np.repeat(np.arange(B), K + 1),
+        inflate=0.9,
+        wall_cost=3.0,
+        bounds=(-window - 1.0, window + 1.0),
+    ).reshape(B, K + 1)
+    return ctg[:, :1] - ctg[:, 1:]
 
 
 def barrier_rows(

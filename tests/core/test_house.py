@@ -10,7 +10,7 @@ from lerobot_formation.core import dynamics
 from lerobot_formation.core.footprint import select_safest, sequence_clearance
 from lerobot_formation.core.formation_graph import FormationGraph
 from lerobot_formation.core.geometry import agent_clearances
-from lerobot_formation.core.navigation import _SHIFTS, cost_to_go
+from lerobot_formation.core.navigation import _SHIFTS, cost_to_go, cost_to_go_at
 from lerobot_formation.core.pac import PathAwareController
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import SCENE_PRESETS, sample_scenes, scenes_from_list
@@ -41,6 +41,40 @@ def test_cost_to_go_is_zero_at_goal_and_has_no_local_minima(kwargs):
         gi = ctg.cell(scenes.goal)
         goal[np.arange(B), gi[:, 0], gi[:, 1]] = True
         assert (best_neighbour[~goal] < ctg.value[~goal]).all()  # every cell but the goal descends
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"inflate": 0.9, "wall_cost": 3.0, "bounds": (-7.0, 7.0)}])
+def test_cost_to_go_at_equals_the_whole_field_bit_for_bit(kwargs):
+    """The early-stopping query reads the same values as the converged field, at points near and far
+    from the goal, inside inflated zones and at the grid's edge."""
+    rng = np.random.default_rng(3)
+    for scenes in _scenes():
+        B = len(scenes)
+        field = cost_to_go(scenes.obstacles, scenes.goal, **kwargs)
+        P = 40
+        points = np.concatenate(
+            [
+                rng.uniform(-3, 9, (B, P - 3, 2)),
+                scenes.goal[:, None],  # value 0
+                scenes.obstacles[:, :1, :2],  # an obstacle's centre: deep in a wall
+                np.full((B, 1, 2), 50.0),  # beyond the grid: its edge cell
+            ],
+            axis=1,
+        ).reshape(B * P, 2)
+        rows = np.repeat(np.arange(B), P)
+        got = cost_to_go_at(scenes.obstacles, scenes.goal, points, rows, **kwargs)
+        assert np.array_equal(got, field.at(points, rows))
+        # one scene alone (its own grid: the bounds follow the batch's goals), default rows
+        zeros = np.zeros(P, dtype=int)
+        one = cost_to_go_at(scenes.obstacles[:1], scenes.goal[:1], points[:P], zeros, **kwargs)
+        field = cost_to_go(scenes.obstacles[:1], scenes.goal[:1], **kwargs)
+        assert np.array_equal(one, field.at(points[:P], zeros))
+        # default rows: point p reads scene p
+        first = points.reshape(B, P, 2)[:, 0]
+        assert np.array_equal(
+            cost_to_go_at(scenes.obstacles, scenes.goal, first, **kwargs),
+            cost_to_go(scenes.obstacles, scenes.goal, **kwargs).at(first),
+        )
 
 
 # -- candidate scoring ------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ from lerobot_formation.core.metrics import (
     METRIC_KEYS,
     episode_metrics,
     summarize,
+    two_proportion_z,
     wilson_interval,
 )
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
@@ -190,6 +191,18 @@ def test_wilson_interval():
     assert wilson_interval(0, 10)[0] == 0.0
     with pytest.raises(ValueError):
         wilson_interval(5, 3)
+
+
+def test_two_proportion_z():
+    # 63/100 vs 67/100 is noise; 50/100 vs 66/100 is not (z = -2.29, by hand)
+    assert abs(two_proportion_z(63, 100, 67, 100)) < 1.96
+    assert two_proportion_z(50, 100, 66, 100) == pytest.approx(-2.2923, abs=1e-3)
+    assert two_proportion_z(66, 100, 50, 100) == pytest.approx(2.2923, abs=1e-3)
+    assert two_proportion_z(0, 10, 0, 20) == 0.0 and two_proportion_z(10, 10, 5, 5) == 0.0
+    with pytest.raises(ValueError, match="x1=11"):
+        two_proportion_z(11, 10, 0, 10)
+    with pytest.raises(ValueError, match="n2=0"):
+        two_proportion_z(1, 10, 0, 0)
 
 
 def test_summarize_uses_successes_for_path_metrics():

@@ -7,7 +7,13 @@ from lerobot_formation.core import dynamics
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.safety import barrier_rows, cbf_filter, decode_nearest, select_chunk
+from lerobot_formation.core.safety import (
+    barrier_rows,
+    cbf_filter,
+    cost_to_go_progress,
+    decode_nearest,
+    select_chunk,
+)
 from lerobot_formation.core.scene import FAR
 
 P = FormationParams()
@@ -120,3 +126,18 @@ def test_escape_advantage_goes_round_a_team_pressed_against_an_obstacle():
     _, adv2 = select_chunk(drive, aside, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape_advantage=0.1)
     assert adv2["safe"][0, 2] and adv2["progress"][0, 2] > 0.6
     assert adv2["choice"][0] == 2 and not adv2["escaped"][0]
+
+
+def test_progress_of_an_episode_does_not_depend_on_the_rest_of_its_batch():
+    """The scorer's grid is fixed in the body frame: a batch (the engine, lerobot-eval's vector env)
+    scores each episode exactly as ``select_action`` at B = 1 does, goals near and far."""
+    rng = np.random.default_rng(5)
+    B, K = 6, 9
+    obstacles = np.concatenate([rng.uniform(-5, 5, (B, 12, 2)), rng.uniform(0.2, 1.0, (B, 12, 1))], -1)
+    goal = np.array([[0.5, 1.0], [3.0, 5.0], [-9.0, 2.0], [0.0, -7.5], [6.0, 6.0], [-2.0, -20.0]])
+    end = rng.uniform(-1, 1, (B, K, 2))
+    batch = cost_to_go_progress(obstacles, goal, end, 6.0)
+    for b in range(B):
+        alone = cost_to_go_progress(obstacles[b : b + 1], goal[b : b + 1], end[b : b + 1], 6.0)
+        assert np.array_equal(alone[0], batch[b])
+    assert np.isfinite(batch).all()
