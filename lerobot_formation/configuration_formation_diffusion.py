@@ -13,6 +13,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim, get_encoding
+from lerobot_formation.core.safety import BLOCKED_FALLBACKS
 
 ACTION_DIM = 2  # [v, omega]
 # observation.environment_state sizes of each encoding at its default slot count.
@@ -97,6 +98,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             are used only when no sampled chunk is safe. A number [m]: a safe manoeuvre is also kept
             when its cost-to-go progress beats every safe sampled chunk's by that much (the policy
             stalled against an obstacle).
+        blocked_fallback: best-of-K only, when neither a sampled chunk nor an escape manoeuvre is safe.
+            "widest" (default): the sampled chunk with the largest predicted clearance (a CBF filter, if
+            on, then brakes). "stop": the chunk or manoeuvre with the largest predicted clearance if it
+            predicts no contact, else the team stops for the chunk and draws again at the next replan
+            (``core.safety.select_chunk``): predicted collisions become stops.
         replan_blend_steps: m >= 0. At every replan, the new chunk's first m actions are blended from
             the last executed action into the chunk (``core.replan_blend``), before best-of-K scores the
             candidates; removes the step in [v, omega] that a replan makes (the main source of motion
@@ -163,6 +169,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_margin: float = 0.1
     cbf_rate: float = 2.0
     escape_advantage: float | None = None
+    blocked_fallback: str = "widest"
     replan_on_intervention: bool = True
     replan_blend_steps: int = 0
     # Inference path (see the Args above; not a training setting).
@@ -260,6 +267,10 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
         if self.safety_filter not in SAFETY_FILTERS:
             raise config_error(f"safety_filter must be one of {SAFETY_FILTERS}, got {self.safety_filter!r}")
+        if self.blocked_fallback not in BLOCKED_FALLBACKS:
+            raise config_error(
+                f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {self.blocked_fallback!r}"
+            )
         if self.escape_advantage is not None and not self.escape_advantage >= 0:
             raise config_error(f"escape_advantage must be null or >= 0 [m], got {self.escape_advantage}")
         if self.safety_margin < 0 or self.cbf_rate <= 0:

@@ -195,6 +195,7 @@ class DiffusionController:
             "replans": 0,
             "replans_none_safe": 0,
             "escapes": 0,
+            "stops": 0,
             "steps": 0,
             "filter_interventions": 0,
         }
@@ -251,6 +252,7 @@ class DiffusionController:
             )
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
+            self.stats["stops"] += int(info["stopped"].sum())
             return chosen[:, : self.n_act]
         if not self.adaptive:
             return cand[:, 0, : self.n_act]

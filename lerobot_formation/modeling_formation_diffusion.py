@@ -368,6 +368,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             self.config.safety_margin,
             escape_advantage=self.config.escape_advantage,
             blend=blend,
+            blocked_fallback=self.config.blocked_fallback,
         )
 
     def filter_action_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -412,6 +413,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             "replans": 0,
             "replans_none_safe": 0,
             "escapes": 0,
+            "stops": 0,
             "steps": 0,
             "filter_interventions": 0,
         }
@@ -454,6 +456,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 )
                 self.safety_stats["replans_none_safe"] += int((~info["any_safe"]).sum())
                 self.safety_stats["escapes"] += int(info["escaped"].sum())
+                self.safety_stats["stops"] += int(info["stopped"].sum())
             else:
                 chosen = chunks[:, 0]
             self.safety_stats["replans"] += len(need)

@@ -73,6 +73,13 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                     None,
                     {**adv, **blend},
                 ),
+                (
+                    f"{tag}, best-of-{args.candidates} + escapes + blending + stop",
+                    path,
+                    "diffusion-bestof",
+                    None,
+                    {**adv, **blend, "blocked_fallback": "stop"},
+                ),
             ]
     if args.student:
         rows += [
@@ -181,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                     "n_action_steps": cfg.n_action_steps,
                     "escape_advantage": cfg.escape_advantage,
                     "replan_blend_steps": 0,  # rows without "blending" run without it
+                    "blocked_fallback": "widest",  # rows without "stop" keep the widest sampled chunk
                 }
             bundle = bundles[path]
             settings = {**trained[path], **({"n_action_steps": n_act} if n_act else {}), **overrides}
@@ -203,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
             if getattr(ctrl, "stats", None):
                 entry.update(safety_rates(ctrl.stats))
                 entry["escape_rate"] = ctrl.stats["escapes"] / max(ctrl.stats["replans"], 1)
+                entry["stop_rate"] = ctrl.stats["stops"] / max(ctrl.stats["replans"], 1)
             results[label][s] = entry
             lo, hi = entry["success_ci95"]
             print(
@@ -217,25 +226,27 @@ def main(argv: list[str] | None = None) -> int:
             f"#### {s} (seeds from {args.seed})",
             "",
             "| controller | success % [95 % CI] | collisions | timeouts | smoothness | jerk | path (m) | time (s) "
-            "| filter interventions | replans with no safe candidate | replans with an escape manoeuvre |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "| filter interventions | replans with no safe candidate | replans with an escape manoeuvre "
+            "| replans that stop |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for label in results:
             e = results[label].get(s, {})
             if "error" in e:
-                lines.append(f"| {label} | cannot run: {e['error']} | | | | | | | | | |")
+                lines.append(f"| {label} | cannot run: {e['error']} | | | | | | | | | | |")
                 continue
             lo, hi = e["success_ci95"]
             name = next(r[2] for r in rows if r[0] == label)
             fi = e.get("filter_intervention_rate") if name in ("diffusion-cbf", "diffusion-safe") else None
             ns = e.get("replans_none_safe_rate") if name in ("diffusion-bestof", "diffusion-safe") else None
             er = e.get("escape_rate") if name in ("diffusion-bestof", "diffusion-safe") else None
+            sr = e.get("stop_rate") if name in ("diffusion-bestof", "diffusion-safe") else None
             lines.append(
                 f"| {label} | {100 * e['success_rate']:.0f} [{100 * lo:.0f}, {100 * hi:.0f}] | {e['collisions']} | "
                 f"{e['timeouts']} | {_mean(e, 'control_smoothness')} | {_mean(e, 'jerk')} | "
                 f"{_mean(e, 'path_length')} | {_mean(e, 'time')} | "
                 f"{'—' if fi is None else f'{100 * fi:.1f} %'} | {'—' if ns is None else f'{100 * ns:.1f} %'} | "
-                f"{'—' if er is None else f'{100 * er:.1f} %'} |"
+                f"{'—' if er is None else f'{100 * er:.1f} %'} | {'—' if sr is None else f'{100 * sr:.1f} %'} |"
             )
         lines.append("")
     (out / "ablation.md").write_text("\n".join(lines))

@@ -15,8 +15,11 @@ covers.
      cost-to-go around the observed obstacles (``cost_to_go_progress``; straight-line progress is
      greedy and drives into obstacles, clearance alone would steer away from the goal too);
   4. if none is safe, a safe escape manoeuvre (a turn in place or a slow arc, ``ESCAPE_PRIMITIVES``)
-     with the most progress; if none of those is safe either, the candidate with the largest
-     predicted clearance (the filter then brakes).
+     with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
+     sampled candidate with the largest predicted clearance (a CBF filter then brakes); "stop", the
+     chunk or manoeuvre with the largest predicted clearance if it predicts no contact, else a stop
+     (zero actions for the chunk, not blended: the leaders are kinematic, and a stopped team stays
+     clear) and a fresh draw at the next replan.
 
 ``cbf_filter`` (the per-step filter): with agent i at body offset b_i, obstacle j at c_j with radius
 r_j and h_ij = |p_i - c_j| - r_j - agent_radius - margin, the unicycle moves agent i at
@@ -64,6 +67,7 @@ def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.nd
 # when no sampled chunk is safe, so that the team goes round a blocked heading (the safe arc with the
 # most cost-to-go progress) instead of pressing against the obstacle while the filter holds it.
 SLIDE_TOLERANCE = 0.02  # [m] how much closer than now a chunk may come when already inside the margin
+BLOCKED_FALLBACKS = ("widest", "stop")
 _ESCAPE_V = (0.0, 0.1, 0.2, 0.3)
 _ESCAPE_OMEGA = (-1.5, -1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0, 1.5)
 ESCAPE_PRIMITIVES = np.array([[v, w] for v in _ESCAPE_V for w in _ESCAPE_OMEGA if (v, w) != (0.0, 0.0)])
@@ -82,6 +86,7 @@ def select_chunk(
     escape: bool = True,
     escape_advantage: float | None = None,
     blend: tuple[np.ndarray, np.ndarray, int] | None = None,
+    blocked_fallback: str = "widest",
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -94,7 +99,11 @@ def select_chunk(
     ``info["choice"]`` is the kept index (K + j for primitive j). ``blend`` = (last executed action
     (B, 2), whether there is one (B,), m): the primitives are blended into the executed action as the
     caller blended the sampled chunks (``core.replan_blend``), so what is scored is what will run.
+    ``blocked_fallback`` (step 4 of the module docstring): "widest" or "stop"; ``info["stopped"]`` says
+    where the team stops.
     """
+    if blocked_fallback not in BLOCKED_FALLBACKS:
+        raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
     B, K, T = candidates.shape[:3]
     pool = candidates
     if escape:
@@ -121,16 +130,25 @@ def select_chunk(
     else:  # a primitive must beat the best safe sampled chunk by escape_advantage metres of progress
         score = progress - np.where(np.arange(pool.shape[1]) >= K, escape_advantage, 0.0)[None, :]
     best = np.argmax(np.where(allowed, score, -np.inf), axis=1)
-    fallback = np.argmax(clear[:, :K], axis=1)  # nothing safe: the widest sampled chunk (the filter brakes)
-    choice = np.where(allowed.any(axis=1), best, fallback)
-    chosen = pool[np.arange(B), choice]
+    rows = np.arange(B)
+    blocked = ~allowed.any(axis=1)
+    stopped = np.zeros(B, dtype=bool)
+    if blocked_fallback == "widest":
+        fallback = np.argmax(clear[:, :K], axis=1)  # the widest sampled chunk (a filter brakes)
+    else:  # the widest of all if it predicts no contact, else stop
+        fallback = np.argmax(clear, axis=1)
+        stopped = blocked & (clear[rows, fallback] < 0.0)
+    choice = np.where(blocked, fallback, best)
+    chosen = pool[rows, choice]
+    chosen[stopped] = 0.0
     info = {
         "choice": choice,
         "clearance": clear[:, :K],
         "progress": progress[:, :K],
         "safe": safe[:, :K],
         "any_safe": sampled_safe,
-        "escaped": choice >= K,
+        "escaped": (choice >= K) & ~stopped,
+        "stopped": stopped,
     }
     return chosen, info
 
@@ -144,15 +162,15 @@ def cost_to_go_progress(
     Straight-line progress is greedy: it keeps the candidate that heads at the goal through an obstacle
     until every candidate collides, and drops the ones that start to go round it. The cost-to-go
     (``navigation.cost_to_go``, cells within 0.9 m of an obstacle three times dearer, as MPPI's goal
-    cost) is the length of the way round. It is computed on a fixed grid of +-(``window`` + 1) m; a
-    goal beyond +-(``window`` - 1) m is replaced by that square's point in the goal's direction, so the
-    grid never grows around it and one episode's scores do not depend on the other episodes of a batch.
-    Only the start and the end cells are read, so the wavefront stops as soon as they are exact
-    (``navigation.cost_to_go_at``).
+    cost) is the length of the way round. A goal beyond +-``window`` m is replaced by that square's
+    point in the goal's direction, and the grid is fixed at +-(``window`` + 2) m (the goal's 2 m margin
+    of ``navigation.cost_to_go`` included), so one episode's scores never depend on the other episodes
+    of a batch: ``select_action`` at B = 1 scores as the batched engine does. Only the start and the end
+    cells are read, so the wavefront stops as soon as they are exact (``navigation.cost_to_go_at``).
     """
     B, K = end.shape[:2]
     reach = np.abs(goal).max(axis=-1)
-    g = goal * np.minimum(1.0, (window - 1.0) / np.maximum(reach, 1e-9))[:, None]
+    g = goal * np.minimum(1.0, window / np.maximum(reach, 1e-9))[:, None]
     points = np.concatenate([np.zeros((B, 1, 2)), end], axis=1).reshape(B * (K + 1), 2)
     ctg = cost_to_go_at(
         obstacles,
@@ -161,7 +179,7 @@ def cost_to_go_progress(
         rows=np.repeat(np.arange(B), K + 1),
         inflate=0.9,
         wall_cost=3.0,
-        bounds=(-window - 1.0, window + 1.0),
+        bounds=(-window - 2.0, window + 2.0),
     ).reshape(B, K + 1)
     return ctg[:, :1] - ctg[:, 1:]
 

@@ -2,6 +2,7 @@
 never keeps a colliding chunk when a safe one exists."""
 
 import numpy as np
+import pytest
 
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.dynamics import FormationParams
@@ -141,3 +142,40 @@ def test_progress_of_an_episode_does_not_depend_on_the_rest_of_its_batch():
         alone = cost_to_go_progress(obstacles[b : b + 1], goal[b : b + 1], end[b : b + 1], 6.0)
         assert np.array_equal(alone[0], batch[b])
     assert np.isfinite(batch).all()
+
+
+def test_blocked_fallback_stop_turns_a_predicted_contact_into_a_stop():
+    """Nothing safe (every sampled chunk and manoeuvre drives an agent into an obstacle hemming it in):
+    "widest" keeps the widest sampled chunk, which still hits; "stop" holds the team still (zero
+    actions, which keep its clearance). Nothing safe but no contact predicted: "stop" moves on."""
+    T = 16
+    # every agent hemmed in by four small obstacles 3 mm away: any motion of a few cm touches one
+    gap = 0.003
+    r = 0.05
+    d = P.agent_radius + r + gap
+    ring = [(x + dx, y + dy, r) for x, y in TEMPLATE for dx, dy in ((d, 0), (-d, 0), (0, d), (0, -d))]
+    obstacles = np.array([ring])
+    goal = np.array([[0.0, 6.0]])
+    rng = np.random.default_rng(1)
+    cand = np.stack([rng.uniform(0.1, 0.6, (1, 10, T)), rng.uniform(-1.5, 1.5, (1, 10, T))], axis=-1)
+    args = (cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    widest, info_w = select_chunk(*args, escape_advantage=0.1)
+    assert not info_w["any_safe"][0] and not info_w["stopped"][0]
+    assert info_w["clearance"][0].max() < 0  # what "widest" keeps collides
+    np.testing.assert_array_equal(widest[0], cand[0, np.argmax(info_w["clearance"][0])])
+    stop, info_s = select_chunk(*args, escape_advantage=0.1, blocked_fallback="stop")
+    assert info_s["stopped"][0] and not info_s["escaped"][0]
+    np.testing.assert_array_equal(stop[0], np.zeros((T, 2)))
+    # nothing safe, but no contact: an obstacle 0.3 m ahead of both leaders, every candidate drives
+    # 0.25 m toward it (ends inside the 0.1 m margin, not in contact); without escapes it is kept
+    lead_y = TEMPLATE[:, 1].max()
+    ahead = np.array([[[x, lead_y + P.agent_radius + 0.3 + 0.4, 0.4] for x in (-0.6, 0.0, 0.6)]])
+    slow = np.tile([0.25 / (T * P.dt), 0.0], (1, 3, T, 1))
+    kept, info_k = select_chunk(
+        slow, ahead, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False, blocked_fallback="stop"
+    )
+    assert not info_k["any_safe"][0] and not info_k["stopped"][0]
+    assert 0 <= info_k["clearance"][0].max() < 0.1
+    np.testing.assert_array_equal(kept[0], slow[0, 0])
+    with pytest.raises(ValueError, match="blocked_fallback"):
+        select_chunk(*args, blocked_fallback="brake")

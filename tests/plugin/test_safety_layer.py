@@ -104,8 +104,11 @@ def test_action_normalisation_round_trips_the_fixed_bounds():
     torch.testing.assert_close(policy.unnormalize_action(norm), raw)
 
 
-@pytest.mark.parametrize(("k", "safety_filter", "blend"), [(3, "cbf", 0), (3, "cbf", 3), (1, "none", 2)])
-def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_filter, blend):
+@pytest.mark.parametrize(
+    ("k", "safety_filter", "blend", "fallback"),
+    [(3, "cbf", 0, "widest"), (3, "cbf", 3, "widest"), (1, "none", 2, "widest"), (3, "none", 3, "stop")],
+)
+def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_filter, blend, fallback):
     """One episode, same noise: the engine's controller and the policy's select_action (the path of
     lerobot-eval) give the same actions, replans and filter interventions, with and without replan
     blending (the engine blends physical actions, select_action normalised ones)."""
@@ -115,7 +118,11 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_
     from lerobot_formation.diffusion_controller import DiffusionController, load_policy
 
     path = save_nearest_checkpoint(
-        tmp_path, num_candidates=k, safety_filter=safety_filter, replan_blend_steps=blend
+        tmp_path,
+        num_candidates=k,
+        safety_filter=safety_filter,
+        replan_blend_steps=blend,
+        blocked_fallback=fallback,
     )
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
     params = FormationParams()
@@ -138,7 +145,7 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_
         a_policy = post(policy.select_action(pre(obs), noise=noise)).numpy()
         np.testing.assert_allclose(a_policy, a_engine, atol=1e-5)
         state = step(state, a_engine, params)
-    for key in ("replans", "steps", "filter_interventions", "replans_none_safe"):
+    for key in ("replans", "steps", "filter_interventions", "replans_none_safe", "escapes", "stops"):
         assert engine.stats[key] == policy.safety_stats[key], key
     assert engine.stats["replans"] >= 4
     assert engine.stats["filter_interventions"] >= 1 or safety_filter == "none"
@@ -149,6 +156,14 @@ def test_a_negative_or_nan_escape_advantage_is_refused_with_its_value():
         with pytest.raises(ValueError, match=rf"escape_advantage must be null or >= 0 \[m\], got {bad}"):
             nearest_config(escape_advantage=bad)
     assert nearest_config(escape_advantage=None).escape_advantage is None
+
+
+def test_blocked_fallback_is_checked_with_its_value():
+    with pytest.raises(
+        ValueError, match=r"blocked_fallback must be one of \('widest', 'stop'\), got 'brake'"
+    ):
+        nearest_config(blocked_fallback="brake")
+    assert nearest_config(blocked_fallback="stop").blocked_fallback == "stop"
 
 
 def test_replan_blend_steps_is_checked_with_its_value():
