@@ -107,6 +107,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             the last executed action into the chunk (``core.replan_blend``), before best-of-K scores the
             candidates; removes the step in [v, omega] that a replan makes (the main source of motion
             jerk). 0 (default): no blending, LeRobot's plain chunk execution.
+        warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
+            j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
+            episode's previous chunk, noised to that level (SDEdit; the module docstring of
+            ``modeling_formation_diffusion``): the plan keeps its way round an obstacle from one replan
+            to the next, and costs j fewer denoiser calls. Must be below ``num_inference_steps``.
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -172,6 +177,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     blocked_fallback: str = "widest"
     replan_on_intervention: bool = True
     replan_blend_steps: int = 0
+    warm_start_step: int = 0
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"
@@ -259,6 +265,11 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"replan_blend_steps must be in [0, {self.horizon - self.n_obs_steps + 1}] (the chunk's length), "
                 f"got {self.replan_blend_steps}"
             )
+        steps = self.num_inference_steps or self.num_train_timesteps
+        if not 0 <= self.warm_start_step < steps:
+            raise config_error(
+                f"warm_start_step must be in [0, {steps}) (num_inference_steps {steps}), got {self.warm_start_step}"
+            )
         if self.timestep_spacing not in TIMESTEP_SPACINGS:
             raise config_error(
                 f"timestep_spacing must be one of {TIMESTEP_SPACINGS}, got {self.timestep_spacing!r}"
@@ -289,7 +300,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     def plans_per_episode(self) -> bool:
         """Whether ``select_action`` keeps its own per-episode chunks (safety layer or replan blending)
         instead of LeRobot's action queue."""
-        return self.safety_layer or self.replan_blend_steps > 0
+        return self.safety_layer or self.replan_blend_steps > 0 or self.warm_start_step > 0
 
     def validate_features(self) -> None:
         """Check the formation features; the error names the feature, its shape and what was found."""

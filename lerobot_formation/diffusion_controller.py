@@ -14,7 +14,8 @@ The policy's own safety layer (``safety="policy"``: the ``formation_diffusion`` 
 ``num_candidates`` and ``safety_filter``, egocentric "nearest" checkpoints) runs here through the same
 functions as in ``select_action`` (``core.safety.select_chunk`` at every replan, ``core.safety.cbf_filter``
 on every executed action), on the same observation, so the engine and ``lerobot-eval`` evaluate the
-same controller.
+same controller. Replan blending and warm-started replans (``replan_blend_steps``, ``warm_start_step``)
+follow ``select_action`` too: each episode keeps its last whole chunk and the actions run since.
 """
 
 from __future__ import annotations
@@ -216,6 +217,9 @@ class DiffusionController:
         self.queue_pos = np.full(B, self.n_act)
         self.last_action = np.zeros((B, 2))  # the action executed last (replan blending)
         self.has_last = np.zeros(B, dtype=bool)
+        # warm-started replans: each episode's last chunk (normalised, whole) and the actions run since
+        self.plans = torch.zeros(B, self.horizon - self.n_obs + 1, 2)
+        self.executed = torch.zeros(B, dtype=torch.long)
         self.generator = torch.Generator().manual_seed(self.seed)
         # MPPI's tuned field: walls x3 within 0.9 m (x30 leaves one-cell valleys the square cannot use).
         self.ctg = (
@@ -235,27 +239,31 @@ class DiffusionController:
             "observation.environment_state": torch.from_numpy(self.env_history[idx]),
         }
         batch = self.pre(obs)
+        cfg = self.policy.config
+        warm = None
+        if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
+            from lerobot_formation.modeling_formation_diffusion import warm_start_guess
+
+            rows = torch.from_numpy(idx)
+            guess = warm_start_guess(self.plans[rows], self.executed[rows], self.n_obs, self.horizon)
+            warm = (guess, torch.from_numpy(self.has_last[idx]))
         # the whole predicted horizon from the current step, K candidates per episode
-        chunks = self.policy.sample_action_chunks(batch, K, noise=self._noise(n * K))
+        chunks = self.policy.sample_action_chunks(batch, K, noise=self._noise(n * K), warm_start=warm)
         cand = self.post(chunks.reshape(n * K, *chunks.shape[2:])).cpu().numpy().astype(np.float64)
         cand = cand.reshape(n, K, *cand.shape[1:])
-        cand = blend_replan(
-            cand, self.last_action[idx], self.has_last[idx], self.policy.config.replan_blend_steps
-        )
+        cand = blend_replan(cand, self.last_action[idx], self.has_last[idx], cfg.replan_blend_steps)
         self.replans += 1
         self.stats["replans"] += n
-        if self.policy_safety:
-            if K == 1:
-                return cand[:, 0, : self.n_act]
+        if self.policy_safety and K > 1:
             chosen, info = self.policy.choose_chunk_raw(
                 self.env_history[idx, -1], cand, self.last_action[idx], self.has_last[idx]
             )
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             self.stats["stops"] += int(info["stopped"].sum())
-            return chosen[:, : self.n_act]
-        if not self.adaptive:
-            return cand[:, 0, : self.n_act]
+            return self._keep(idx, chosen)
+        if self.policy_safety or not self.adaptive:
+            return self._keep(idx, cand[:, 0])
         choice, _ = select_safest(
             poses,
             cand,
@@ -267,6 +275,14 @@ class DiffusionController:
             self.margin,
         )
         return cand[np.arange(n), choice, : self.n_act]
+
+    def _keep(self, idx: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+        """Remember the kept chunks (len(idx), T, 2) [m/s, rad/s] for warm starts; their first
+        n_action_steps actions are what runs."""
+        rows = torch.from_numpy(idx)
+        self.plans[rows] = self.policy.normalize_action(torch.from_numpy(chosen)).to(self.plans.dtype)
+        self.executed[rows] = 0
+        return chosen[:, : self.n_act]
 
     def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
         s = self.scenes
@@ -296,6 +312,7 @@ class DiffusionController:
             self.queue_pos[rows] = 0
         a = self.queue[idx, self.queue_pos[idx]]
         self.queue_pos[idx] += 1
+        self.executed[torch.from_numpy(idx)] += 1
         self.stats["steps"] += len(idx)
         if self.filter == "cbf":
             a, changed = self.policy.filter_action_raw(env, a)

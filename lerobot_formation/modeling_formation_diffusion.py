@@ -27,6 +27,15 @@ checkpoint, and a copy or pickle of the policy starts without them. ``select_act
 through ``_sample``. The traced graph is not specialised to the batch size (checked at build time on
 a second size, and by the tests).
 
+Warm-started replans (``warm_start_step`` j > 0, config field; the streaming / real-time-iteration
+idea of reusing the previous plan): at a replan, the part of the episode's previous chunk that was
+not executed, shifted to the new time and padded with its last action (``warm_start_guess``), is
+noised to the sampler's j-th timestep t_j, x = sqrt(abar_t_j) guess + sqrt(1 - abar_t_j) noise (the
+forward process, DDPM eq. 4), and denoised from there (SDEdit): the new plan keeps the way round an
+obstacle the last one chose unless the observation says otherwise, and the replan costs j fewer
+denoiser calls. An episode's first replan starts from pure noise. Same in ``select_action`` and the
+engine (``diffusion_controller``).
+
 Multi-GPU (``accelerate launch --multi_gpu --num_processes=N $(which lerobot-train) ...``): DDP
 averages the gradients, so after each optimizer step the live weights are identical on every process;
 ``lerobot-train`` calls ``accelerator.unwrap_model(policy).update()`` on every process after that step,
@@ -77,6 +86,18 @@ def _safety_geometry() -> tuple[np.ndarray, float, float]:
 
 
 logger = logging.getLogger(__name__)
+
+
+def warm_start_guess(previous: Tensor, executed: Tensor, n_obs_steps: int, horizon: int) -> Tensor:
+    """The warm start of a replan (B, horizon, A): the previous chunk ``previous`` (B, T, A), its
+    actions from the previous replan's step on, after ``executed`` (B,) of them ran, shifted to the new
+    sample's window (which starts ``n_obs_steps - 1`` steps before the current one) and padded with its
+    last action."""
+    offset = executed.to(torch.long) - (n_obs_steps - 1)  # index in ``previous`` of the window's start
+    idx = (offset[:, None] + torch.arange(horizon, device=previous.device)[None]).clamp(
+        0, previous.shape[1] - 1
+    )
+    return torch.gather(previous, 1, idx[..., None].expand(-1, -1, previous.shape[-1]))
 
 
 class _DDIMSteps:
@@ -263,7 +284,11 @@ class FormationDiffusionPolicy(DiffusionPolicy):
 
     @torch.inference_mode()
     def sample_action_chunks(
-        self, batch: dict[str, Tensor], num_candidates: int = 1, noise: Tensor | None = None
+        self,
+        batch: dict[str, Tensor],
+        num_candidates: int = 1,
+        noise: Tensor | None = None,
+        warm_start: tuple[Tensor, Tensor] | None = None,
     ) -> Tensor:
         """K candidate chunks per observation in one batched denoiser call.
 
@@ -271,22 +296,37 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         the queues give them. Returns (B, K, horizon - n_obs_steps + 1, 2) normalised actions, from the
         current step on (the first ``n_action_steps`` are what ``select_action`` executes). ``noise``
         (B * K, horizon, 2), if given, is the initial noise, candidates of one observation adjacent.
+        ``warm_start`` = (guess (B, horizon, 2) normalised, use (B,) bool): with ``warm_start_step``
+        j > 0 the rows of ``use`` start at the sampler's j-th timestep from their guess (see the module
+        docstring), every candidate of a row from the same guess with its own noise.
         """
         model = self.inference_model
         cond = global_conditioning(model, batch)  # (B, cond)
         B, K = cond.shape[0], int(num_candidates)
         if K > 1:
             cond = cond.repeat_interleave(K, dim=0)
-        full = self._sample(model, cond, noise)
+        if warm_start is not None and K > 1:  # the first candidate of each row continues its last plan
+            guess, use = (x.repeat_interleave(K, dim=0) for x in warm_start)
+            first = (torch.arange(B * K, device=use.device) % K) == 0
+            warm_start = (guess, use & first)
+        full = self._sample(model, cond, noise, warm_start)
         return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
 
-    def _sample(self, model: DiffusionModel, cond: Tensor, noise: Tensor | None = None) -> Tensor:
+    def _sample(
+        self,
+        model: DiffusionModel,
+        cond: Tensor,
+        noise: Tensor | None = None,
+        warm_start: tuple[Tensor, Tensor] | None = None,
+    ) -> Tensor:
         """(len(cond), horizon, action_dim) denoised samples of ``model`` for the conditioning vectors
         ``cond``, from ``noise`` (else fresh ``torch.randn``, as ``conditional_sample`` draws it), on
-        the configured ``inference_backend`` (see the module docstring)."""
+        the configured ``inference_backend`` (see the module docstring); ``warm_start`` as in
+        ``sample_action_chunks``, per row of ``cond``."""
         backend = self.config.inference_backend
         self._sync_timestep_spacing(model)
-        parts = None if backend == "eager" else denoiser_parts(model)
+        j = self.config.warm_start_step if warm_start is not None and bool(warm_start[1].any()) else 0
+        parts = None if backend == "eager" and j == 0 else denoiser_parts(model)
         if parts is None:
             return model.conditional_sample(len(cond), global_cond=cond, noise=noise)
         unet, scheduler, num_steps, shape = parts
@@ -295,24 +335,40 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 p = next(model.parameters())
                 noise = torch.randn((len(cond), *shape), dtype=p.dtype, device=p.device)
             sample = noise
-            ddim = self._lean.ddim(model, scheduler, num_steps)
+            ddim = None if backend == "eager" else self._lean.ddim(model, scheduler, num_steps)
             if ddim is not None:
                 timesteps = ddim.timesteps
-            else:  # another scheduler: diffusers' own steps
+            else:  # the eager backend or another scheduler: diffusers' own steps
                 scheduler.set_timesteps(num_steps)
                 timesteps = scheduler.timesteps
             net = unet
             if backend == "trace" and not self.training and not self.config.compile_model:
                 t_batch = torch.full(sample.shape[:1], timesteps[0], dtype=torch.long, device=sample.device)
                 net = self._lean.unet(model, unet, sample, t_batch, cond)  # traced on these inputs
+            warm = None
+            if j:
+                if j >= len(timesteps):
+                    raise ValueError(
+                        f"warm_start_step must be below the sampler's {len(timesteps)} steps, got {j}"
+                    )
+                guess, warm = warm_start[0].to(sample.dtype), warm_start[1].to(sample.device)
+                t_j = torch.full(sample.shape[:1], int(timesteps[j]), dtype=torch.long, device=sample.device)
+                noised = scheduler.add_noise(guess, sample, t_j)  # the forward process, DDPM eq. 4
+                sample = torch.where(warm[:, None, None], noised, sample)
             for i, t in enumerate(timesteps):
-                t_batch = torch.full(sample.shape[:1], t, dtype=torch.long, device=sample.device)
-                eps = net(sample, t_batch, cond)
-                sample = (
-                    ddim.step(i, eps, sample)
-                    if ddim is not None
-                    else scheduler.step(eps, t, sample).prev_sample
-                )
+                rows = None if warm is None or i >= j else ~warm  # before t_j: the cold rows only
+                if rows is not None and not rows.any():
+                    continue
+                x = sample if rows is None else sample[rows]
+                c = cond if rows is None else cond[rows]
+                t_batch = torch.full(x.shape[:1], t, dtype=torch.long, device=x.device)
+                eps = net(x, t_batch, c)
+                x = ddim.step(i, eps, x) if ddim is not None else scheduler.step(eps, t, x).prev_sample
+                if rows is None:
+                    sample = x
+                else:
+                    sample = sample.clone()
+                    sample[rows] = x
         return sample
 
     def _sync_timestep_spacing(self, model: DiffusionModel) -> None:
@@ -417,8 +473,9 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             "steps": 0,
             "filter_interventions": 0,
         }
-        self._plan: Tensor | None = None  # (B, n_action_steps, 2) normalised chunk of each episode
+        self._plan: Tensor | None = None  # (B, T, 2) normalised chunk of each episode, T = its horizon
         self._plan_pos: Tensor | None = None  # (B,) next action of each episode's chunk
+        self._executed: Tensor | None = None  # (B,) actions run since the episode's last replan
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
@@ -426,24 +483,32 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         ``num_candidates > 1`` or ``safety_filter != "none"``: best-of-K at every replan, the CBF filter
         on every executed action, and (``replan_on_intervention``) a fresh plan for an episode whose
         action the filter changed. Each episode of the batch keeps its own chunk and replans on its own,
-        as the batched engine does. Counts go to ``self.safety_stats``.
+        as the batched engine does; with ``warm_start_step`` a replan starts from the rest of the
+        episode's last chunk (``warm_start_guess``). Counts go to ``self.safety_stats``.
         """
         if not self.config.plans_per_episode:
             return super().select_action(batch, noise=noise)
         batch = {k: v for k, v in batch.items() if k != ACTION}
         env_now = batch[OBS_ENV_STATE]
         push_observation(self, batch)
-        B, n_act = len(env_now), self.config.n_action_steps
+        cfg = self.config
+        B, n_act = len(env_now), cfg.n_action_steps
         if self._plan is None or len(self._plan) != B:
-            self._plan = torch.zeros(B, n_act, self.config.action_feature.shape[0], device=env_now.device)
+            T = cfg.horizon - cfg.n_obs_steps + 1
+            self._plan = torch.zeros(B, T, cfg.action_feature.shape[0], device=env_now.device)
             self._plan_pos = torch.full((B,), n_act, dtype=torch.long)
+            self._executed = torch.zeros(B, dtype=torch.long)
             self._last_action = torch.zeros(B, self._plan.shape[-1], device=env_now.device)
             self._has_last = torch.zeros(B, dtype=torch.bool)
         need = torch.nonzero(self._plan_pos >= n_act).flatten()
         if len(need):
             stacked = {k: v[need] for k, v in queued_history(self, batch).items()}
             self._check_observation_sizes(stacked)
-            chunks = self.sample_action_chunks(stacked, self.config.num_candidates, noise=noise)
+            warm = None
+            if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
+                guess = warm_start_guess(self._plan[need], self._executed[need], cfg.n_obs_steps, cfg.horizon)
+                warm = (guess, self._has_last[need])
+            chunks = self.sample_action_chunks(stacked, cfg.num_candidates, noise=noise, warm_start=warm)
             chunks = blend_replan(
                 chunks,
                 self._last_action[need].to(chunks.dtype),
@@ -460,10 +525,12 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             else:
                 chosen = chunks[:, 0]
             self.safety_stats["replans"] += len(need)
-            self._plan[need] = chosen[:, :n_act].to(self._plan.dtype)
+            self._plan[need] = chosen.to(self._plan.dtype)
             self._plan_pos[need] = 0
+            self._executed[need] = 0
         action = self._plan[torch.arange(B), self._plan_pos]
         self._plan_pos += 1
+        self._executed += 1
         self.safety_stats["steps"] += B
         if self.config.safety_filter == "cbf":
             action, changed = self.filter_action(env_now, action)

@@ -16,7 +16,9 @@ also replaces sampled chunks that make too little progress; without it, only whe
 with ``--dagger CKPT`` the same model after a DAgger round; with ``--n-action-steps N`` the new
 model executing N instead of its trained number of actions per replan (an action-execution change);
 "+ blending": ``replan_blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
-executed one, ``core.replan_blend``; the other rows run without it); with ``--student CKPT`` a
+executed one, ``core.replan_blend``; the other rows run without it); "+ warm start":
+``warm_start_step`` = ``--warm-start-step`` (a replan starts from the last chunk's unexecuted rest,
+noised; the other rows sample from pure noise); "+ stop": ``blocked_fallback`` "stop"; with ``--student CKPT`` a
 distilled few-step checkpoint (``python -m lerobot_formation.distill``) standard and with its best
 safety layer.
 """
@@ -79,6 +81,18 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                     "diffusion-bestof",
                     None,
                     {**adv, **blend, "blocked_fallback": "stop"},
+                ),
+            ]
+        if args.warm_start_step:
+            warm = {**blend, "warm_start_step": args.warm_start_step}
+            rows += [
+                (f"{tag}, standard + blending + warm start", path, "diffusion", None, warm),
+                (
+                    f"{tag}, best-of-{args.candidates} + escapes + blending + warm start",
+                    path,
+                    "diffusion-bestof",
+                    None,
+                    {**adv, **warm},
                 ),
             ]
     if args.student:
@@ -152,6 +166,12 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="DDIM steps of every diffusion row (default: each checkpoint's own num_inference_steps)",
     )
+    ap.add_argument(
+        "--warm-start-step",
+        type=int,
+        default=0,
+        help="warm_start_step of the '+ warm start' rows (policy config field; 0: no such rows)",
+    )
     ap.add_argument("--student", default=None, help="a distilled few-step checkpoint (its own rows)")
     ap.add_argument("--n-action-steps", type=int, default=None)
     ap.add_argument("--rows", default=None, help="only these rows: exact labels separated by ';'")
@@ -189,6 +209,7 @@ def main(argv: list[str] | None = None) -> int:
                     "escape_advantage": cfg.escape_advantage,
                     "replan_blend_steps": 0,  # rows without "blending" run without it
                     "blocked_fallback": "widest",  # rows without "stop" keep the widest sampled chunk
+                    "warm_start_step": 0,  # rows without "warm start" sample every replan from noise
                 }
             bundle = bundles[path]
             settings = {**trained[path], **({"n_action_steps": n_act} if n_act else {}), **overrides}

@@ -102,3 +102,25 @@ $PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --blend-steps 8 -
 $PY benchmarks/bench_replan_latency.py --parts cd --lean-steps 4 3 10 --student outputs/distill_1step/pretrained_model \
   --threads 1 --lean-repeats 20 | tee $OUT/replan_latency.log
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time.log
+# Session of 2026-12-02 (evening): a second DAgger round on the shipped weights, warm-started replans,
+# and the ablation on 500 scenes per set (100-scene sets moved by +-7 points between reruns).
+$PY -m datasets_scripts.dagger_scenes --policy.path $SAFE --scene-preset wide --rollouts 1000 --seed 3100000 \
+  --out data/dagger2_scenes.json | tee $OUT/dagger2_scenes.log
+N_DAGGER2=$($PY -c "import json; print(len(json.load(open('data/dagger2_scenes.json'))['scenes']))")
+$BIN/lerobot-formation-generate --scenes data/dagger2_scenes.json --episodes "$N_DAGGER2" --scene-slots 15 \
+  --obstacle-encoding nearest --root data/formation_dagger2 --repo-id local/formation_dagger2 --overwrite \
+  --no-progress | tee $OUT/generate_dagger2.log
+$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger2 --new_root data/formation_wide_dagger2 \
+  --operation.type merge --operation.repo_ids "['local/formation_wide','local/formation_dagger2']" \
+  --operation.roots "['data/formation_wide','data/formation_dagger2']"
+$BIN/lerobot-train --policy.path=$SAFE --policy.use_ema=true \
+  --dataset.repo_id=local/formation_wide_dagger2 --dataset.root=data/formation_wide_dagger2 \
+  --env.type=formation --env.obstacle_encoding=nearest --steps=24000 --batch_size=64 --num_workers=0 \
+  --policy.optimizer_lr=2e-4 --policy.scheduler_warmup_steps=300 --save_freq=4000 --env_eval_freq=0 \
+  --policy.push_to_hub=false --seed=1002 --output_dir=outputs/train_dagger2 2>&1 | tee $OUT/train_dagger2.log
+$PY scripts/export_pretrained.py outputs/train_dagger2/checkpoints/024000/pretrained_model outputs/formation_diffusion_d2 \
+  --dataset.root data/formation_wide_dagger2
+$PY scripts/derive_checkpoint.py outputs/formation_diffusion_d2 outputs/formation_diffusion_d2 --set warm_start_step=1
+$PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_d2 --sets random:500,hard:500 --blend-steps 8 \
+  --warm-start-step 1 --out outputs/ablation_500 \
+  --rows "PAC;MPPI;new, standard + blending;new, best-of-10 + escapes + blending;new + DAgger, standard + blending;new + DAgger, best-of-10 + escapes + blending;new + DAgger, standard + blending + warm start;new + DAgger, best-of-10 + escapes + blending + warm start;new + DAgger, best-of-10 + CBF + escapes + blending"

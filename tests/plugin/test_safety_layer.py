@@ -105,10 +105,19 @@ def test_action_normalisation_round_trips_the_fixed_bounds():
 
 
 @pytest.mark.parametrize(
-    ("k", "safety_filter", "blend", "fallback"),
-    [(3, "cbf", 0, "widest"), (3, "cbf", 3, "widest"), (1, "none", 2, "widest"), (3, "none", 3, "stop")],
+    ("k", "safety_filter", "blend", "fallback", "warm"),
+    [
+        (3, "cbf", 0, "widest", 0),
+        (3, "cbf", 3, "widest", 0),
+        (1, "none", 2, "widest", 0),
+        (3, "none", 3, "stop", 0),
+        (1, "none", 2, "widest", 1),  # warm-started replans
+        (3, "cbf", 3, "widest", 2),  # ... after the filter cut a chunk short
+    ],
 )
-def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_filter, blend, fallback):
+def test_engine_and_select_action_run_the_same_safety_layer(
+    tmp_path, k, safety_filter, blend, fallback, warm
+):
     """One episode, same noise: the engine's controller and the policy's select_action (the path of
     lerobot-eval) give the same actions, replans and filter interventions, with and without replan
     blending (the engine blends physical actions, select_action normalised ones)."""
@@ -123,6 +132,7 @@ def test_engine_and_select_action_run_the_same_safety_layer(tmp_path, k, safety_
         safety_filter=safety_filter,
         replan_blend_steps=blend,
         blocked_fallback=fallback,
+        warm_start_step=warm,
     )
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
     params = FormationParams()
