@@ -38,6 +38,12 @@ Run (full size)::
     ``--lean-candidates`` (K > 1: the safety layer's best-of-K), both traced. ``--parts d`` runs only
     this part; it also runs with the default ``--parts`` when ``--student`` is given.
 
+(e) The safety layer (``--parts e``): every replan at B=1 through ``select_action`` over whole episodes
+    of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
+    the scorer against its whole-field baseline in the same run, and with a warm-starting checkpoint
+    all K candidates warm-started (``warm_start_all_candidates``). Its headline is the last line
+    when it runs.
+
 ``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (d) when it
 runs (``replan latency B=1 via select_action: student K=1 ...``), else of (c) when it
 runs (``replan latency B=1 K=1: ...``: the trace backend against the eager baseline at the first of
@@ -346,13 +352,21 @@ def safety_part(path: str, k: int, scenes: int) -> str:
         return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows)
 
     runs = {}
-    for label, kk, scorer in (("K=1", 1, None), (f"K={k}", k, None), (f"K={k}, whole field", k, whole_field)):
-        cfg.num_candidates = kk
+    variants = [
+        ("K=1", 1, None, False),
+        (f"K={k}", k, None, False),
+        (f"K={k}, whole field", k, whole_field, False),
+    ]
+    if cfg.warm_start_step:  # the real-time best-of-K: every candidate warm-started, j fewer denoiser calls
+        variants.append((f"K={k}, all candidates warm", k, None, True))
+    for label, kk, scorer, all_warm in variants:
+        cfg.num_candidates, cfg.warm_start_all_candidates = kk, all_warm
         runs[label] = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, scorer)
     same = np.array_equal(np.asarray(runs[f"K={k}"][1]), np.asarray(runs[f"K={k}, whole field"][1]))
     print(
         f"(e) safety layer: every replan at B=1 through select_action (pre/post processors) over whole "
-        f"episodes of {scenes} unseen paper scenes; {path} (DDIM {cfg.num_inference_steps}, traced U-Net):"
+        f"episodes of {scenes} unseen paper scenes; {path} (DDIM {cfg.num_inference_steps}, warm start "
+        f"{cfg.warm_start_step}, traced U-Net):"
     )
     med = {}
     for label, (times, _) in runs.items():
@@ -363,10 +377,12 @@ def safety_part(path: str, k: int, scenes: int) -> str:
         )
     base, ours = med[f"K={k}, whole field"], med[f"K={k}"]
     print(f"    the same actions with both scorers: {same}")
+    fast = med.get(f"K={k}, all candidates warm")
+    fast_text = "" if fast is None else f", all candidates warm {fast:.1f} ms"
     return (
-        f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms "
-        f"(whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x), K=1 {med['K=1']:.1f} ms (medians; "
-        f"{torch.get_num_threads()} thread(s))"
+        f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
+        f"{fast_text} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x), K=1 {med['K=1']:.1f} ms "
+        f"(medians; {torch.get_num_threads()} thread(s))"
     )
 
 

@@ -237,7 +237,10 @@ def main(argv: list[str] | None = None) -> int:
             c.n_action_steps = args.n_action_steps
         if args.inference_backend is not None:
             c.inference_backend = args.inference_backend
-    own = f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps {cfg.timestep_spacing}"
+    own = (
+        f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps {cfg.timestep_spacing}, "
+        f"warm start {getattr(cfg, 'warm_start_step', 0)}"
+    )
     print(
         f"policy {args.policy_path} (own sampler {own}, {cfg.n_action_steps} actions per replan, inference_backend "
         f"{cfg.inference_backend!r}), controller {args.controller}; scenes "
@@ -261,8 +264,11 @@ def main(argv: list[str] | None = None) -> int:
 
     params = FormationParams()
     results: dict[str, dict[str, dict]] = {}
+    # each checkpoint's own warm start, restored per setting (a step count at or below it turns it off)
+    warm = {id(b): getattr(b[0].config, "warm_start_step", 0) for b in [bundle] + [b for _, b in students]}
     for label, path, bun, k, spacing in settings:
         bun[0].config.timestep_spacing = spacing
+        bun[0].config.warm_start_step = warm[id(bun)]
         bench_args = argparse.Namespace(
             candidates=args.candidates, num_inference_steps=k, seed_policy=args.seed_policy, policy_path=path
         )

@@ -112,6 +112,9 @@ class FormationDiffusionConfig(DiffusionConfig):
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
             ``modeling_formation_diffusion``): the plan keeps its way round an obstacle from one replan
             to the next, and costs j fewer denoiser calls. Must be below ``num_inference_steps``.
+        warm_start_all_candidates: with best-of-K and ``warm_start_step``, warm-start every candidate
+            (each with its own noise) instead of the first only: the K candidates cost j fewer denoiser
+            calls, at some loss of diversity among them. Default False.
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -178,6 +181,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     replan_on_intervention: bool = True
     replan_blend_steps: int = 0
     warm_start_step: int = 0
+    warm_start_all_candidates: bool = False
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"

@@ -20,6 +20,7 @@ follow ``select_action`` too: each episode keeps its last whole chunk and the ac
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,8 @@ from lerobot_formation.core.observation import STATE_DIM, observe
 from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import Scenes
+
+logger = logging.getLogger(__name__)
 
 
 class CheckpointError(ValueError):
@@ -107,7 +110,9 @@ def load_policy(path: str | Path, device: str = "cpu"):
 
 
 def set_inference_steps(policy, steps: int | None) -> None:
-    """Use DDIM with ``steps`` denoising steps (same training betas), or keep the checkpoint's sampler."""
+    """Use DDIM with ``steps`` denoising steps (same training betas), or keep the checkpoint's sampler.
+    A warm start at or past the last of them (``warm_start_step`` >= steps) is turned off, with a
+    warning: it would skip the whole sampler."""
     if steps is None:
         return
     from diffusers.schedulers.scheduling_ddim import DDIMScheduler
@@ -115,6 +120,13 @@ def set_inference_steps(policy, steps: int | None) -> None:
     cfg = policy.config
     if not 1 <= steps <= cfg.num_train_timesteps:
         raise ValueError(f"inference steps must be in [1, {cfg.num_train_timesteps}], got {steps}")
+    if getattr(cfg, "warm_start_step", 0) >= steps:
+        logger.warning(
+            "warm_start_step %d needs more than %d inference steps: warm-started replans are off",
+            cfg.warm_start_step,
+            steps,
+        )
+        cfg.warm_start_step = 0
     for model in (policy.diffusion, getattr(policy, "ema_diffusion", None)):
         if model is None:
             continue

@@ -298,7 +298,8 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         (B * K, horizon, 2), if given, is the initial noise, candidates of one observation adjacent.
         ``warm_start`` = (guess (B, horizon, 2) normalised, use (B,) bool): with ``warm_start_step``
         j > 0 the rows of ``use`` start at the sampler's j-th timestep from their guess (see the module
-        docstring), every candidate of a row from the same guess with its own noise.
+        docstring): the first candidate of a row, or with ``warm_start_all_candidates`` all K, each
+        from the same guess with its own noise.
         """
         model = self.inference_model
         cond = global_conditioning(model, batch)  # (B, cond)
@@ -307,8 +308,9 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             cond = cond.repeat_interleave(K, dim=0)
         if warm_start is not None and K > 1:  # the first candidate of each row continues its last plan
             guess, use = (x.repeat_interleave(K, dim=0) for x in warm_start)
-            first = (torch.arange(B * K, device=use.device) % K) == 0
-            warm_start = (guess, use & first)
+            if not self.config.warm_start_all_candidates:
+                use = use & ((torch.arange(B * K, device=use.device) % K) == 0)
+            warm_start = (guess, use)
         full = self._sample(model, cond, noise, warm_start)
         return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
 

@@ -94,6 +94,13 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                     None,
                     {**adv, **warm},
                 ),
+                (
+                    f"{tag}, best-of-{args.candidates} + escapes + blending + warm start (all candidates)",
+                    path,
+                    "diffusion-bestof",
+                    None,
+                    {**adv, **warm, "warm_start_all_candidates": True},
+                ),
             ]
     if args.student:
         rows += [
@@ -210,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
                     "replan_blend_steps": 0,  # rows without "blending" run without it
                     "blocked_fallback": "widest",  # rows without "stop" keep the widest sampled chunk
                     "warm_start_step": 0,  # rows without "warm start" sample every replan from noise
+                    "warm_start_all_candidates": False,
                 }
             bundle = bundles[path]
             settings = {**trained[path], **({"n_action_steps": n_act} if n_act else {}), **overrides}

@@ -124,3 +124,21 @@ $PY scripts/derive_checkpoint.py outputs/formation_diffusion_d2 outputs/formatio
 $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_d2 --sets random:500,hard:500 --blend-steps 8 \
   --warm-start-step 1 --out outputs/ablation_500 \
   --rows "PAC;MPPI;new, standard + blending;new, best-of-10 + escapes + blending;new + DAgger, standard + blending;new + DAgger, best-of-10 + escapes + blending;new + DAgger, standard + blending + warm start;new + DAgger, best-of-10 + escapes + blending + warm start;new + DAgger, best-of-10 + CBF + escapes + blending"
+$PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_d2 --sets random:500,hard:500 --blend-steps 8 \
+  --warm-start-step 1 --out outputs/ablation_500c \
+  --rows "new + DAgger, best-of-10 + escapes + blending + warm start (all candidates)"
+$PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --blend-steps 8 --out outputs/ablation_stop \
+  --rows "new, standard + blending;new, best-of-10 + escapes + blending;new, best-of-10 + escapes + blending + stop;new, best-of-10 + CBF + escapes + blending"
+# The fine-tune (with warm_start_step 1 in its config) becomes the shipped default (its model card stays).
+for f in config.json dataset_scenes.json model.safetensors policy_postprocessor.json \
+  policy_postprocessor_step_0_unnormalizer_processor.safetensors policy_preprocessor.json \
+  policy_preprocessor_step_3_normalizer_processor.safetensors train_config.json; do
+  cp outputs/formation_diffusion_d2/$f $SAFE/$f
+done
+$PY benchmarks/bench_eval_speed.py --policy.path $SAFE --episodes 200 --stock 50:sync --threads 1 \
+  --out outputs/eval_std_200 | tee $OUT/eval_std_200.log
+$PY benchmarks/bench_eval_speed.py --policy.path $SAFE --episodes 200 --stock 50:sync --candidates 10 --threads 1 \
+  --out outputs/eval_safe10_200 | tee $OUT/eval_safe10_200.log
+$PY benchmarks/bench_replan_latency.py --parts ce --threads 1 --lean-steps 4 3 --safety-scenes 10 --lean-repeats 20 \
+  | tee $OUT/replan_latency.log
+$PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_d2.log

@@ -2,6 +2,8 @@
 warm rows are SDEdit from it (diffusers' ``add_noise`` at the j-th timestep, then the remaining steps),
 the cold rows and j = 0 are plain sampling, and only the first of K candidates is warm."""
 
+import logging
+
 import pytest
 import torch
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
@@ -104,7 +106,28 @@ def test_only_the_first_candidate_continues_the_last_plan():
     assert not torch.allclose(warm[:, 0], cold[:, 0], **TOL)
 
 
-def test_warm_start_step_is_checked_with_its_value():
+def test_all_candidates_warm_on_request():
+    policy = _policy(inference_backend="lean", warm_start_step=2, warm_start_all_candidates=True)
+    B, K = 2, 3
+    batch, noise, guess = _history(B), _noise(B * K), _guess(B)
+    use = torch.tensor([True, False])
+    warm = policy.sample_action_chunks(batch, K, noise=noise, warm_start=(guess, use))
+    # each candidate of row 0 equals one warm-started sample of its own noise, row 1 stays cold
+    policy.config.warm_start_all_candidates = False
+    for k in range(K):
+        one = policy.sample_action_chunks(
+            {key: v[:1] for key, v in batch.items()},
+            1,
+            noise=noise[k : k + 1],
+            warm_start=(guess[:1], use[:1]),
+        )
+        torch.testing.assert_close(warm[0, k], one[0, 0], **TOL)
+    policy.config.warm_start_step = 0
+    cold = policy.sample_action_chunks(batch, K, noise=noise)
+    torch.testing.assert_close(warm[1], cold[1], **TOL)
+
+
+def test_warm_start_step_is_checked_with_its_value(caplog):
     with pytest.raises(
         ValueError, match=r"warm_start_step must be in \[0, 4\) \(num_inference_steps 4\), got 4"
     ):
@@ -113,10 +136,15 @@ def test_warm_start_step_is_checked_with_its_value():
         tiny_config(warm_start_step=-1)
     cfg = tiny_config(warm_start_step=1)
     assert cfg.plans_per_episode and not cfg.safety_layer
-    # a sampler with fewer steps than the warm start (set at run time) is refused when sampling
-    policy = _policy(warm_start_step=3)
+    # the engine's step override turns a warm start it leaves no room for off, and says so
     from lerobot_formation.diffusion_controller import set_inference_steps
 
-    set_inference_steps(policy, 2)
-    with pytest.raises(ValueError, match="warm_start_step must be below the sampler's 2 steps, got 3"):
+    policy = _policy(warm_start_step=3)
+    with caplog.at_level(logging.WARNING):
+        set_inference_steps(policy, 3)
+    assert policy.config.warm_start_step == 0 and "warm_start_step 3 needs more than 3" in caplog.text
+    policy.sample_action_chunks(_history(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
+    # a config changed behind the validation's back is refused when sampling
+    policy.config.warm_start_step = 5
+    with pytest.raises(ValueError, match="warm_start_step must be below the sampler's 3 steps, got 5"):
         policy.sample_action_chunks(_history(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
