@@ -53,7 +53,8 @@ CARRIED_FILES = ("dataset_scenes.json",)  # files of the teacher's folder the st
 
 
 def student_config(teacher_cfg, student_steps: int):
-    """The teacher's config for an x_0-predicting student of ``student_steps`` trailing DDIM steps."""
+    """The teacher's config for an x_0-predicting student of ``student_steps`` trailing DDIM steps.
+    The student samples from pure noise, as it was trained: a teacher's warm start is dropped."""
     import copy
 
     cfg = copy.deepcopy(teacher_cfg)
@@ -61,6 +62,9 @@ def student_config(teacher_cfg, student_steps: int):
     cfg.prediction_type = "sample"
     cfg.num_inference_steps = int(student_steps)
     cfg.timestep_spacing = "trailing"
+    if hasattr(cfg, "warm_start_step"):
+        cfg.warm_start_step = 0
+        cfg.warm_start_all_candidates = False
     return cfg
 
 

@@ -148,3 +148,19 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
     policy.config.warm_start_step = 5
     with pytest.raises(ValueError, match="warm_start_step must be below the sampler's 3 steps, got 5"):
         policy.sample_action_chunks(_history(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
+
+
+def test_a_distilled_student_of_a_warm_starting_teacher_samples_from_noise(tmp_path):
+    from lerobot_formation import distill
+    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+
+    teacher = tiny_config(warm_start_step=2, warm_start_all_candidates=True)
+    student = distill.student_config(teacher, 1)
+    assert (student.warm_start_step, student.warm_start_all_candidates, student.num_inference_steps) == (
+        0,
+        False,
+        1,
+    )
+    student._save_pretrained(tmp_path)  # and it loads back: a warm start past its 1 step would be refused
+    assert FormationDiffusionConfig.from_pretrained(tmp_path).warm_start_step == 0
+    assert teacher.warm_start_step == 2  # the teacher's own config is untouched
