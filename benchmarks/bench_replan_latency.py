@@ -116,11 +116,10 @@ def paper_policy(config_path: Path):
     return policy, pre, post
 
 
-def stock_replan_s(policy, pre, post, env_dim: int, repeats: int, obs: dict | None = None) -> float:
-    """One replan through the stock select_action for one episode (empty queue -> generate_actions), on
-    ``obs`` (a LeRobot observation batch of one) or a random one."""
+def stock_replan_s(policy, pre, post, env_dim: int, repeats: int) -> float:
+    """One replan through the stock select_action for one episode (empty queue -> generate_actions)."""
     g = torch.Generator().manual_seed(0)
-    obs = obs or {
+    obs = {
         "observation.state": torch.randn(1, 7, generator=g),
         "observation.environment_state": torch.rand(1, env_dim, generator=g),
     }

@@ -368,8 +368,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 x = ddim.step(i, eps, x) if ddim is not None else scheduler.step(eps, t, x).prev_sample
                 if rows is None:
                     sample = x
-                else:
-                    sample = sample.clone()
+                else:  # sample is torch.where's own tensor here, never the caller's noise
                     sample[rows] = x
         return sample
 

@@ -174,7 +174,6 @@ def cost_to_go_at(
     ij = grid_cell(np.asarray(points, np.float64), lo, resolution, n)
     rows = np.arange(len(ij)) if rows is None else np.asarray(rows)
     step = resolution * min(1.0, wall_cost)  # the cheapest step
-    q = value[rows, ij[:, 0], ij[:, 1]]
     for rounds in _relax(value, cost, resolution):
         q = value[rows, ij[:, 0], ij[:, 1]]
         if (q < (rounds + 1) * step * (1.0 - 1e-9)).all():  # margin: the bound's own rounding

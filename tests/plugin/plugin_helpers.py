@@ -49,6 +49,20 @@ def train_batch(batch_size=4, seed=0, env_dim=51):
     }
 
 
+def history_batch(batch_size: int, seed: int = 0) -> dict:
+    """Normalised observation histories (B, n_obs_steps, ...), as ``sample_action_chunks`` takes them."""
+    g = torch.Generator().manual_seed(seed)
+    return {
+        OBS_STATE: torch.randn(batch_size, N_OBS, 7, generator=g),
+        OBS_ENV_STATE: torch.rand(batch_size, N_OBS, 51, generator=g),
+    }
+
+
+def sampling_noise(n: int, seed: int = 1) -> torch.Tensor:
+    """Initial noise (n, horizon, 2) of n samples."""
+    return torch.randn(n, HORIZON, 2, generator=torch.Generator().manual_seed(seed))
+
+
 def obs_batch(batch_size=4, seed=1):
     g = torch.Generator().manual_seed(seed)
     return {

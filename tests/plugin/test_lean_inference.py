@@ -8,8 +8,7 @@ import pickle
 
 import pytest
 import torch
-from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
-from plugin_helpers import HORIZON, N_ACT, N_OBS, obs_batch, tiny_config
+from plugin_helpers import N_ACT, N_OBS, history_batch, obs_batch, sampling_noise, tiny_config
 from safetensors import safe_open
 
 from lerobot_formation import lerobot_compat
@@ -29,18 +28,6 @@ def _policy(**overrides) -> FormationDiffusionPolicy:
     return policy
 
 
-def _history(batch_size: int, seed: int = 0) -> dict:
-    g = torch.Generator().manual_seed(seed)
-    return {
-        OBS_STATE: torch.randn(batch_size, N_OBS, 7, generator=g),
-        OBS_ENV_STATE: torch.rand(batch_size, N_OBS, 51, generator=g),
-    }
-
-
-def _noise(n: int, seed: int = 1) -> torch.Tensor:
-    return torch.randn(n, HORIZON, 2, generator=torch.Generator().manual_seed(seed))
-
-
 def _chunks(policy, backend, batch, k, noise):
     policy.config.inference_backend = backend
     return policy.sample_action_chunks(batch, k, noise=noise)
@@ -58,7 +45,7 @@ def test_backend_field_defaults_to_eager_and_is_checked(tmp_path):
 @pytest.mark.parametrize(("batch_size", "k"), [(1, 1), (1, 5), (3, 2)])
 def test_same_noise_same_chunks_as_eager(backend, batch_size, k):
     policy = _policy()
-    batch, noise = _history(batch_size), _noise(batch_size * k)
+    batch, noise = history_batch(batch_size), sampling_noise(batch_size * k)
     eager = _chunks(policy, "eager", batch, k, noise)
     torch.testing.assert_close(_chunks(policy, backend, batch, k, noise), eager, **TOL)
     torch.testing.assert_close(_chunks(policy, backend, batch, k, noise), eager, **TOL)  # cached
@@ -67,7 +54,7 @@ def test_same_noise_same_chunks_as_eager(backend, batch_size, k):
 def test_one_trace_serves_every_batch_size():
     policy = _policy(inference_backend="trace")
     for batch_size, k in [(1, 1), (4, 1), (2, 3), (7, 1), (1, 1)]:
-        batch, noise = _history(batch_size, seed=batch_size), _noise(batch_size * k, seed=k)
+        batch, noise = history_batch(batch_size, seed=batch_size), sampling_noise(batch_size * k, seed=k)
         lean = _chunks(policy, "trace", batch, k, noise)
         torch.testing.assert_close(lean, _chunks(policy, "eager", batch, k, noise), **TOL)
     (traced,) = policy._lean.unets.values()
@@ -77,7 +64,7 @@ def test_one_trace_serves_every_batch_size():
 def test_eager_standard_path_is_bit_identical_to_lerobot():
     """Backend eager, K = 1: select_action is LeRobot's (EMA) generate_actions, bit for bit."""
     policy = _policy()
-    obs, noise = obs_batch(2), _noise(2)
+    obs, noise = obs_batch(2), sampling_noise(2)
     policy.reset()
     action = policy.select_action(dict(obs), noise=noise)
     stacked = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in obs.items()}
@@ -98,7 +85,7 @@ def test_select_action_matches_eager(backend, use_ema):
         policy.reset()
         actions[b] = torch.stack(
             [
-                policy.select_action(obs_batch(2, seed=step), noise=_noise(2, seed=step))
+                policy.select_action(obs_batch(2, seed=step), noise=sampling_noise(2, seed=step))
                 for step in range(2 * N_ACT)
             ]
         )
@@ -107,7 +94,7 @@ def test_select_action_matches_eager(backend, use_ema):
 
 def test_unseeded_noise_is_drawn_as_lerobot_draws_it():
     policy = _policy()
-    batch = _history(2)
+    batch = history_batch(2)
     chunks = {}
     for backend in ("eager", "trace"):
         policy.config.inference_backend = backend
@@ -120,7 +107,7 @@ def test_state_dict_and_checkpoint_unchanged_by_the_trace(tmp_path):
     policy = _policy()
     before = {k: v.clone() for k, v in policy.state_dict().items()}
     policy.save_pretrained(tmp_path / "eager")
-    _chunks(policy, "trace", _history(1), 1, _noise(1))
+    _chunks(policy, "trace", history_batch(1), 1, sampling_noise(1))
     assert policy._lean.unets and policy._lean.steps
     after = policy.state_dict()
     assert list(after) == list(before)
@@ -135,7 +122,7 @@ def test_state_dict_and_checkpoint_unchanged_by_the_trace(tmp_path):
     assert not any("lean" in k or "trace" in k for k in keys["trace"])
     loaded = FormationDiffusionPolicy.from_pretrained(tmp_path / "trace").eval()
     assert loaded.config.inference_backend == "trace"
-    batch, noise = _history(2), _noise(2)
+    batch, noise = history_batch(2), sampling_noise(2)
     torch.testing.assert_close(
         _chunks(loaded, "trace", batch, 1, noise), _chunks(policy, "eager", batch, 1, noise), **TOL
     )
@@ -143,7 +130,7 @@ def test_state_dict_and_checkpoint_unchanged_by_the_trace(tmp_path):
 
 def test_copies_and_pickles_start_without_the_trace():
     policy = _policy()
-    batch, noise = _history(1), _noise(1)
+    batch, noise = history_batch(1), sampling_noise(1)
     eager = _chunks(policy, "eager", batch, 1, noise)
     _chunks(policy, "trace", batch, 1, noise)
     for clone in (copy.deepcopy(policy), pickle.loads(pickle.dumps(policy))):
@@ -156,7 +143,7 @@ def test_trace_follows_weight_changes():
     """An EMA update (as lerobot-train's in-training evaluation sees it), a load_state_dict and a
     dtype round trip each invalidate the frozen trace: the chunks follow the new weights."""
     policy = _policy(inference_backend="trace")
-    batch, noise = _history(2), _noise(2)
+    batch, noise = history_batch(2), sampling_noise(2)
 
     def check():
         lean = _chunks(policy, "trace", batch, 1, noise)
@@ -181,7 +168,7 @@ def test_trace_follows_weight_changes():
 
 def test_train_mode_uses_the_live_model_without_a_trace():
     policy = _policy(inference_backend="trace").train()
-    batch, noise = _history(2), _noise(2)
+    batch, noise = history_batch(2), sampling_noise(2)
     lean = _chunks(policy, "trace", batch, 1, noise)
     assert not policy._lean.unets
     torch.testing.assert_close(lean, _chunks(policy, "eager", batch, 1, noise), **TOL)
@@ -195,7 +182,7 @@ def test_precomputed_ddim_steps_equal_diffusers_and_follow_the_scheduler():
     from lerobot_formation.diffusion_controller import set_inference_steps
 
     policy = _policy()
-    batch, noise = _history(3), _noise(3)
+    batch, noise = history_batch(3), sampling_noise(3)
     for steps in (None, 2, 7):
         set_inference_steps(policy, steps)
         eager = _chunks(policy, "eager", batch, 1, noise)
@@ -207,7 +194,7 @@ def test_precomputed_ddim_steps_equal_diffusers_and_follow_the_scheduler():
 
 def test_ddpm_keeps_diffusers_steps():
     policy = _policy(noise_scheduler_type="DDPM", num_inference_steps=None, num_train_timesteps=10)
-    batch, noise = _history(2), _noise(2)
+    batch, noise = history_batch(2), sampling_noise(2)
     chunks = {}
     for backend in ("eager", "lean", "trace"):
         torch.manual_seed(3)  # DDPM's variance noise
@@ -229,7 +216,7 @@ def test_a_ddim_that_differs_from_the_precomputed_steps_keeps_diffusers(monkeypa
 
     monkeypatch.setattr(DDIMScheduler, "step", other_step)
     policy = _policy()
-    batch, noise = _history(1), _noise(1)
+    batch, noise = history_batch(1), sampling_noise(1)
     with caplog.at_level(logging.WARNING, logger=modeling.__name__):
         lean = _chunks(policy, "lean", batch, 1, noise)
     assert "differs from diffusers' DDIMScheduler.step" in caplog.text
@@ -242,7 +229,7 @@ def test_a_failing_trace_falls_back_to_the_eager_unet(monkeypatch, caplog):
 
     monkeypatch.setattr(torch.jit, "trace", broken_trace)
     policy = _policy()
-    batch, noise = _history(2), _noise(2)
+    batch, noise = history_batch(2), sampling_noise(2)
     with caplog.at_level(logging.WARNING, logger=modeling.__name__):
         lean = _chunks(policy, "trace", batch, 1, noise)
         _chunks(policy, "trace", batch, 1, noise)
@@ -254,7 +241,7 @@ def test_untested_lerobot_keeps_the_stock_sampler(monkeypatch, caplog):
     monkeypatch.setattr(lerobot_compat, "lerobot_version", lambda: "9.0.0")
     monkeypatch.setattr(lerobot_compat, "_warned", set())
     policy = _policy()
-    batch, noise = _history(2), _noise(2)
+    batch, noise = history_batch(2), sampling_noise(2)
     with caplog.at_level(logging.WARNING, logger=lerobot_compat.__name__):
         lean = _chunks(policy, "trace", batch, 1, noise)
         _chunks(policy, "trace", batch, 1, noise)
@@ -269,12 +256,12 @@ def test_timestep_spacing_field_is_checked_and_applied(tmp_path):
     tiny_config(timestep_spacing="trailing")._save_pretrained(tmp_path)
     assert FormationDiffusionConfig.from_pretrained(tmp_path).timestep_spacing == "trailing"
     policy = _policy(timestep_spacing="trailing", num_inference_steps=1)
-    policy.sample_action_chunks(_history(1), 1, noise=_noise(1))
+    policy.sample_action_chunks(history_batch(1), 1, noise=sampling_noise(1))
     scheduler = policy.ema_diffusion.noise_scheduler
     assert scheduler.config.timestep_spacing == "trailing"
     assert list(scheduler.timesteps) == [scheduler.config.num_train_timesteps - 1]  # leading: [0]
     policy.config.timestep_spacing = "leading"  # a changed config takes effect at the next call
-    policy.sample_action_chunks(_history(1), 1, noise=_noise(1))
+    policy.sample_action_chunks(history_batch(1), 1, noise=sampling_noise(1))
     assert list(policy.ema_diffusion.noise_scheduler.timesteps) == [0]
 
 
@@ -284,7 +271,7 @@ def test_sample_prediction_student_same_chunks_as_eager(backend, spacing, steps)
     """A distilled student predicts x_0 (prediction_type "sample"): the precomputed DDIM steps handle
     it (not diffusers' fallback) and give LeRobot's eager chunks."""
     policy = _policy(prediction_type="sample", timestep_spacing=spacing, num_inference_steps=steps)
-    batch, noise = _history(2), _noise(2 * 3)
+    batch, noise = history_batch(2), sampling_noise(2 * 3)
     eager = _chunks(policy, "eager", batch, 3, noise)
     torch.testing.assert_close(_chunks(policy, backend, batch, 3, noise), eager, **TOL)
     (entry,) = policy._lean.steps.values()

@@ -6,8 +6,7 @@ import logging
 
 import pytest
 import torch
-from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
-from plugin_helpers import HORIZON, N_OBS, tiny_config
+from plugin_helpers import HORIZON, N_OBS, history_batch, sampling_noise, tiny_config
 
 from lerobot_formation.lerobot_compat import global_conditioning
 from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy, warm_start_guess
@@ -19,18 +18,6 @@ T = HORIZON - N_OBS + 1  # a chunk's length, from the current step on
 def _policy(**overrides) -> FormationDiffusionPolicy:
     torch.manual_seed(0)
     return FormationDiffusionPolicy(tiny_config(**overrides)).eval()
-
-
-def _history(batch_size: int, seed: int = 0) -> dict:
-    g = torch.Generator().manual_seed(seed)
-    return {
-        OBS_STATE: torch.randn(batch_size, N_OBS, 7, generator=g),
-        OBS_ENV_STATE: torch.rand(batch_size, N_OBS, 51, generator=g),
-    }
-
-
-def _noise(n: int, seed: int = 1) -> torch.Tensor:
-    return torch.randn(n, HORIZON, 2, generator=torch.Generator().manual_seed(seed))
 
 
 def _guess(batch_size: int, seed: int = 2) -> torch.Tensor:
@@ -52,7 +39,7 @@ def test_guess_is_the_unexecuted_rest_shifted_and_padded():
 @pytest.mark.parametrize("backend", ["eager", "lean", "trace"])
 def test_cold_rows_and_step_zero_are_plain_sampling(backend):
     policy = _policy(inference_backend=backend)
-    batch, noise, guess = _history(3), _noise(3), _guess(3)
+    batch, noise, guess = history_batch(3), sampling_noise(3), _guess(3)
     plain = policy.sample_action_chunks(batch, 1, noise=noise)
     none_warm = (guess, torch.zeros(3, dtype=torch.bool))
     policy.config.warm_start_step = 2
@@ -71,7 +58,7 @@ def test_warm_rows_are_sdedit_from_their_guess(backend, j):
     diffusers' own scheduler (noise the guess to t_j, then step down from there), the cold row equals
     plain sampling."""
     policy = _policy(inference_backend=backend, warm_start_step=j)
-    batch, noise, guess = _history(3), _noise(3), _guess(3)
+    batch, noise, guess = history_batch(3), sampling_noise(3), _guess(3)
     use = torch.tensor([True, False, True])
     got = policy.sample_action_chunks(batch, 1, noise=noise, warm_start=(guess, use))[:, 0]
     model = policy.inference_model
@@ -96,7 +83,7 @@ def test_warm_rows_are_sdedit_from_their_guess(backend, j):
 def test_only_the_first_candidate_continues_the_last_plan():
     policy = _policy(inference_backend="lean", warm_start_step=2)
     B, K = 2, 3
-    batch, noise, guess = _history(B), _noise(B * K), _guess(B)
+    batch, noise, guess = history_batch(B), sampling_noise(B * K), _guess(B)
     warm = policy.sample_action_chunks(
         batch, K, noise=noise, warm_start=(guess, torch.ones(B, dtype=torch.bool))
     )
@@ -109,7 +96,7 @@ def test_only_the_first_candidate_continues_the_last_plan():
 def test_all_candidates_warm_on_request():
     policy = _policy(inference_backend="lean", warm_start_step=2, warm_start_all_candidates=True)
     B, K = 2, 3
-    batch, noise, guess = _history(B), _noise(B * K), _guess(B)
+    batch, noise, guess = history_batch(B), sampling_noise(B * K), _guess(B)
     use = torch.tensor([True, False])
     warm = policy.sample_action_chunks(batch, K, noise=noise, warm_start=(guess, use))
     # each candidate of row 0 equals one warm-started sample of its own noise, row 1 stays cold
@@ -143,11 +130,13 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
     with caplog.at_level(logging.WARNING):
         set_inference_steps(policy, 3)
     assert policy.config.warm_start_step == 0 and "warm_start_step 3 needs more than 3" in caplog.text
-    policy.sample_action_chunks(_history(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
+    policy.sample_action_chunks(history_batch(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
     # a config changed behind the validation's back is refused when sampling
     policy.config.warm_start_step = 5
     with pytest.raises(ValueError, match="warm_start_step must be below the sampler's 3 steps, got 5"):
-        policy.sample_action_chunks(_history(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
+        policy.sample_action_chunks(
+            history_batch(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool))
+        )
 
 
 def test_a_distilled_student_of_a_warm_starting_teacher_samples_from_noise(tmp_path):
