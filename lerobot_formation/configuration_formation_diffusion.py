@@ -78,10 +78,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             an egocentric obstacle view ("nearest", or "grid+list" with egocentric_obstacles). Off by
             default (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
-            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid", "grid+list", "nearest"). None: found
+            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid", "grid+list", "nearest", "nearest+route").
+            None: found
             from the feature's size (checkpoints made before the field existed) and stored.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
-            "grid+list", 12 for "nearest").
+            "grid+list", 12 for "nearest" and "nearest+route").
         fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
             ``action_high`` (v in [0, 0.6], omega in [-1.5, 1.5]) instead of the dataset's min/max, so
             the policy itself knows the action in physical units (the safety layer needs it).

@@ -102,8 +102,9 @@ class FormationEnvConfig(EnvConfig):
         episode_length: control steps per episode before a timeout (SPEC: 600 = 60 s).
         obstacle_encoding: ``"grid"`` (the paper's 7x7 radius grid + goal, 51 values) or
             ``"grid+list"`` (plus the 5 obstacles [x, y, r], 66 values) or ``"nearest"`` (goal and
-            the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count). Must
-            match the policy's ``obstacle_encoding``.
+            the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count) or
+            ``"nearest+route"`` (the same plus PAC's cost-to-go route hint from those obstacles, 55
+            values). Must match the policy's ``obstacle_encoding``.
         scene_preset: scene distribution of seeded resets (``core.scene.SCENE_PRESETS``: "paper",
             "wide", "gates", "blockers", "dense", "goals").
         scenes_file: JSON scenes file (``core.scene.save_scenes``); reset seed s picks scene s of the
@@ -125,8 +126,8 @@ class FormationEnvConfig(EnvConfig):
     # Control steps per episode before a timeout (600 = 60 s).
     episode_length: int = 600
     # Obstacle observation: grid (the paper's 7x7 radius grid + goal, 51 values), grid+list (plus the 5
-    # obstacles [x, y, r], 66 values) or nearest (goal + 12 nearest obstacles in the team's frame, 50
-    # values). Must match the policy's observation.environment_state.
+    # obstacles [x, y, r], 66 values), nearest (goal + 12 nearest obstacles in the team's frame, 50
+    # values) or nearest+route (plus a route hint, 55). Must match the policy's observation.environment_state.
     obstacle_encoding: str = "grid"
     # Scene distribution of seeded resets: paper, or a wider preset (core/scene.py SCENE_PRESETS).
     scene_preset: str = "paper"

@@ -399,8 +399,11 @@ class FormationDiffusionPolicy(DiffusionPolicy):
 
     def _observed_obstacles(self, env_state) -> tuple[np.ndarray, np.ndarray]:
         """Goal (B, 2) and obstacles (B, M, 3) in the body frame from a raw ``nearest`` observation."""
-        slots = get_encoding(self.config.obstacle_encoding).slots(self.config.max_obstacles)
+        encoding = get_encoding(self.config.obstacle_encoding)
+        slots = encoding.slots(self.config.max_obstacles)
         env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
+        if encoding.trailing:  # e.g. "nearest+route": the nearest part, then a route hint
+            env = env[:, : env.shape[1] - encoding.trailing]
         goal, obstacles, _ = safety.decode_nearest(env, slots)
         return goal, obstacles
 

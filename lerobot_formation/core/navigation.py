@@ -9,6 +9,7 @@ everywhere, even inside the inflated zone, and has no local minima.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -179,3 +180,60 @@ def cost_to_go_at(
         if (q < (rounds + 1) * step * (1.0 - 1e-9)).all():  # margin: the bound's own rounding
             break
     return q
+
+
+# Per-scene fields by scene (canonical obstacles + goal bytes): PAC and the route encoding of the same
+# scene share one field, and an episode's steps reuse it. A 61 x 61 field is 30 kB.
+_SCENE_FIELDS: OrderedDict[bytes, CostToGo] = OrderedDict()
+SCENE_CACHE_SIZE = 1024
+
+
+def _canonical(obstacles: np.ndarray) -> np.ndarray:
+    """The present obstacles (m, 3) of one scene (M, 3) (radius > 0), sorted by x then y."""
+    present = obstacles[obstacles[:, 2] > 0]
+    return present[np.lexsort((present[:, 1], present[:, 0]))]
+
+
+class SceneFields:
+    """Cost-to-go fields of B scenes, each computed on its own grid (``cost_to_go`` of that scene alone),
+    so a scene's field does not depend on which other scenes share its batch. ``carrot`` and indexing
+    as ``CostToGo``; rows on the same grid are looked up in one array operation."""
+
+    def __init__(self, fields: list[CostToGo]):
+        self.fields = fields
+
+    @classmethod
+    def build(cls, obstacles: np.ndarray, goal: np.ndarray, inflate: float = 0.7) -> SceneFields:
+        """Fields of scenes ``obstacles`` (B, M, 3) (radius 0: an empty slot), ``goal`` (B, 2), cached."""
+        fields = []
+        for b in range(len(goal)):
+            obs = _canonical(np.asarray(obstacles[b], np.float64))
+            g = np.asarray(goal[b], np.float64)
+            key = obs.tobytes() + g.tobytes() + np.float64(inflate).tobytes()
+            field = _SCENE_FIELDS.get(key)
+            if field is None:
+                field = cost_to_go(obs[None], g[None], inflate=inflate)
+                _SCENE_FIELDS[key] = field
+                if len(_SCENE_FIELDS) > SCENE_CACHE_SIZE:
+                    _SCENE_FIELDS.popitem(last=False)
+            else:
+                _SCENE_FIELDS.move_to_end(key)
+            fields.append(field)
+        return cls(fields)
+
+    def __len__(self) -> int:
+        return len(self.fields)
+
+    def __getitem__(self, idx) -> SceneFields:
+        return SceneFields([self.fields[i] for i in np.arange(len(self.fields))[idx]])
+
+    def carrot(self, xy: np.ndarray, n_cells: int) -> np.ndarray:
+        """``CostToGo.carrot`` of each point xy (B, 2) on its own scene's field -> (B, 2)."""
+        out = np.empty((len(xy), 2))
+        groups: dict[tuple, list[int]] = {}
+        for b, f in enumerate(self.fields):
+            groups.setdefault((f.origin, f.resolution, f.value.shape[-1]), []).append(b)
+        for (origin, resolution, _), rows in groups.items():
+            stacked = CostToGo(np.concatenate([self.fields[b].value for b in rows]), origin, resolution)
+            out[rows] = stacked.carrot(xy[rows], n_cells)
+        return out

@@ -18,6 +18,10 @@ empty slots are zeros (present = 0): 2 + 4 max_obstacles values. A scene with mo
 the nearest ones are observed, as a range sensor would. It depends on the midpoint pose, so it is
 recomputed every step.
 
+``nearest+route`` (``core/route_encoding.py``): ``nearest``, then 5 values of PAC's route from the
+observed obstacles (the cost-to-go carrots 1 m and 3 m ahead in the body frame, and PAC's path-blocked
+flag): 2 + 4 max_obstacles + 5 values.
+
 Adding an encoding: one new file that defines ``ENCODING = ObstacleEncoding(...)`` (its ``encode``
 and ``names``), and one line at the bottom of this file, ``register("package.module:ENCODING",
 "name")``: the file is imported when the encoding is first used (it may import this module).
@@ -99,14 +103,21 @@ def _nearest_names(max_obstacles: int) -> list[str]:
     ]
 
 
+def nearest_order(obstacles: np.ndarray, mask: np.ndarray, pose: np.ndarray, slots: int) -> np.ndarray:
+    """Indices (B, min(M, slots)) of the obstacles (B, M, 3) nearest to the midpoints (B, 3) by surface
+    distance, nearest first; masked-out slots sort last."""
+    centres = world_to_body(obstacles[..., :2], pose)  # the body frame: the same bits as the encoding's
+    surface = np.where(mask, np.linalg.norm(centres, axis=-1) - obstacles[..., 2], np.inf)
+    return np.argsort(surface, axis=1, kind="stable")[:, :slots]
+
+
 def _encode_nearest(obstacles, mask, goal, pose, max_obstacles) -> np.ndarray:
     if pose is None:
         raise ValueError("the 'nearest' encoding is egocentric: environment_state needs the midpoint pose")
     B, M, _ = obstacles.shape
     goal_b = world_to_body(goal[:, None, :], pose)[:, 0]  # (B, 2)
     centres = world_to_body(obstacles[..., :2], pose)  # (B, M, 2)
-    surface = np.where(mask, np.linalg.norm(centres, axis=-1) - obstacles[..., 2], np.inf)
-    order = np.argsort(surface, axis=1, kind="stable")[:, :max_obstacles]
+    order = nearest_order(obstacles, mask, pose, max_obstacles)
     m = order.shape[1]
     rows = np.zeros((B, max_obstacles, 4))
     take = lambda a: np.take_along_axis(a, order, axis=1)  # noqa: E731
@@ -131,6 +142,8 @@ class ObstacleEncoding:
         egocentric: depends on the midpoint pose, so the env recomputes it every step.
         encode: (obstacles (B, M, 3), mask (B, M), goal (B, 2), pose (B, 3) | None, slots) -> (B, D).
         names: slots -> the D feature names.
+        trailing: values after the rows (e.g. a route hint); a row layout that starts like
+            "nearest"'s (``fixed`` 2, ``per_slot`` 4) is what the safety layer decodes.
     """
 
     name: str
@@ -140,12 +153,13 @@ class ObstacleEncoding:
     egocentric: bool
     encode: Callable[..., np.ndarray]
     names: Callable[[int], list[str]]
+    trailing: int = 0
 
     def slots(self, max_obstacles: int | None) -> int:
         return self.default_slots if max_obstacles is None or not self.per_slot else int(max_obstacles)
 
     def dim(self, max_obstacles: int | None = None) -> int:
-        return self.fixed + self.per_slot * self.slots(max_obstacles)
+        return self.fixed + self.per_slot * self.slots(max_obstacles) + self.trailing
 
 
 # Encodings by name: an ObstacleEncoding, or the "module:attribute" path of one (imported when first used).
@@ -200,4 +214,5 @@ register(
 )
 register(ObstacleEncoding("nearest", 12, 4, 2, True, _encode_nearest, _nearest_names))
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
+register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
 ENCODINGS = tuple(ENCODING_REGISTRY)

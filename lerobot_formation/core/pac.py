@@ -26,7 +26,7 @@ import numpy as np
 
 from lerobot_formation.core.dynamics import FormationParams, constant_action_poses
 from lerobot_formation.core.footprint import template_clearance
-from lerobot_formation.core.navigation import cost_to_go
+from lerobot_formation.core.navigation import SceneFields
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,22 @@ def wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def path_blocked(
+    p: np.ndarray, goal: np.ndarray, obstacles: np.ndarray, lookahead: float, inflate: float
+) -> np.ndarray:
+    """PAC's path check (B,) bool: the segment from p (B, 2) toward the goal (B, 2), up to ``lookahead``
+    metres, passes within r + ``inflate`` of an obstacle (B, M, 3) centre (radius 0: an empty slot)."""
+    to_goal = goal - p
+    dist_goal = np.linalg.norm(to_goal, axis=-1)
+    u = to_goal / np.maximum(dist_goal, 1e-9)[:, None]
+    rel = obstacles[..., :2] - p[:, None, :]  # (B, M, 2)
+    t = np.einsum("bmk,bk->bm", rel, u)  # along the segment
+    seg = np.minimum(dist_goal, lookahead)[:, None]
+    closest = np.sqrt(np.maximum(np.sum(rel * rel, -1) - t * t, 0.0))
+    R = obstacles[..., 2] + inflate
+    return ((t > 0) & (t < seg + R) & (closest < R) & (obstacles[..., 2] > 0)).any(axis=1)
+
+
 class PathAwareController:
     """Batched PAC. ``reset(obstacles, goal)`` once per batch of episodes, then
     ``command(pose) -> (B, 2)`` every control step."""
@@ -75,7 +91,8 @@ class PathAwareController:
     def reset(self, obstacles: np.ndarray, goal: np.ndarray) -> None:
         self.obstacles = np.asarray(obstacles, dtype=np.float64)
         self.goal = np.asarray(goal, dtype=np.float64)
-        self.ctg = cost_to_go(self.obstacles, self.goal, inflate=self.config.path_inflate)
+        # one field per scene: a scene's demonstration must not depend on the other scenes of its batch
+        self.ctg = SceneFields.build(self.obstacles, self.goal, inflate=self.config.path_inflate)
 
     def select(self, idx: np.ndarray) -> PathAwareController:
         """A view of this controller restricted to the episodes ``idx``."""
@@ -92,14 +109,9 @@ class PathAwareController:
         to_goal = self.goal - p
         dist_goal = np.linalg.norm(to_goal, axis=-1)
         u = to_goal / np.maximum(dist_goal, 1e-9)[:, None]  # (B, 2)
-        # Path check: closest approach of the goal segment to each inflated obstacle.
+        blocked = path_blocked(p, self.goal, obs, c.lookahead, c.inflate)
         rel = obs[..., :2] - p[:, None, :]  # (B, M, 2)
-        t = np.einsum("bmk,bk->bm", rel, u)
-        seg = np.minimum(dist_goal, c.lookahead)[:, None]
-        closest = np.sqrt(np.maximum(np.sum(rel * rel, -1) - t * t, 0.0))
         R = obs[..., 2] + c.inflate
-        blocking = (t > 0) & (t < seg + R) & (closest < R) & (obs[..., 2] > 0)
-        blocked = blocking.any(axis=1)
         # Blocked: detour sideways toward the cost-to-go carrot, which picks the side that leads on.
         self.blocked = blocked
         attract = u

@@ -1,0 +1,75 @@
+"""The ``nearest+route`` obstacle encoding: ``nearest`` plus a route hint computed from what it observes.
+
+Why: PAC (``core/pac.py``) picks its detour side from a grid cost-to-go over the whole obstacle layout
+(``core/navigation.py``), a global decision that a small denoiser conditioned on the 12 nearest obstacles
+must otherwise re-derive from scratch every replan; when it re-derives it differently on consecutive
+replans the team swings between sides and hits the obstacle in between. This encoding gives it the
+same route the expert follows, computed only from the observation's own content (the goal and the
+``max_obstacles`` nearest obstacles), so nothing privileged enters and the safety layer still decodes
+the ``nearest`` part.
+
+Layout (2 + 4 slots + 5 values, float32): the ``nearest`` encoding (goal [x_b, y_b], then per slot
+[x_b, y_b, r, present]), then
+
+- ``route_near_bx, route_near_by``: the cost-to-go carrot ``NEAR_CELLS`` cells (1 m) down the steepest
+  descent from the midpoint, in the body frame (PAC's detour target, Sec. V-A path check);
+- ``route_far_bx, route_far_by``: the carrot ``FAR_CELLS`` cells (3 m) on, for anticipation;
+- ``path_blocked``: 1 when PAC's path check finds the straight segment to the goal blocked (then PAC
+  steers for the near carrot instead of the goal), else 0.
+
+The cost-to-go (obstacles inflated by PAC's ``path_inflate``) depends only on the observed scene, not
+on the pose, so it is computed once per distinct scene (``navigation.SceneFields``, cached, the same
+field PAC uses) and each step costs a few array look-ups.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lerobot_formation.core.navigation import SceneFields
+from lerobot_formation.core.obstacle_grid import (
+    ObstacleEncoding,
+    _encode_nearest,
+    _nearest_names,
+    nearest_order,
+    world_to_body,
+)
+from lerobot_formation.core.pac import PACConfig, path_blocked
+
+NEAR_CELLS = PACConfig.carrot_cells  # 5 cells of 0.2 m: PAC's carrot
+FAR_CELLS = 15
+ROUTE_NAMES = ["route_near_bx", "route_near_by", "route_far_bx", "route_far_by", "path_blocked"]
+
+
+def observed_obstacles(obstacles: np.ndarray, mask: np.ndarray, pose: np.ndarray, slots: int) -> np.ndarray:
+    """The world-frame obstacles (B, slots, 3) that the ``nearest`` part observes; empty slots zero."""
+    order = nearest_order(obstacles, mask, pose, slots)
+    seen = np.take_along_axis(np.where(mask[..., None], obstacles, 0.0), order[..., None], axis=1)
+    seen *= np.take_along_axis(mask, order, axis=1)[..., None]
+    out = np.zeros((len(pose), slots, 3))
+    out[:, : seen.shape[1]] = seen
+    return out
+
+
+def route_features(obstacles, mask, goal, pose, slots: int) -> np.ndarray:
+    """The 5 route values (B, 5) float32 of B midpoints (see the module docstring)."""
+    B = len(pose)
+    observed = observed_obstacles(obstacles, mask, pose, slots)
+    goal = np.asarray(goal, np.float64)
+    c = PACConfig()
+    fields = SceneFields.build(observed, goal, inflate=c.path_inflate)  # PAC's field of the same scene
+    near = fields.carrot(pose[:, :2], NEAR_CELLS)
+    far = fields.carrot(near, FAR_CELLS - NEAR_CELLS)
+    blocked = path_blocked(pose[:, :2], goal, observed, c.lookahead, c.inflate)
+    body = world_to_body(np.stack([near, far], axis=1), pose)  # (B, 2, 2)
+    return np.concatenate([body.reshape(B, 4), blocked[:, None]], axis=1).astype(np.float32)
+
+
+def _encode(obstacles, mask, goal, pose, slots) -> np.ndarray:
+    base = _encode_nearest(obstacles, mask, goal, pose, slots)
+    return np.concatenate([base, route_features(obstacles, mask, goal, pose, slots)], axis=1)
+
+
+ENCODING = ObstacleEncoding(
+    "nearest+route", 12, 4, 2, True, _encode, lambda slots: _nearest_names(slots) + ROUTE_NAMES, trailing=5
+)

@@ -1,0 +1,79 @@
+"""The 'nearest+route' encoding: the 'nearest' values, then PAC's own route hint from the observed scene."""
+
+import numpy as np
+import pytest
+
+from lerobot_formation.core.obstacle_grid import environment_state, world_to_body
+from lerobot_formation.core.pac import PathAwareController
+from lerobot_formation.core.safety import decode_nearest
+from lerobot_formation.core.scene import FAR, sample_scenes, scene_preset
+
+
+def _scene(rng, n, M=16):
+    obs = np.zeros((1, M, 3))
+    obs[..., :2] = FAR
+    obs[0, :n, :2] = rng.uniform(-1, 7, (n, 2))
+    obs[0, :n, 2] = rng.uniform(0.2, 1.0, n)
+    mask = np.arange(M)[None] < n
+    return obs, mask, np.array([[6.5, 6.0]]), np.array([[0.0, 0.0, 0.3]])
+
+
+@pytest.mark.parametrize("n", [0, 1, 5, 12, 13, 16])
+def test_route_encoding_holds_nearest_then_five_values_for_any_count(n):
+    obs, mask, goal, pose = _scene(np.random.default_rng(n), n)
+    route = environment_state(obs, mask, goal, "nearest+route", pose=pose)
+    nearest = environment_state(obs, mask, goal, "nearest", pose=pose)
+    assert route.shape == (1, 55) and route.dtype == np.float32 and np.isfinite(route).all()
+    np.testing.assert_array_equal(route[:, :50], nearest)
+    _, _, seen = decode_nearest(route[:, :50], 12)
+    assert seen.sum() == min(n, 12)
+    assert route[0, 54] in (0.0, 1.0)
+
+
+def test_route_is_pacs_carrot_and_path_check_on_the_same_scene():
+    scenes = sample_scenes(np.arange(40), scene_preset("wide"))
+    pose = scenes.start.copy()
+    pose[:, :2] += np.random.default_rng(0).uniform(-0.5, 0.5, (40, 2))
+    env = environment_state(scenes.obstacles, scenes.mask, scenes.goal, "nearest+route", pose=pose)
+    pac = PathAwareController()
+    pac.reset(scenes.obstacles, scenes.goal)
+    pac.field_command(pose)
+    carrot = world_to_body(pac.ctg.carrot(pose[:, :2], 5)[:, None], pose)[:, 0]
+    np.testing.assert_allclose(env[:, 50:52], carrot, atol=1e-5)
+    np.testing.assert_array_equal(env[:, 54] > 0.5, pac.blocked)
+    assert 0 < pac.blocked.sum() < 40  # both cases occur
+
+
+def test_route_sees_only_the_observed_obstacles():
+    """A 13th obstacle beyond the 12 observed ones does not enter the route (nothing privileged)."""
+    obs, mask, goal, pose = _scene(np.random.default_rng(3), 13)
+    obs[0, 12] = [30.0, 30.0, 1.0]  # the farthest: unobserved
+    a = environment_state(obs, mask, goal, "nearest+route", pose=pose)
+    obs[0, 12] = [31.0, 29.0, 0.5]
+    b = environment_state(obs, mask, goal, "nearest+route", pose=pose)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_route_near_carrot_leads_around_a_blocker():
+    obs = np.array([[[3.0, 0.0, 0.8]]])
+    mask = np.ones((1, 1), bool)
+    goal = np.array([[7.0, 0.0]])
+    pose = np.array([[0.5, 0.0, 0.0]])  # facing the goal through the obstacle
+    env = environment_state(obs, mask, goal, "nearest+route", pose=pose)
+    assert env[0, 54] == 1.0  # blocked
+    far_b = env[0, 52:54]  # body frame: x right, y ahead
+    assert abs(far_b[0]) > 0.5  # the 3 m carrot steps sideways off the straight line
+    assert far_b[1] > 1.0  # and still leads forward
+
+
+def test_pac_command_does_not_depend_on_the_batch():
+    """Each scene's field is its own: a scene's demonstration is the same alone or in any batch."""
+    scenes = sample_scenes(np.arange(12), scene_preset("wide"))
+    pose = scenes.start.copy()
+    together = PathAwareController()
+    together.reset(scenes.obstacles, scenes.goal)
+    batch = together.command(pose)
+    for b in (0, 5, 11):
+        alone = PathAwareController()
+        alone.reset(scenes.obstacles[b : b + 1], scenes.goal[b : b + 1])
+        np.testing.assert_array_equal(alone.command(pose[b : b + 1])[0], batch[b])
