@@ -348,7 +348,7 @@ class FormationDiffusionConfig(DiffusionConfig):
         ):
             raise ValueError(
                 f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
-                "needs an egocentric obstacle encoding ('nearest') and fixed_action_bounds=true; this policy "
+                "needs an egocentric obstacle encoding ('nearest' or 'nearest+route') and fixed_action_bounds=true; this policy "
                 f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
             )
         if self.egocentric_obstacles and get_encoding(self.obstacle_encoding).egocentric:

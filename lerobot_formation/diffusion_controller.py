@@ -182,7 +182,7 @@ class DiffusionController:
             cfg = self.policy.config
             if not (get_encoding(cfg.obstacle_encoding).egocentric and cfg.fixed_action_bounds):
                 raise ValueError(
-                    f"the policy's safety layer needs a checkpoint with obstacle_encoding 'nearest' and "
+                    f"the policy's safety layer needs a checkpoint with obstacle_encoding 'nearest' or 'nearest+route' and "
                     f"fixed_action_bounds; {path} has {cfg.obstacle_encoding!r}, {cfg.fixed_action_bounds}"
                 )
             self.filter = safety_filter

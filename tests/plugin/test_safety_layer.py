@@ -183,3 +183,26 @@ def test_replan_blend_steps_is_checked_with_its_value():
         nearest_config(replan_blend_steps=16)
     cfg = nearest_config(replan_blend_steps=3)
     assert cfg.plans_per_episode and not cfg.safety_layer
+
+
+def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
+    """A 'nearest+route' policy decodes the same obstacles as a 'nearest' one (the route values after
+    the rows are not obstacles), so best-of-K keeps the same chunk."""
+    inputs, outputs = formation_features(env_dim=55)
+    route = FormationDiffusionPolicy(
+        nearest_config(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
+    ).eval()
+    plain = FormationDiffusionPolicy(nearest_config()).eval()
+    obs = np.array([[[0.5, 1.0, 0.3], [-0.5, 1.0, 0.3], [2.0, 3.0, 0.5]]])  # ahead of both leaders
+    pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.0, 8.0]])
+    env55 = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
+    env50 = environment_state(obs, obs[..., 2] > 0, goal, "nearest", pose=pose)
+    assert env55.shape == (1, 55)
+    straight = np.tile([0.5, 0.0], (1, 1, HORIZON, 1))  # into the first obstacle
+    turn = np.tile([0.3, 1.0], (1, 1, HORIZON, 1))
+    chunks = np.concatenate([straight, turn], axis=1)
+    kept55, info55 = route.choose_chunk_raw(env55, chunks)
+    kept50, info50 = plain.choose_chunk_raw(env50, chunks)
+    np.testing.assert_array_equal(kept55, kept50)
+    np.testing.assert_array_equal(info55["safe"], info50["safe"])
+    assert not info55["safe"][0, 0]  # the straight chunk hits the obstacle ahead
