@@ -13,12 +13,14 @@ Rows: PAC; MPPI; the old default (paper data, egocentric grid+list list) standar
 new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escapes, CBF filter,
 both, both + escapes ("escapes": ``escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
 also replaces sampled chunks that make too little progress; without it, only when none is safe);
-with ``--dagger CKPT`` the same model after a DAgger round; with ``--n-action-steps N`` the new
+with ``--dagger CKPT`` the same model after a DAgger round; with ``--route CKPT`` the same rows for
+a model observing the "nearest+route" encoding (the route hint, ``core/route_encoding.py``); with ``--n-action-steps N`` the new
 model executing N instead of its trained number of actions per replan (an action-execution change);
 "+ blending": ``replan_blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
 executed one, ``core.replan_blend``; the other rows run without it); "+ warm start":
 ``warm_start_step`` = ``--warm-start-step`` (a replan starts from the last chunk's unexecuted rest,
-noised; the other rows sample from pure noise); "+ stop": ``blocked_fallback`` "stop"; with ``--student CKPT`` a
+noised; the other rows sample from pure noise; with ``--blend-steps 0`` these rows are named without
+"+ blending"); "+ stop": ``blocked_fallback`` "stop"; with ``--student CKPT`` a
 distilled few-step checkpoint (``python -m lerobot_formation.distill``) standard and with its best
 safety layer.
 """
@@ -47,7 +49,7 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     if args.old:
         rows += [("old default, standard", args.old, "diffusion", None, {})]
         rows += [("old default, adaptive K=10 (world-frame rule)", args.old, "diffusion-adaptive", None, {})]
-    for tag, path in (("new", args.new), ("new + DAgger", args.dagger)):
+    for tag, path in (("new", args.new), ("new + DAgger", args.dagger), ("route", args.route)):
         if not path:
             continue
         rows += [
@@ -85,22 +87,20 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
             ]
         if args.warm_start_step:
             warm = {**blend, "warm_start_step": args.warm_start_step}
+            ws = " + blending + warm start" if args.blend_steps else " + warm start"
+            k = args.candidates
             rows += [
-                (f"{tag}, standard + blending + warm start", path, "diffusion", None, warm),
+                (f"{tag}, standard{ws}", path, "diffusion", None, warm),
+                (f"{tag}, best-of-{k}{ws}", path, "diffusion-bestof", None, {**no_adv, **warm}),
+                (f"{tag}, best-of-{k} + escapes{ws}", path, "diffusion-bestof", None, {**adv, **warm}),
                 (
-                    f"{tag}, best-of-{args.candidates} + escapes + blending + warm start",
-                    path,
-                    "diffusion-bestof",
-                    None,
-                    {**adv, **warm},
-                ),
-                (
-                    f"{tag}, best-of-{args.candidates} + escapes + blending + warm start (all candidates)",
+                    f"{tag}, best-of-{k} + escapes{ws} (all candidates)",
                     path,
                     "diffusion-bestof",
                     None,
                     {**adv, **warm, "warm_start_all_candidates": True},
                 ),
+                (f"{tag}, best-of-{k} + CBF{ws}", path, "diffusion-safe", None, {**no_adv, **warm}),
             ]
     if args.student:
         rows += [
@@ -152,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--new", required=True, help="checkpoint of the new model")
     ap.add_argument("--old", default=None, help="checkpoint of the previous default")
     ap.add_argument("--dagger", default=None, help="checkpoint after a DAgger round")
+    ap.add_argument("--route", default=None, help='a "nearest+route" checkpoint (the route-hint rows)')
     ap.add_argument("--sets", default="random:100,hard:100", help="comma-separated scene sets")
     ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START)
     ap.add_argument("--candidates", type=int, default=10)
