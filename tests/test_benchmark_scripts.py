@@ -1,5 +1,6 @@
-"""The benchmark scripts bench_demo_time.py and bench_sampling_steps.py: their --help (fast, in a
-subprocess as a user runs them) and bench_sampling_steps' pure helpers. Nothing here runs a benchmark."""
+"""The benchmark scripts: bench_demo_time.py's and bench_sampling_steps.py's --help (fast, in a
+subprocess as a user runs them), bench_sampling_steps' pure helpers, bench_eval_speed's stock command,
+and bench_route_encoding at two scenes of three steps (its output lines and its input check)."""
 
 import importlib.util
 import os
@@ -84,3 +85,14 @@ def test_sampling_steps_helpers():
     sets = {"a": {"wall_s": 2.0, "replans": 10}, "b": {"wall_s": 1.0, "replans": 20}}
     assert m.seconds_per_replan(sets) == pytest.approx(0.1)
     assert m.seconds_per_replan({"a": {"wall_s": 1.0, "replans": None}}) is None
+
+
+def test_route_encoding_bench_times_both_encodings_and_ends_with_the_ratio(capsys):
+    m = _script("benchmarks/bench_route_encoding.py")
+    m.main(["--scenes", "2", "--steps", "3"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert any(line.strip().startswith("nearest ") and "(6 steps)" in line for line in lines), lines
+    assert any(line.strip().startswith("nearest+route") and "(6 steps)" in line for line in lines), lines
+    assert lines[-1].startswith("step with the route hint:") and lines[-1].endswith("x the nearest step")
+    with pytest.raises(ValueError, match="--scenes and --steps must be >= 1, got 0, 3"):
+        m.main(["--scenes", "0", "--steps", "3"])
