@@ -142,3 +142,132 @@ $PY benchmarks/bench_eval_speed.py --policy.path $SAFE --episodes 200 --stock 50
 $PY benchmarks/bench_replan_latency.py --parts ce --threads 1 --lean-steps 4 3 --safety-scenes 10 --lean-repeats 20 \
   | tee $OUT/replan_latency.log
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_d2.log
+# Session of 2026-12-02 (night): DAgger round 3, the safety margin, a wider U-Net.
+# DAgger round 3: 1000 rollouts of the default above, PAC labels, a 24,000-step fine-tune; no gain.
+$PY -m datasets_scripts.dagger_scenes --policy.path $SAFE --scene-preset wide --rollouts 1000 --seed 3200000 \
+  --out data/dagger3_scenes.json | tee $OUT/dagger3_scenes.log
+N_DAGGER3=$($PY -c "import json; print(len(json.load(open('data/dagger3_scenes.json'))['scenes']))")
+$BIN/lerobot-formation-generate --scenes data/dagger3_scenes.json --episodes "$N_DAGGER3" --scene-slots 15 \
+  --obstacle-encoding nearest --root data/formation_dagger3 --repo-id local/formation_dagger3 --overwrite \
+  --no-progress | tee $OUT/generate_dagger3.log
+$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger3 --new_root data/formation_wide_dagger3 \
+  --operation.type merge --operation.repo_ids "['local/formation_wide_dagger2','local/formation_dagger3']" \
+  --operation.roots "['data/formation_wide_dagger2','data/formation_dagger3']"
+$BIN/lerobot-train --policy.path=$SAFE --policy.use_ema=true \
+  --dataset.repo_id=local/formation_wide_dagger3 --dataset.root=data/formation_wide_dagger3 \
+  --env.type=formation --env.obstacle_encoding=nearest --steps=24000 --batch_size=64 --num_workers=0 \
+  --policy.optimizer_lr=1.5e-4 --policy.scheduler_warmup_steps=300 --save_freq=4000 --env_eval_freq=0 \
+  --policy.push_to_hub=false --seed=1003 --output_dir=outputs/train_dagger3 2>&1 | tee $OUT/train_dagger3.log
+$PY scripts/export_pretrained.py outputs/train_dagger3/checkpoints/024000/pretrained_model outputs/formation_diffusion_d3 \
+  --dataset.root data/formation_wide_dagger3
+$PY scripts/derive_checkpoint.py outputs/formation_diffusion_d3 outputs/formation_diffusion_d3 --set warm_start_step=1
+for m in $SAFE outputs/formation_diffusion_d3; do for s in random:500 hard:500; do
+  $BIN/lerobot-formation-bench --controllers diffusion --policy.path $m --scenes $s --out outputs/std_$(basename $m)_${s%%:*} \
+    --no-figures --no-progress | tee -a $OUT/dagger3_standard.log
+done; done
+# DAgger round 4 data (states the round-3 weights visit; used by the wider U-Net below)
+$PY -m datasets_scripts.dagger_scenes --policy.path outputs/formation_diffusion_d3 --scene-preset wide --rollouts 1000 \
+  --seed 3300000 --out data/dagger4_scenes.json | tee $OUT/dagger4_scenes.log
+N_DAGGER4=$($PY -c "import json; print(len(json.load(open('data/dagger4_scenes.json'))['scenes']))")
+$BIN/lerobot-formation-generate --scenes data/dagger4_scenes.json --episodes "$N_DAGGER4" --scene-slots 15 \
+  --obstacle-encoding nearest --root data/formation_dagger4 --repo-id local/formation_dagger4 --overwrite \
+  --no-progress | tee $OUT/generate_dagger4.log
+$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger4 --new_root data/formation_wide_dagger4 \
+  --operation.type merge --operation.repo_ids "['local/formation_wide_dagger3','local/formation_dagger4']" \
+  --operation.roots "['data/formation_wide_dagger3','data/formation_dagger4']"
+# The safety margin of best-of-K: chosen on tuning seeds (5,000,000+), then measured on the usual sets.
+for m in 0.05 0.03; do
+  $PY scripts/derive_checkpoint.py $SAFE outputs/safe_margin_$m --set safety_margin=$m
+  for p in gates dense; do
+    $BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/safe_margin_$m \
+      --scenes $p:125 --seed 5000000 --out outputs/tune_margin_${m}_$p --no-figures --no-progress | tee -a $OUT/tune_margin.log
+  done
+  for s in random:500 hard:500; do
+    $BIN/lerobot-formation-bench --controllers diffusion-bestof,diffusion-safe --candidates 10 \
+      --policy.path outputs/safe_margin_$m --scenes $s --out outputs/margin_${m}_${s%%:*} --no-figures --no-progress \
+      | tee -a $OUT/margin.log
+  done
+done
+
+# Session of 2026-12-03: the route hint ("nearest+route" encoding, core/route_encoding.py) and the
+# new default. About 2 hours on 2 cores (generation 12 min, training 65 + 13 min, benches 60 min).
+$BIN/lerobot-formation-generate --episodes 5000 --scene-preset wide --obstacle-encoding nearest+route \
+  --root data/formation_wide_route --repo-id local/formation_wide_route --overwrite --no-progress | tee $OUT/generate_wide_route.log
+for p in gates dense; do
+  $BIN/lerobot-formation-generate --episodes 800 --scene-preset $p --scene-slots 15 --obstacle-encoding nearest+route \
+    --root data/formation_${p}_route --repo-id local/formation_${p}_route --overwrite --no-progress | tee -a $OUT/generate_hard_route.log
+done
+$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_hard_route --new_root data/formation_wide_hard_route \
+  --operation.type merge --operation.repo_ids "['local/formation_wide_route','local/formation_gates_route','local/formation_dense_route']" \
+  --operation.roots "['data/formation_wide_route','data/formation_gates_route','data/formation_dense_route']"
+$BIN/lerobot-train --config_path=configs/formation_diffusion_route.json --dataset.root=data/formation_wide_route \
+  --output_dir=outputs/train_route 2>&1 | tee $OUT/train_route.log
+# Every checkpoint exported with the probe's inference settings (DDIM-4, warm start, blending 8, escapes 0.1,
+# trace, margin 0.05), standard sampling on the eval sets (and on tuning seeds for 32k and 60k)
+route_export() {
+  $PY scripts/export_pretrained.py outputs/$1/checkpoints/$2/pretrained_model $3 --dataset.root data/$4
+  $PY scripts/derive_checkpoint.py $3 $3 --set num_inference_steps=4 --set replan_blend_steps=8 --set warm_start_step=1 \
+    --set escape_advantage=0.1 --set inference_backend=trace --set safety_margin=0.05
+}
+for s in 016000 032000 044000 060000; do
+  route_export train_route $s outputs/route_$s formation_wide_route
+  for set in random:500 hard:500; do
+    $BIN/lerobot-formation-bench --controllers diffusion --policy.path outputs/route_$s --scenes $set \
+      --out outputs/probe_${s}_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_probe.log
+  done
+done
+# A fine-tune on the wide + gates + dense data (12,000 steps; no gain, not shipped)
+$BIN/lerobot-train --policy.path=outputs/train_route/checkpoints/060000/pretrained_model --policy.use_ema=true \
+  --dataset.repo_id=local/formation_wide_hard_route --dataset.root=data/formation_wide_hard_route \
+  --env.type=formation --env.obstacle_encoding=nearest+route --steps=12000 --batch_size=64 --num_workers=0 \
+  --policy.optimizer_lr=1.5e-4 --policy.scheduler_warmup_steps=300 --save_freq=4000 --env_eval_freq=0 \
+  --policy.push_to_hub=false --seed=1011 --output_dir=outputs/train_route_hard 2>&1 | tee $OUT/train_route_hard.log
+route_export train_route_hard 008000 outputs/route_hard_008000 formation_wide_hard_route
+route_export train_route_hard 012000 outputs/route_hard_012000 formation_wide_hard_route
+# Choices on tuning seeds (5,000,000+): checkpoint, escape rule, margin, warm start and blending
+for m in 032000 060000 hard_008000 hard_012000; do for set in random:500 hard:500; do
+  $BIN/lerobot-formation-bench --controllers diffusion --policy.path outputs/route_$m --scenes $set --seed 5000000 \
+    --out outputs/tune_${m}_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_tune.log
+done; done
+$BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/route_060000 --scenes hard:500 \
+  --seed 5000000 --out outputs/tune_060000_hard_bestof --no-figures --no-progress | tee -a $OUT/route_tune.log
+$PY scripts/derive_checkpoint.py outputs/route_060000 outputs/r60_noesc --set escape_advantage=null
+$PY scripts/derive_checkpoint.py outputs/route_060000 outputs/r60_m0 --set escape_advantage=null --set safety_margin=0
+for set in random:500 hard:500; do
+  $BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/r60_noesc --scenes $set \
+    --seed 5000000 --out outputs/tune_noesc_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_tune.log
+done
+for v in noesc m0; do
+  $BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/r60_$v --scenes gates:125 \
+    --seed 5000000 --out outputs/tune_gates_$v --no-figures --no-progress | tee -a $OUT/route_tune.log
+done
+for wb in "0 0" "0 8" "1 0" "0 2" "1 2" "0 4" "1 4"; do
+  set -- $wb
+  $PY scripts/derive_checkpoint.py outputs/r60_noesc outputs/r60_w$1_b$2 --set warm_start_step=$1 --set replan_blend_steps=$2
+  for set in random:500 hard:500; do
+    $BIN/lerobot-formation-bench --controllers diffusion --policy.path outputs/r60_w$1_b$2 --scenes $set --seed 5000000 \
+      --out outputs/tune_w$1_b$2_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_tune.log
+  done
+done
+# The new default: the 60k weights, DDIM-4, warm start, no blending, escapes only when nothing is safe
+$PY scripts/export_pretrained.py outputs/train_route/checkpoints/060000/pretrained_model $SAFE \
+  --dataset.root data/formation_wide_route
+$PY scripts/derive_checkpoint.py $SAFE $SAFE --set num_inference_steps=4 --set replan_blend_steps=0 --set warm_start_step=1 \
+  --set escape_advantage=null --set inference_backend=trace --set safety_margin=0.05
+# The README's table (eval seeds 1,000,000+), then blending on the same scenes
+for s in random hard; do
+  $PY scripts/ablation.py --new $SAFE --sets $s:500 --blend-steps 0 --warm-start-step 1 \
+    --rows "PAC;MPPI;new, standard;new, standard + warm start;new, best-of-10;new, best-of-10 + warm start;new, best-of-10 + escapes + warm start;new, best-of-10 + CBF + warm start" \
+    --out outputs/ablation_final_$s | tee $OUT/ablation_final_$s.log
+done
+# lerobot-eval parity (200 scenes each, paper and hard), latency, the route hint's cost, the demo's time
+for set in random:200 hard:200; do
+  $PY benchmarks/bench_eval_speed.py --policy.path $SAFE --scenes $set --episodes 200 --stock 50:sync --threads 1 \
+    --out outputs/eval_route_std_${set%%:*}200 | tee -a $OUT/eval_route.log
+  $PY benchmarks/bench_eval_speed.py --policy.path $SAFE --scenes $set --episodes 200 --stock 50:sync --candidates 10 \
+    --threads 1 --out outputs/eval_route_bestof_${set%%:*}200 | tee -a $OUT/eval_route.log
+done
+$PY benchmarks/bench_replan_latency.py --parts ce --threads 1 --lean-steps 4 3 --safety-scenes 10 --lean-repeats 20 \
+  | tee $OUT/replan_latency_route.log
+$PY benchmarks/bench_route_encoding.py --scenes 20 --steps 100 | tee $OUT/route_encoding.log
+$PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_route.log
