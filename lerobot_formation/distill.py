@@ -24,9 +24,10 @@ teacher's processors), so ``lerobot-eval --policy.path``, ``lerobot-formation-be
 Run (one CPU thread; resumable: rerun the same command to continue from ``OUT/last``)::
 
     python -m lerobot_formation.distill --teacher pretrained/formation_diffusion_safe \\
-        --dataset.root data/formation_wide_dagger --student-steps 1 --steps 4000 --out outputs/distill_1step
+        --dataset.root data/formation_wide_route --student-steps 1 --steps 4000 --out outputs/distill_1step
 
-It writes ``OUT/last`` (weights, optimizer and step, every ``--save-every`` steps) and, at the end,
+The dataset must hold the teacher's obstacle encoding (its ``input_features``); another is refused at
+start-up. It writes ``OUT/last`` (weights, optimizer and step, every ``--save-every`` steps) and, at the end,
 ``OUT/pretrained_model`` (the student checkpoint; written to a temporary folder and renamed into
 place), with ``distill_log.json`` (the loss curve) beside it.
 """
@@ -208,6 +209,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(args.seed)
     # the observation windows only (no action chunks), from the metadata: the dataset is read once
     meta = LeRobotDatasetMetadata(repo_id, root=root)
+    for key, feature in tcfg.input_features.items():
+        theirs = tuple(meta.features[key]["shape"]) if key in meta.features else None
+        if theirs != tuple(feature.shape):
+            ap.error(
+                f"--dataset.root {root} gives '{key}' shape {theirs}, but the teacher takes {tuple(feature.shape)} "
+                f"(its obstacle_encoding is {tcfg.obstacle_encoding!r}): distil on a dataset of that encoding"
+            )
     delta = {k: v for k, v in resolve_delta_timestamps(tcfg, meta).items() if k != "action"}
     dataset = LeRobotDataset(repo_id, root=root, delta_timestamps=delta)
     loader = torch.utils.data.DataLoader(

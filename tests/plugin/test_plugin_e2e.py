@@ -181,3 +181,17 @@ def test_distill_a_one_step_student_and_resume(trained, dataset_root, tmp_path, 
             return float(((policy._sample(m, global_conditioning(m, obs), noise) - target) ** 2).mean())
 
         assert gap(student) < 0.8 * gap(untrained), (gap(student), gap(untrained))
+
+
+def test_distill_refuses_a_dataset_of_another_obstacle_encoding(dataset_root, tmp_path, capsys):
+    """The shipped default observes 'nearest+route' (55 values); a 'grid+list' dataset is refused at
+    start-up with both shapes named, not with a matmul error deep in the first step."""
+    from lerobot_formation import distill
+
+    teacher = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_safe"
+    argv = ["--teacher", str(teacher), "--dataset.root", str(dataset_root), "--out", str(tmp_path / "s")]
+    with pytest.raises(SystemExit):
+        distill.main(argv + ["--steps", "1"])
+    err = capsys.readouterr().err
+    assert "'observation.environment_state' shape" in err and "the teacher takes (55,)" in err, err
+    assert "'nearest+route'" in err and not (tmp_path / "s").exists()
