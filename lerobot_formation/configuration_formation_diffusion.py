@@ -12,7 +12,12 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.observation import STATE_DIM
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim, get_encoding
+from lerobot_formation.core.obstacle_grid import (
+    ENCODINGS,
+    egocentric_encodings,
+    environment_state_dim,
+    get_encoding,
+)
 from lerobot_formation.core.safety import BLOCKED_FALLBACKS
 
 ACTION_DIM = 2  # [v, omega]
@@ -348,7 +353,8 @@ class FormationDiffusionConfig(DiffusionConfig):
         ):
             raise ValueError(
                 f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
-                "needs an egocentric obstacle encoding ('nearest' or 'nearest+route') and fixed_action_bounds=true; this policy "
+                f"needs an egocentric obstacle encoding ({' or '.join(map(repr, egocentric_encodings()))}) and "
+                "fixed_action_bounds=true; this policy "
                 f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
             )
         if self.egocentric_obstacles and get_encoding(self.obstacle_encoding).egocentric:

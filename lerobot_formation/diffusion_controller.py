@@ -30,7 +30,7 @@ from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.footprint import select_safest
 from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.observation import STATE_DIM, observe
-from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
+from lerobot_formation.core.obstacle_grid import egocentric_encodings, environment_state, get_encoding
 from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import Scenes
 
@@ -182,7 +182,8 @@ class DiffusionController:
             cfg = self.policy.config
             if not (get_encoding(cfg.obstacle_encoding).egocentric and cfg.fixed_action_bounds):
                 raise ValueError(
-                    f"the policy's safety layer needs a checkpoint with obstacle_encoding 'nearest' or 'nearest+route' and "
+                    "the policy's safety layer needs a checkpoint with obstacle_encoding "
+                    f"{' or '.join(map(repr, egocentric_encodings()))} and "
                     f"fixed_action_bounds; {path} has {cfg.obstacle_encoding!r}, {cfg.fixed_action_bounds}"
                 )
             self.filter = safety_filter

@@ -216,3 +216,9 @@ register(ObstacleEncoding("nearest", 12, 4, 2, True, _encode_nearest, _nearest_n
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
 register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
 ENCODINGS = tuple(ENCODING_REGISTRY)
+
+
+def egocentric_encodings() -> tuple[str, ...]:
+    """Names of the encodings the safety layer can decode obstacles from (a list in the midpoint's
+    frame). A function, not a constant: it resolves every lazily registered encoding's module."""
+    return tuple(name for name in ENCODINGS if get_encoding(name).egocentric)
