@@ -104,23 +104,34 @@ $PY benchmarks/bench_replan_latency.py --parts cd --lean-steps 4 3 10 --student 
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time.log
 # Session of 2026-12-02 (evening): a second DAgger round on the shipped weights, warm-started replans,
 # and the ablation on 500 scenes per set (100-scene sets moved by +-7 points between reruns).
-$PY -m datasets_scripts.dagger_scenes --policy.path $SAFE --scene-preset wide --rollouts 1000 --seed 3100000 \
-  --out data/dagger2_scenes.json | tee $OUT/dagger2_scenes.log
-N_DAGGER2=$($PY -c "import json; print(len(json.load(open('data/dagger2_scenes.json'))['scenes']))")
-$BIN/lerobot-formation-generate --scenes data/dagger2_scenes.json --episodes "$N_DAGGER2" --scene-slots 15 \
-  --obstacle-encoding nearest --root data/formation_dagger2 --repo-id local/formation_dagger2 --overwrite \
-  --no-progress | tee $OUT/generate_dagger2.log
-$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger2 --new_root data/formation_wide_dagger2 \
-  --operation.type merge --operation.repo_ids "['local/formation_wide','local/formation_dagger2']" \
-  --operation.roots "['data/formation_wide','data/formation_dagger2']"
-$BIN/lerobot-train --policy.path=$SAFE --policy.use_ema=true \
-  --dataset.repo_id=local/formation_wide_dagger2 --dataset.root=data/formation_wide_dagger2 \
-  --env.type=formation --env.obstacle_encoding=nearest --steps=24000 --batch_size=64 --num_workers=0 \
-  --policy.optimizer_lr=2e-4 --policy.scheduler_warmup_steps=300 --save_freq=4000 --env_eval_freq=0 \
-  --policy.push_to_hub=false --seed=1002 --output_dir=outputs/train_dagger2 2>&1 | tee $OUT/train_dagger2.log
-$PY scripts/export_pretrained.py outputs/train_dagger2/checkpoints/024000/pretrained_model outputs/formation_diffusion_d2 \
-  --dataset.root data/formation_wide_dagger2
-$PY scripts/derive_checkpoint.py outputs/formation_diffusion_d2 outputs/formation_diffusion_d2 --set warm_start_step=1
+# A DAgger round's data: the states POLICY visits in 1000 wide scenes from SEED, relabelled by PAC, merged
+# onto BASE as data/formation_wide_daggerROUND. Usage: dagger_data ROUND POLICY SEED BASE
+dagger_data() {
+  $PY -m datasets_scripts.dagger_scenes --policy.path $2 --scene-preset wide --rollouts 1000 --seed $3 \
+    --out data/dagger$1_scenes.json | tee $OUT/dagger$1_scenes.log
+  local n
+  n=$($PY -c "import json; print(len(json.load(open('data/dagger$1_scenes.json'))['scenes']))")
+  $BIN/lerobot-formation-generate --scenes data/dagger$1_scenes.json --episodes "$n" --scene-slots 15 \
+    --obstacle-encoding nearest --root data/formation_dagger$1 --repo-id local/formation_dagger$1 --overwrite \
+    --no-progress | tee $OUT/generate_dagger$1.log
+  $BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger$1 --new_root data/formation_wide_dagger$1 \
+    --operation.type merge --operation.repo_ids "['local/$4','local/formation_dagger$1']" \
+    --operation.roots "['data/$4','data/formation_dagger$1']"
+}
+# Its fine-tune: 24,000 steps from $SAFE at learning rate LR, exported (warm start 1) to
+# outputs/formation_diffusion_dROUND. Usage: dagger_finetune ROUND LR TRAIN_SEED
+dagger_finetune() {
+  $BIN/lerobot-train --policy.path=$SAFE --policy.use_ema=true \
+    --dataset.repo_id=local/formation_wide_dagger$1 --dataset.root=data/formation_wide_dagger$1 \
+    --env.type=formation --env.obstacle_encoding=nearest --steps=24000 --batch_size=64 --num_workers=0 \
+    --policy.optimizer_lr=$2 --policy.scheduler_warmup_steps=300 --save_freq=4000 --env_eval_freq=0 \
+    --policy.push_to_hub=false --seed=$3 --output_dir=outputs/train_dagger$1 2>&1 | tee $OUT/train_dagger$1.log
+  $PY scripts/export_pretrained.py outputs/train_dagger$1/checkpoints/024000/pretrained_model \
+    outputs/formation_diffusion_d$1 --dataset.root data/formation_wide_dagger$1
+  $PY scripts/derive_checkpoint.py outputs/formation_diffusion_d$1 outputs/formation_diffusion_d$1 --set warm_start_step=1
+}
+dagger_data 2 $SAFE 3100000 formation_wide
+dagger_finetune 2 2e-4 1002
 $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_d2 --sets random:500,hard:500 --blend-steps 8 \
   --warm-start-step 1 --out outputs/ablation_500 \
   --rows "PAC;MPPI;new, standard + blending;new, best-of-10 + escapes + blending;new + DAgger, standard + blending;new + DAgger, best-of-10 + escapes + blending;new + DAgger, standard + blending + warm start;new + DAgger, best-of-10 + escapes + blending + warm start;new + DAgger, best-of-10 + CBF + escapes + blending"
@@ -144,37 +155,14 @@ $PY benchmarks/bench_replan_latency.py --parts ce --threads 1 --lean-steps 4 3 -
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_d2.log
 # Session of 2026-12-02 (night): DAgger round 3, the safety margin, a wider U-Net.
 # DAgger round 3: 1000 rollouts of the default above, PAC labels, a 24,000-step fine-tune; no gain.
-$PY -m datasets_scripts.dagger_scenes --policy.path $SAFE --scene-preset wide --rollouts 1000 --seed 3200000 \
-  --out data/dagger3_scenes.json | tee $OUT/dagger3_scenes.log
-N_DAGGER3=$($PY -c "import json; print(len(json.load(open('data/dagger3_scenes.json'))['scenes']))")
-$BIN/lerobot-formation-generate --scenes data/dagger3_scenes.json --episodes "$N_DAGGER3" --scene-slots 15 \
-  --obstacle-encoding nearest --root data/formation_dagger3 --repo-id local/formation_dagger3 --overwrite \
-  --no-progress | tee $OUT/generate_dagger3.log
-$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger3 --new_root data/formation_wide_dagger3 \
-  --operation.type merge --operation.repo_ids "['local/formation_wide_dagger2','local/formation_dagger3']" \
-  --operation.roots "['data/formation_wide_dagger2','data/formation_dagger3']"
-$BIN/lerobot-train --policy.path=$SAFE --policy.use_ema=true \
-  --dataset.repo_id=local/formation_wide_dagger3 --dataset.root=data/formation_wide_dagger3 \
-  --env.type=formation --env.obstacle_encoding=nearest --steps=24000 --batch_size=64 --num_workers=0 \
-  --policy.optimizer_lr=1.5e-4 --policy.scheduler_warmup_steps=300 --save_freq=4000 --env_eval_freq=0 \
-  --policy.push_to_hub=false --seed=1003 --output_dir=outputs/train_dagger3 2>&1 | tee $OUT/train_dagger3.log
-$PY scripts/export_pretrained.py outputs/train_dagger3/checkpoints/024000/pretrained_model outputs/formation_diffusion_d3 \
-  --dataset.root data/formation_wide_dagger3
-$PY scripts/derive_checkpoint.py outputs/formation_diffusion_d3 outputs/formation_diffusion_d3 --set warm_start_step=1
+dagger_data 3 $SAFE 3200000 formation_wide_dagger2
+dagger_finetune 3 1.5e-4 1003
 for m in $SAFE outputs/formation_diffusion_d3; do for s in random:500 hard:500; do
   $BIN/lerobot-formation-bench --controllers diffusion --policy.path $m --scenes $s --out outputs/std_$(basename $m)_${s%%:*} \
     --no-figures --no-progress | tee -a $OUT/dagger3_standard.log
 done; done
 # DAgger round 4 data (states the round-3 weights visit; used by the wider U-Net below)
-$PY -m datasets_scripts.dagger_scenes --policy.path outputs/formation_diffusion_d3 --scene-preset wide --rollouts 1000 \
-  --seed 3300000 --out data/dagger4_scenes.json | tee $OUT/dagger4_scenes.log
-N_DAGGER4=$($PY -c "import json; print(len(json.load(open('data/dagger4_scenes.json'))['scenes']))")
-$BIN/lerobot-formation-generate --scenes data/dagger4_scenes.json --episodes "$N_DAGGER4" --scene-slots 15 \
-  --obstacle-encoding nearest --root data/formation_dagger4 --repo-id local/formation_dagger4 --overwrite \
-  --no-progress | tee $OUT/generate_dagger4.log
-$BIN/lerobot-edit-dataset --new_repo_id local/formation_wide_dagger4 --new_root data/formation_wide_dagger4 \
-  --operation.type merge --operation.repo_ids "['local/formation_wide_dagger3','local/formation_dagger4']" \
-  --operation.roots "['data/formation_wide_dagger3','data/formation_dagger4']"
+dagger_data 4 outputs/formation_diffusion_d3 3300000 formation_wide_dagger3
 # The safety margin of best-of-K: chosen on tuning seeds (5,000,000+), then measured on the usual sets.
 for m in 0.05 0.03; do
   $PY scripts/derive_checkpoint.py $SAFE outputs/safe_margin_$m --set safety_margin=$m
