@@ -137,7 +137,10 @@ def engine_replan_s(ctrl, n: int, repeats: int) -> float:
     from lerobot_formation.core.scene import UNSEEN_SEED_START, sample_scenes
 
     scenes = sample_scenes(UNSEEN_SEED_START + np.arange(n))
-    ctrl.reset(scenes)
+    from lerobot_formation.core.conditions import Perception
+    from lerobot_formation.core.dynamics import initial_state
+
+    ctrl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     idx = np.arange(n)
     return timed(lambda: ctrl.plan(idx, scenes.start), repeats)
 

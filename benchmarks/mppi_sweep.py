@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.dynamics import initial_state
 from lerobot_formation.core.metrics import wilson_interval
 from lerobot_formation.core.mppi import MPPIConfig, MPPIController
@@ -53,12 +54,12 @@ class _TimedController:
         self.inner, self.name = inner, inner.name
         self.seconds, self.episode_steps = 0.0, 0
 
-    def reset(self, scenes) -> None:
-        self.inner.reset(scenes)
+    def reset(self, view) -> None:
+        self.inner.reset(view)
 
-    def act(self, state, idx):
+    def act(self, view, idx):
         t0 = time.perf_counter()
-        a = self.inner.act(state, idx)
+        a = self.inner.act(view, idx)
         self.seconds += time.perf_counter() - t0
         self.episode_steps += len(idx)
         return a
@@ -94,13 +95,13 @@ def time_b100(cfg: MPPIConfig, seeds: np.ndarray, reps: int = 5) -> float:
     """ms per episode-step of act() with all B = 100 episodes live (after one warm-up call)."""
     scenes = sample_scenes(seeds[:100])
     ctl = MPPIController(cfg)
-    ctl.reset(scenes)
-    state = initial_state(scenes.start)
+    view = Perception.exact(scenes, initial_state(scenes.start))
+    ctl.reset(view)
     idx = np.arange(len(scenes))
-    ctl.act(state, idx)
+    ctl.act(view, idx)
     t0 = time.perf_counter()
     for _ in range(reps):
-        ctl.act(state, idx)
+        ctl.act(view, idx)
     return 1e3 * (time.perf_counter() - t0) / (reps * len(idx))
 
 

@@ -2,13 +2,16 @@
 
 The observations are ``core.observation``'s, the builder the env uses, so a policy trained on the
 dataset sees in the env what it saw in training (``tests/core/test_house.py`` checks it frame by
-frame).
+frame). Under realistic conditions (``core.conditions``) the frames hold what the team observed
+during the rollout (``EpisodeRecords.observations``: noisy pose, sensed obstacles) and the commands
+PAC sent (``EpisodeRecords.commands``, clipped), not the executed velocities.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from lerobot_formation.core.dynamics import FormationParams, clip_action
 from lerobot_formation.core.observation import STATE_DIM, STATE_NAMES, observe, observed_velocities
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.rollout import EpisodeRecords
@@ -44,19 +47,25 @@ def dataset_features(obstacle_encoding: str = "grid", scene_slots: int = MAX_OBS
 def episode_frames(
     rec: EpisodeRecords, scenes: Scenes, b: int, obstacle_encoding: str, scene_slots: int = MAX_OBSTACLES
 ) -> dict[str, np.ndarray]:
-    """The frames of episode b as arrays (n, ...): observation before action t, and action t."""
+    """The frames of episode b as arrays (n, ...): observation before action t, and action t (with
+    recorded observations, ``rec.observations``: those, and the commands sent)."""
     n = int(rec.steps[b])
     poses = rec.poses[b, :n]
     actions = rec.actions[b, :n]
-    one = slice(b, b + 1)  # the episode's scene, observed at each of its n poses
-    seen = observe(
-        poses,
-        observed_velocities(poses, actions),
-        scenes.obstacles[one],
-        scenes.mask[one],
-        scenes.goal[one],
-        obstacle_encoding,
-    )
+    if rec.observations is not None:  # under conditions: what the team observed, what PAC sent
+        seen = {k: v[b, :n] for k, v in rec.observations.items()}
+        if rec.commands is not None:
+            actions = clip_action(rec.commands[b, :n], FormationParams())
+    else:
+        one = slice(b, b + 1)  # the episode's scene, observed at each of its n poses
+        seen = observe(
+            poses,
+            observed_velocities(poses, actions),
+            scenes.obstacles[one],
+            scenes.mask[one],
+            scenes.goal[one],
+            obstacle_encoding,
+        )
     real = scenes.obstacles[b][scenes.mask[b]]
     if len(real) > scene_slots:
         raise ValueError(f"scene {b} has {len(real)} obstacles, more than the dataset's {scene_slots} slots")

@@ -24,6 +24,10 @@ Features (all float32 with names, fps 10, task string ``TASK``):
   not ``observation.*`` keys, so policies ignore them, and as ordinary columns they survive LeRobot's
   split and merge.
 
+Realistic conditions (docs/conditions.md): ``--env.<field> VALUE`` with the env config's names, e.g.
+``--env.sensing_range 3 --env.obstacle_noise 0.02``: PAC then drives on what the team perceives, the
+frames hold the team's observations and PAC's commands, and ``meta/generation.json`` records them.
+
 Reliability: the dataset is written to a temporary sibling folder ``.NAME.tmp-PID`` and renamed into
 place at the end, so an interrupted run leaves nothing at the destination. On any exit (an error,
 Ctrl-C, SIGTERM or SIGHUP, which raise SystemExit) the temporary folder is removed and the simulation
@@ -48,6 +52,7 @@ from pathlib import Path
 from datasets_scripts.hub_folder import push_to_folder
 from datasets_scripts.lerobot_writer import generate
 from datasets_scripts.safe_destination import exit_on_signals
+from lerobot_formation.condition_flags import add_condition_arguments, conditions_from_args
 from lerobot_formation.core.obstacle_grid import ENCODINGS
 from lerobot_formation.core.scene import SCENE_PRESETS
 from lerobot_formation.threads import add_threads_argument, apply_threads
@@ -115,6 +120,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "line is always printed",
     )
     add_threads_argument(ap, "CPU threads per process, which the data does not depend on")
+    add_condition_arguments(ap)
     args = ap.parse_args(argv)
     if args.episodes < 1:
         ap.error(f"--episodes must be >= 1, got {args.episodes}")
@@ -130,6 +136,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         ap.error(f"--repo-id must look like 'owner/name', got {args.repo_id!r}")
     if args.scenes and not Path(args.scenes).is_file():
         ap.error(f"--scenes file {args.scenes} does not exist")
+    try:
+        conditions_from_args(args)
+    except ValueError as e:
+        ap.error(str(e).replace("conditions: ", "--env."))
     return args
 
 
@@ -165,6 +175,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             workers=args.workers,
             scene_preset=args.scene_preset,
             min_scene_slots=args.scene_slots,
+            conditions=conditions_from_args(args),
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

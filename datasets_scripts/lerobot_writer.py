@@ -20,6 +20,7 @@ from datasets_scripts.safe_destination import (
     temporary_path,
     trash_path,
 )
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import load_scenes
 from lerobot_formation.core.scene import scene_preset as scene_preset_config
@@ -54,8 +55,10 @@ def generate(
     workers: int = 1,
     scene_preset: str = "paper",
     min_scene_slots: int = 0,
+    conditions: Conditions | None = None,
 ) -> dict:
-    """Generate the dataset at ``root`` (atomically) and return a summary dict."""
+    """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: PAC's
+    episodes under realistic conditions (``core.conditions``; None or all off: none)."""
     import datasets as hf_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -97,6 +100,7 @@ def generate(
         workers,
         scene_config,
         scene_slots,
+        conditions,
     )
     frames_total = 0
     ds = None
@@ -131,6 +135,8 @@ def generate(
             "fast_write": fast_write,
             "requested_episodes": n,
         }
+        if conditions is not None and conditions.enabled:
+            extra["conditions"] = conditions.changed()
         return _publish(tmp, root, ds, gen, t0, overwrite, extra, repo_id)
     except BaseException:  # any exit, SystemExit of SIGTERM included (main()): leave nothing behind
         if (

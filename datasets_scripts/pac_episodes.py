@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from datasets_scripts.dataset_frames import MAX_OBSTACLES, episode_frames
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import SUCCESS, PACController, rollout
 from lerobot_formation.core.scene import SceneConfig, Scenes, sample_scenes
@@ -24,12 +25,21 @@ def simulate_batch(
     obstacle_encoding: str,
     scene_config: SceneConfig | None = None,
     scene_slots: int = MAX_OBSTACLES,
+    conditions: Conditions | None = None,
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
-    """PAC on one batch of scenes (the seeds' scenes, or the given ones): (attempted, frames of the
-    successful episodes in seed order). Runs in a worker process when generation is pipelined."""
+    """PAC on one batch of scenes (the seeds' scenes, or the given ones), under ``conditions`` (then
+    the frames hold what the team observed): (attempted, frames of the successful episodes in seed
+    order). Runs in a worker process when generation is pipelined."""
     if scenes is None:
         scenes = sample_scenes(seeds, scene_config)
-    rec = rollout(scenes, PACController(params=params), params)
+    on = conditions is not None and conditions.enabled
+    rec = rollout(
+        scenes,
+        PACController(params=params),
+        params,
+        conditions=conditions if on else None,
+        record_observations=(obstacle_encoding, None) if on else None,
+    )
     ok = np.flatnonzero(rec.outcome == SUCCESS)
     return len(scenes), [episode_frames(rec, scenes, b, obstacle_encoding, scene_slots) for b in ok]
 
@@ -50,7 +60,9 @@ class Generator:
         workers=0,
         scene_config: SceneConfig | None = None,
         scene_slots: int = MAX_OBSTACLES,
+        conditions: Conditions | None = None,
     ):
+        self.conditions = conditions
         self.scene_config = scene_config
         self.scene_slots = scene_slots
         self.params = params
@@ -62,7 +74,7 @@ class Generator:
 
     @property
     def _sim_args(self) -> tuple:
-        return self.params, self.obstacle_encoding, self.scene_config, self.scene_slots
+        return self.params, self.obstacle_encoding, self.scene_config, self.scene_slots, self.conditions
 
     def _batches(self, seeds_iter, scenes_file: Scenes | None):
         while True:

@@ -17,6 +17,11 @@ dataset never uses; ``<preset>:N`` the same from a scene preset of ``core.scene.
 ``dataset_scenes.json`` shipped with the policy), or a scenes JSON file. ``--unseen random:N`` also
 runs the diffusion controllers on unseen scenes for the standard-vs-adaptive table.
 
+Realistic conditions: ``--env.<field> VALUE`` with the env config's field names (docs/conditions.md),
+e.g. ``--env.sensing_range 3 --env.action_delay 2 --env.moving_obstacles 2 --env.obstacle_speed 0.3``;
+every controller then sees only what the team perceives. ``results.json`` records them in
+``meta.conditions``.
+
 Bad input (arguments, scene files, a ``--policy.path`` that is missing, incomplete, broken or of
 another policy type, a controller the checkpoint cannot serve) is one line ``error: ...`` on stderr
 and exit code 2. If a controller fails after others finished, ``results.json`` and ``tables.md`` are
@@ -32,6 +37,7 @@ from pathlib import Path
 
 from lerobot_formation.bench_figures import write_success_figure
 from lerobot_formation.bench_results import write_results
+from lerobot_formation.condition_flags import add_condition_arguments, conditions_from_args
 from lerobot_formation.controllers import controller_names, needs_policy
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
@@ -68,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         "lines are always printed",
     )
     add_threads_argument(ap, "torch threads of the diffusion controllers")
+    add_condition_arguments(ap)
     return ap
 
 
@@ -92,6 +99,10 @@ def main(argv: list[str] | None = None) -> int:
         _fail(f"--candidates must be >= 1, got {args.candidates}")
     if args.num_inference_steps is not None and args.num_inference_steps < 1:
         _fail(f"--num-inference-steps must be >= 1, got {args.num_inference_steps}")
+    try:
+        conditions = conditions_from_args(args)
+    except ValueError as e:
+        _fail(str(e).replace("conditions: ", "--env."))
     report = SamplingReport()
     try:
         scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
@@ -118,17 +129,37 @@ def main(argv: list[str] | None = None) -> int:
     label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
     results: dict[str, dict] = {label: {}}
     try:
-        run_set(names, scenes, params, args, out, label, bundle, not args.no_figures, into=results[label])
+        run_set(
+            names,
+            scenes,
+            params,
+            args,
+            out,
+            label,
+            bundle,
+            not args.no_figures,
+            into=results[label],
+            conditions=conditions,
+        )
         if unseen is not None and diffusion:
             results["unseen"] = {}
             run_set(
-                diffusion, unseen, params, args, out, "unseen", bundle, not args.no_figures, results["unseen"]
+                diffusion,
+                unseen,
+                params,
+                args,
+                out,
+                "unseen",
+                bundle,
+                not args.no_figures,
+                results["unseen"],
+                conditions=conditions,
             )
     except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
         done = [f"{k}/{c}" for k, v in results.items() for c in v]
         message = str(e) if isinstance(e, BenchInputError) else f"{type(e).__name__}: {e}"
         if done:
-            write_results(out, results, label, args, report, error=message)
+            write_results(out, results, label, args, report, error=message, conditions=conditions.changed())
             print(f"wrote {out / 'results.json'} with the finished controllers {done}", file=sys.stderr)
         if isinstance(e, BenchInputError):
             _fail(message)
@@ -144,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
             f"no passage {report.rejected_passage})"
         )
-    write_results(out, results, label, args, report)
+    write_results(out, results, label, args, report, conditions=conditions.changed())
     print(f"wrote {out / 'results.json'}, {out / 'tables.md'}")
     return 0
 

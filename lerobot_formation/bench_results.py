@@ -50,10 +50,17 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
 
 
 def write_results(
-    out: Path, results: dict, label: str, args, report: SamplingReport, error: str | None = None
+    out: Path,
+    results: dict,
+    label: str,
+    args,
+    report: SamplingReport,
+    error: str | None = None,
+    conditions: dict | None = None,
 ):
     """results.json and tables.md of the controllers in ``results``; ``error`` marks a run that stopped
-    early (``meta.incomplete``, ``meta.error``), with what finished before it."""
+    early (``meta.incomplete``, ``meta.error``), with what finished before it. ``conditions``: the
+    realistic conditions that were on (``Conditions.changed()``), kept as ``meta.conditions``."""
     # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
     # other scene sets under "by_scenes".
     payload = dict(results.get(label, {}))
@@ -70,6 +77,8 @@ def write_results(
         "incomplete": error is not None,
         "error": error,
     }
+    if conditions:  # none on: no key, as before conditions existed
+        payload["meta"]["conditions"] = conditions
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, default=_clean))
     os.replace(tmp, out / "results.json")

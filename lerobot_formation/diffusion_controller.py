@@ -16,6 +16,11 @@ functions as in ``select_action`` (``core.safety.select_chunk`` at every replan,
 on every executed action), on the same observation, so the engine and ``lerobot-eval`` evaluate the
 same controller. Replan blending and warm-started replans (``replan_blend_steps``, ``warm_start_step``)
 follow ``select_action`` too: each episode keeps its last whole chunk and the actions run since.
+
+It sees only what the teams perceive (``core.conditions.Perception``): the observation is encoded from
+the observed pose and obstacles at every step (a world-frame encoding too, since under conditions the
+observed obstacles change), and the adaptive rule's cost-to-go is rebuilt for an episode when its
+``map_version`` changes, as PAC and MPPI do.
 """
 
 from __future__ import annotations
@@ -26,13 +31,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lerobot_formation.core.dynamics import FormationParams, FormationState
+from lerobot_formation.core.conditions import Perception
+from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.footprint import select_safest
-from lerobot_formation.core.navigation import cost_to_go
+from lerobot_formation.core.navigation import batch_bounds, cost_to_go, refresh_rows
 from lerobot_formation.core.observation import STATE_DIM, observe
-from lerobot_formation.core.obstacle_grid import egocentric_encodings, environment_state, get_encoding
+from lerobot_formation.core.obstacle_grid import egocentric_encodings, get_encoding
 from lerobot_formation.core.replan_blend import blend_replan
-from lerobot_formation.core.scene import Scenes
 
 logger = logging.getLogger(__name__)
 
@@ -214,16 +219,13 @@ class DiffusionController:
             "filter_interventions": 0,
         }
 
-    def reset(self, scenes: Scenes) -> None:
-        B = len(scenes)
-        self.scenes = scenes
-        if not self.egocentric:  # world-frame encodings do not change during an episode
-            self.env_state = environment_state(
-                scenes.obstacles, scenes.mask, scenes.goal, self.encoding, self.max_obstacles
-            )
-        else:
-            self.env_state = np.zeros((B, get_encoding(self.encoding).dim(self.max_obstacles)), np.float32)
-        self.env_history = np.zeros((B, self.n_obs, self.env_state.shape[1]), np.float32)
+    def reset(self, view: Perception) -> None:
+        from lerobot_formation.core.rollout import map_obstacles
+
+        B = len(view)
+        self.obstacles = view.obstacles.copy()  # the latest observed obstacles of every episode
+        dim = get_encoding(self.encoding).dim(self.max_obstacles)
+        self.env_history = np.zeros((B, self.n_obs, dim), np.float32)
         self.history = np.zeros((B, self.n_obs, STATE_DIM), np.float32)
         self.started = np.zeros(B, dtype=bool)
         self.queue = np.zeros((B, self.n_act, 2))
@@ -235,9 +237,13 @@ class DiffusionController:
         self.executed = torch.zeros(B, dtype=torch.long)
         self.generator = torch.Generator().manual_seed(self.seed)
         # MPPI's tuned field: walls x3 within 0.9 m (x30 leaves one-cell valleys the square cannot use).
+        self.ctg_bounds = batch_bounds(view.goal)
         self.ctg = (
-            cost_to_go(scenes.obstacles, scenes.goal, inflate=0.9, wall_cost=3.0) if self.adaptive else None
+            cost_to_go(map_obstacles(view), view.goal, inflate=0.9, wall_cost=3.0, bounds=self.ctg_bounds)
+            if self.adaptive
+            else None
         )
+        self.version = np.array(view.map_version, copy=True)
         self.replans = 0
 
     def _noise(self, n: int) -> torch.Tensor:
@@ -245,7 +251,8 @@ class DiffusionController:
 
     @torch.no_grad()
     def plan(self, idx: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """New action chunks (len(idx), n_action_steps, 2) for episodes idx."""
+        """New action chunks (len(idx), n_action_steps, 2) for episodes idx at observed midpoint
+        ``poses`` (len(idx), 3); the adaptive rule checks them against the latest observed obstacles."""
         n, K = len(idx), self.K
         obs = {
             "observation.state": torch.from_numpy(self.history[idx]),
@@ -280,7 +287,7 @@ class DiffusionController:
         choice, _ = select_safest(
             poses,
             cand,
-            self.scenes.obstacles[idx],
+            self.obstacles[idx],
             self.ctg[idx],
             self.template,
             self.params.dt,
@@ -297,17 +304,34 @@ class DiffusionController:
         self.executed[rows] = 0
         return chosen[:, : self.n_act]
 
-    def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
-        s = self.scenes
-        seen = observe(  # as the env observes it; a world-frame encoding is the one of reset()
-            state.pose,
-            state.velocity,
-            s.obstacles[idx],
-            s.mask[idx],
-            s.goal[idx],
+    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
+        from lerobot_formation.core.rollout import map_obstacles
+
+        idx = np.asarray(idx)
+        self.obstacles[idx] = view.obstacles
+        changed = view.map_version != self.version[idx]
+        if changed.any():
+            if self.ctg is not None:
+                sub = view[changed]
+                refresh_rows(
+                    self.ctg,
+                    idx[changed],
+                    map_obstacles(sub),
+                    sub.goal,
+                    self.ctg_bounds,
+                    inflate=0.9,
+                    wall_cost=3.0,
+                )
+            self.version[idx[changed]] = view.map_version[changed]
+        seen = observe(  # as the env observes it, from what the teams perceive
+            view.pose,
+            view.velocity,
+            view.obstacles,
+            view.mask,
+            view.goal,
             self.encoding,
             self.max_obstacles,
-            world_state=None if self.egocentric else self.env_state[idx],
+            obstacle_velocity=view.obstacle_velocity,
         )
         obs, env = seen["agent_pos"], seen["environment_state"]
         new = ~self.started[idx]
@@ -321,7 +345,7 @@ class DiffusionController:
         need = self.queue_pos[idx] >= self.n_act
         if need.any():
             rows = idx[need]
-            self.queue[rows] = self.plan(rows, state.pose[need])
+            self.queue[rows] = self.plan(rows, view.pose[need])
             self.queue_pos[rows] = 0
         a = self.queue[idx, self.queue_pos[idx]]
         self.queue_pos[idx] += 1

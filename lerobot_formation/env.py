@@ -47,9 +47,15 @@ raise ``ValueError``.
 ``is_success``, ``is_collision``, ``formation_error``, ``clearance`` (smallest agent gap),
 ``midpoint_clearance`` (both ``None`` in a scene with no obstacle), ``scene_seed``.
 
+## Realistic conditions
+``conditions=Conditions(...)`` (``core.conditions``: sensing range and memory, obstacle and pose
+noise, action noise and delay, rate limits, moving obstacles): the observation is then built from what
+the team perceives, the action is executed late, noisy and rate limited, and obstacles may move
+(``render`` draws them where they are). Off by default: everything as without them.
+
 ## Arguments
 ``gym.make("gym_formation/FormationNav-v0", render_mode="rgb_array", scenes_file=None,
-obstacle_encoding="grid")``
+obstacle_encoding="grid", conditions=None)``
 
 ## Version History
 - v0: initial version.
@@ -64,6 +70,7 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_formation.core import dynamics
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import environment_state_dim
@@ -135,6 +142,7 @@ class FormationEnv(gym.Env):
         scene_config: SceneConfig | None = None,
         max_obstacles: int | None = None,
         render_size: int = 256,
+        conditions: Conditions | None = None,
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -152,6 +160,7 @@ class FormationEnv(gym.Env):
         self.scene_config = scene_config or SceneConfig()
         self.obstacle_encoding = obstacle_encoding
         self.max_obstacles = max_obstacles
+        self.conditions = conditions
         self.scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.observation_space = observation_spaces(obstacle_encoding, max_obstacles)
         self.action_space = action_space(self.params)
@@ -182,7 +191,9 @@ class FormationEnv(gym.Env):
         else:
             s = seed if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
             self.scene = sample_scenes([s], self.scene_config)
-        self.teams = Teams(self.scene, self.params, self.obstacle_encoding, self.max_obstacles)
+        self.teams = Teams(
+            self.scene, self.params, self.obstacle_encoding, self.max_obstacles, self.conditions
+        )
         self._path = [self._positions()]
         self._ended = None
         return self._obs(), self._info(*self.teams.outcome())
@@ -210,7 +221,7 @@ class FormationEnv(gym.Env):
             return None
         g = self.params.graph
         return self._renderer.draw(
-            self.scene.obstacles[0],
+            self.teams.scenes.obstacles[0],  # where they are now (moving obstacles)
             self.scene.goal[0],
             self._path[-1],
             (g.edge_i, g.edge_j),

@@ -28,6 +28,7 @@ from lerobot.envs.utils import FreezeAfterEpisodeEnd
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.configuration_formation_diffusion import config_error
+from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
@@ -113,6 +114,10 @@ class FormationEnvConfig(EnvConfig):
         render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
         episode_metrics_path: if set, every finished episode appends its formation metrics (one
             JSON line) to this file; see ``lerobot_formation.episode_metrics``.
+        sensing_range, obstacle_memory, obstacle_noise, pose_noise, action_noise, action_delay,
+            max_linear_accel, max_angular_accel, moving_obstacles, obstacle_speed: realistic
+            conditions (``core.conditions.Conditions``, docs/conditions.md), all off by default, e.g.
+            ``--env.sensing_range=3 --env.action_delay=2``; the in-training evaluation uses them too.
         features: env observation/action features, keyed by the env's own keys; the
             ``environment_state`` shape follows ``obstacle_encoding``.
         features_map: env keys to LeRobot keys (``agent_pos`` -> ``observation.state``,
@@ -138,6 +143,27 @@ class FormationEnvConfig(EnvConfig):
     render_mode: str = "rgb_array"
     # If set, each finished episode appends its formation metrics as a JSON line to this file.
     episode_metrics_path: str | None = None
+    # Realistic conditions (core/conditions.py, docs/conditions.md); every default is off.
+    # [m] an obstacle is observed once some agent came within this range of its surface (None: all known).
+    sensing_range: float | None = None
+    # Keep obstacles once seen (false: only while within range).
+    obstacle_memory: bool = True
+    # [m] std of the per-step Gaussian noise on each observed obstacle's centre and radius.
+    obstacle_noise: float = 0.0
+    # [m] std of the per-step noise on the observed midpoint position (heading: the same in rad).
+    pose_noise: float = 0.0
+    # Std of the multiplicative noise on each executed command component (a fraction).
+    action_noise: float = 0.0
+    # [control steps] commands take effect this many steps late (the team holds still until then).
+    action_delay: int = 0
+    # [m/s^2] rate limit on the executed v (None: none).
+    max_linear_accel: float | None = None
+    # [rad/s^2] rate limit on the executed omega (None: none).
+    max_angular_accel: float | None = None
+    # How many of a scene's obstacles move at constant velocity, bouncing in the scene's bounds.
+    moving_obstacles: int = 0
+    # [m/s] their speed.
+    obstacle_speed: float = 0.0
     # Parallel tasks of a multi-task benchmark (LeRobot's EnvConfig field; one task here).
     max_parallel_tasks: int = 1
     # Skip gymnasium's env checker when LeRobot makes the env (LeRobot's EnvConfig field).
@@ -172,6 +198,10 @@ class FormationEnvConfig(EnvConfig):
             )
         if self.episode_length < 1:
             raise config_error(f"env.episode_length must be >= 1, got {self.episode_length}")
+        try:
+            self.conditions()
+        except ValueError as e:
+            raise config_error(str(e).replace("conditions: ", "env.")) from e
         if self.scenes_file is not None:
             try:  # at start-up, not at the first evaluation
                 load_scenes(self.scenes_file, SCENE_PRESETS[self.scene_preset])
@@ -195,18 +225,26 @@ class FormationEnvConfig(EnvConfig):
             check_policy_features(self, policy_cfg)
         return super().get_env_processors()
 
+    def conditions(self) -> Conditions:
+        """The realistic conditions of these fields (``core.conditions.Conditions``)."""
+        return Conditions(**{name: getattr(self, name) for name in CONDITION_FIELDS})
+
     @property
     def gym_id(self) -> str:
         return f"gym_formation/{self.task}"
 
     @property
     def gym_kwargs(self) -> dict[str, Any]:
-        return {
+        kwargs = {
             "render_mode": self.render_mode,
             "scenes_file": self.scenes_file,
             "obstacle_encoding": self.obstacle_encoding,
             "scene_config": SCENE_PRESETS[self.scene_preset],
         }
+        conditions = self.conditions()
+        if conditions.enabled:
+            kwargs["conditions"] = conditions
+        return kwargs
 
     def make_env_factory(self, run_id: str | None = None, env_index: int = 0) -> FormationEnvFactory:
         """The picklable factory of one sub-env (see the module docstring for the wrapper stack)."""

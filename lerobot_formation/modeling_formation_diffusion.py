@@ -402,8 +402,8 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         encoding = get_encoding(self.config.obstacle_encoding)
         slots = encoding.slots(self.config.max_obstacles)
         env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
-        if encoding.trailing:  # e.g. "nearest+route": the nearest part, then a route hint
-            env = env[:, : env.shape[1] - encoding.trailing]
+        # the nearest part only (e.g. "nearest+route" adds a route hint, "nearest+velocity" velocities)
+        env = env[:, : encoding.fixed + encoding.per_slot * slots]
         goal, obstacles, _ = safety.decode_nearest(env, slots)
         return goal, obstacles
 

@@ -6,7 +6,8 @@ the returned observation already belongs to its next episode and ``infos["final_
 ``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i;
 with ``scenes_file``, scene s + i of the file (a seed past its end raises ``ValueError``, as in
 ``FormationEnv``), and an autoreset picks a scene of the file at random. Info ``clearance`` and
-``midpoint_clearance`` are NaN in a scene with no obstacle (``FormationEnv``: None).
+``midpoint_clearance`` are NaN in a scene with no obstacle (``FormationEnv``: None). ``conditions``
+(``core.conditions.Conditions``) as in ``FormationEnv``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.rollout import Teams
 from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes
@@ -33,6 +35,7 @@ class FormationVectorEnv(VectorEnv):
         scene_config: SceneConfig | None = None,
         max_obstacles: int | None = None,
         max_episode_steps: int = 600,
+        conditions: Conditions | None = None,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -42,6 +45,7 @@ class FormationVectorEnv(VectorEnv):
         self.obstacle_encoding = obstacle_encoding
         self.max_obstacles = max_obstacles
         self.max_episode_steps = max_episode_steps
+        self.conditions = conditions
         self.scenes_file = scenes_file
         self.file_scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.single_observation_space = observation_spaces(obstacle_encoding, max_obstacles)
@@ -94,7 +98,9 @@ class FormationVectorEnv(VectorEnv):
             new = self._scenes_for(seeds)
         elif len(new) != B:
             raise ValueError(f"options['scenes'] must hold {B} scenes, got {len(new)}")
-        self.teams = Teams(new.padded(self._M), self.params, self.obstacle_encoding, self.max_obstacles)
+        self.teams = Teams(
+            new.padded(self._M), self.params, self.obstacle_encoding, self.max_obstacles, self.conditions
+        )
         return self.teams.observe(), self._info(*self.teams.outcome())
 
     def step(self, actions):

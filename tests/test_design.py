@@ -18,12 +18,12 @@ class StraightToGoal:
 
     name = "straight"
 
-    def reset(self, scenes):
-        self.goal = scenes.goal
+    def reset(self, view):
+        self.goal = view.goal
 
-    def act(self, state, idx):
-        d = self.goal[idx] - state.pose[:, :2]
-        error = np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - state.pose[:, 2])))
+    def act(self, view, idx):
+        d = self.goal[idx] - view.pose[:, :2]
+        error = np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - view.pose[:, 2])))
         return np.stack([np.full(len(idx), 0.4), np.clip(2.0 * error, -1.5, 1.5)], axis=-1)
 
 

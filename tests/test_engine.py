@@ -37,7 +37,8 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.conditions import Perception
+from lerobot_formation.core.dynamics import FormationParams, initial_state
 from lerobot_formation.core.rollout import COLLISION, SUCCESS
 from lerobot_formation.core.scene import (
     UNSEEN_SEED_START,
@@ -241,9 +242,10 @@ def test_ddim_step_override(checkpoint):
     policy, pre, post = load_policy(checkpoint)  # own copy: the sampler is changed below
     cfg = policy.config
     ctrl = DiffusionController(checkpoint, policy_bundle=(policy, pre, post))
-    ctrl.reset(sample_scenes(UNSEEN_SEED_START + np.arange(3)))
+    scenes = sample_scenes(UNSEEN_SEED_START + np.arange(3))
+    ctrl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     idx = np.arange(3)
-    plan = lambda: ctrl.plan(idx, ctrl.scenes.start)  # noqa: E731
+    plan = lambda: ctrl.plan(idx, scenes.start)  # noqa: E731
     assert count_denoiser_calls(policy.ema_diffusion, plan) == cfg.num_inference_steps  # checkpoint's: 4
 
     set_inference_steps(policy, None)  # keeps the checkpoint's sampler

@@ -67,9 +67,9 @@ def test_env_and_batched_rollout_agree_for_pac():
         env = FormationEnv()
         env.reset(options={"scene": scenes[b].to_list()[0]})
         ctrl = PACController()
-        ctrl.reset(scenes[b])
+        ctrl.reset(env.teams.perceive())
         for t in range(int(rec.steps[b])):
-            a = ctrl.act(env.state, np.array([0]))[0]
+            a = ctrl.act(env.teams.perceive(), np.array([0]))[0]
             np.testing.assert_allclose(a, rec.actions[b, t], rtol=0, atol=1e-12)
             _, _, term, _, info = env.step(a)
         assert term and info["is_success"] == (rec.outcome[b] == 1)

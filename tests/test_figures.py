@@ -25,10 +25,10 @@ class Straight:
     def __init__(self, v: float):
         self.v = v
 
-    def reset(self, scenes) -> None:
+    def reset(self, view) -> None:
         pass
 
-    def act(self, state, idx):
+    def act(self, view, idx):
         return np.tile([self.v, 0.0], (len(idx), 1))
 
 

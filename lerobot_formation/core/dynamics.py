@@ -216,6 +216,30 @@ def clip_action(action: np.ndarray, params: FormationParams) -> np.ndarray:
     )
 
 
+def rate_limit(
+    previous: np.ndarray,
+    command: np.ndarray,
+    max_linear_accel: float | None,
+    max_angular_accel: float | None,
+    dt: float,
+) -> np.ndarray:
+    """The second-order unicycle's executed velocity (B, 2): the previous executed [v, omega] (B, 2)
+    moves toward the ``command`` (B, 2) by at most the acceleration times dt per control step,
+
+        v_k = v_{k-1} + clip(v_cmd - v_{k-1}, -a_v dt, a_v dt),
+        omega_k = omega_{k-1} + clip(omega_cmd - omega_{k-1}, -a_omega dt, a_omega dt),
+
+    a_v = ``max_linear_accel`` [m/s^2], a_omega = ``max_angular_accel`` [rad/s^2] (None: that
+    component follows the command at once). ``core.conditions.ConditionedWorld.execute`` applies it
+    to the clipped command before ``step``, which then moves the team with the result."""
+    out = np.array(command, dtype=np.float64)
+    for k, accel in enumerate((max_linear_accel, max_angular_accel)):
+        if accel is not None:
+            dv = accel * dt
+            out[:, k] = previous[:, k] + np.clip(out[:, k] - previous[:, k], -dv, dv)
+    return out
+
+
 def step_midpoint(pose: np.ndarray, action: np.ndarray, dt) -> np.ndarray:
     """Midpoint unicycle, explicit Euler (paper's discrete dynamics). (..., 3), (..., 2) -> (..., 3).
 

@@ -60,10 +60,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import FormationParams, FormationState, step_midpoint
+from lerobot_formation.core.conditions import Perception
+from lerobot_formation.core.dynamics import FormationParams, step_midpoint
 from lerobot_formation.core.footprint import template_clearance
-from lerobot_formation.core.navigation import CostToGo, cost_to_go
-from lerobot_formation.core.scene import Scenes
+from lerobot_formation.core.navigation import CostToGo, batch_bounds, cost_to_go, refresh_rows
 
 
 @dataclass(frozen=True)
@@ -125,11 +125,15 @@ def bilinear(ctg: CostToGo, xy: np.ndarray) -> np.ndarray:
 
 
 class MPPIController:
-    """Batched MPPI behind the ``rollout.Controller`` interface.
+    """Batched MPPI behind the ``rollout.Controller`` interface, on what the teams perceive.
 
-    ``reset(scenes)`` computes the cost-to-go fields, resets the per-episode nominal sequences (indexed
-    by the global episode index) and creates the noise generator ``np.random.default_rng(seed)``.
-    ``act(state, idx)`` plans for the live episodes ``idx`` and returns (len(idx), 2) actions.
+    ``reset(view)`` computes the cost-to-go fields from the observed static obstacles
+    (``rollout.map_obstacles``), resets the per-episode nominal sequences (indexed by the global
+    episode index) and creates the noise generator ``np.random.default_rng(seed)``.
+    ``act(view, idx)`` rebuilds the field of an episode whose ``map_version`` changed (a new obstacle
+    sensed; with noise, from that step's noisy snapshot), then plans for the live episodes ``idx`` on
+    the current observed (noisy) obstacles and pose, and returns (len(idx), 2) actions. Observed moving
+    obstacles are predicted at constant velocity along the horizon.
     """
 
     name = "mppi"
@@ -140,22 +144,40 @@ class MPPIController:
         self.template = np.asarray(self.params.graph.template, dtype=np.float64)  # (N, 2) body frame
         self.rng: np.random.Generator | None = None
 
-    def reset(self, scenes: Scenes) -> None:
+    def reset(self, view: Perception) -> None:
+        from lerobot_formation.core.rollout import map_obstacles
+
         c = self.config
-        self.obstacles = np.asarray(scenes.obstacles, dtype=np.float64)
-        self.goal = np.asarray(scenes.goal, dtype=np.float64)
+        self.goal = np.asarray(view.goal, dtype=np.float64)
+        self.ctg_bounds = batch_bounds(self.goal)
         self.ctg = cost_to_go(
-            self.obstacles,
+            np.asarray(map_obstacles(view), dtype=np.float64),
             self.goal,
-            inflate=c.ctg_inflate,
-            resolution=c.ctg_resolution,
-            wall_cost=c.ctg_wall_cost,
+            bounds=self.ctg_bounds,
+            **self._ctg_options(),
         )
-        B = len(scenes)
+        self.version = np.array(view.map_version, copy=True)
+        B = len(view)
         self.nominal = np.zeros((B, c.horizon, 2))
         self.nominal[..., 0] = c.v_cruise
         self.prev_action = np.zeros((B, 2))
         self.rng = np.random.default_rng(c.seed)
+
+    def _ctg_options(self) -> dict:
+        c = self.config
+        return dict(inflate=c.ctg_inflate, resolution=c.ctg_resolution, wall_cost=c.ctg_wall_cost)
+
+    def refresh_map(self, view: Perception, idx: np.ndarray) -> None:
+        """Rebuild the fields of the episodes ``idx`` whose observed obstacle set changed."""
+        from lerobot_formation.core.rollout import map_obstacles
+
+        changed = view.map_version != self.version[idx]
+        if changed.any():
+            sub = view[changed]
+            refresh_rows(
+                self.ctg, idx[changed], map_obstacles(sub), sub.goal, self.ctg_bounds, **self._ctg_options()
+            )
+            self.version[idx[changed]] = sub.map_version
 
     # -- costs ------------------------------------------------------------------------------------
     def footprint_clearance(self, pose: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
@@ -192,8 +214,11 @@ class MPPIController:
         u[..., 1] = np.clip(u[..., 1], -p.omega_max, p.omega_max)
         return u
 
-    def _cost(self, pose0: np.ndarray, u: np.ndarray, prev: np.ndarray, obstacles, goal, ctg) -> np.ndarray:
-        """Path cost (B, K) of the control samples u (B, K, T, 2) from poses (B, 3)."""
+    def _cost(
+        self, pose0: np.ndarray, u: np.ndarray, prev: np.ndarray, obstacles, goal, ctg, obstacle_velocity=None
+    ) -> np.ndarray:
+        """Path cost (B, K) of the control samples u (B, K, T, 2) from poses (B, 3); obstacles with
+        an ``obstacle_velocity`` (B, M, 2) move on at it along the horizon."""
         c, p = self.config, self.params
         B, K, T, _ = u.shape
         pose = np.broadcast_to(pose0[:, None], (B, K, 3))
@@ -203,9 +228,15 @@ class MPPIController:
         done = np.zeros((B, K), dtype=bool)  # reached the goal before any contact
         cost = np.zeros((B, K))
         tol2 = p.goal_tolerance**2
+        moving = obstacle_velocity is not None and np.any(obstacle_velocity)
         for t in range(T):  # Python loop over time only
             pose = step_midpoint(pose, u[:, :, t], p.dt)
-            clear = self.footprint_clearance(pose, obstacles)
+            if moving:
+                ahead = obstacles.copy()
+                ahead[..., :2] += obstacle_velocity * (p.dt * (t + 1))
+                clear = self.footprint_clearance(pose, ahead)
+            else:
+                clear = self.footprint_clearance(pose, obstacles)
             crashed |= (clear < margin) & ~done
             live = ~done
             cost += c.w_collision * crashed
@@ -221,15 +252,22 @@ class MPPIController:
         return cost
 
     # -- control ----------------------------------------------------------------------------------
-    def plan(self, state: FormationState, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One MPPI iteration for episodes idx: (updated nominals (B, T, 2), samples, weights (B, K))."""
+    def plan(self, view: Perception, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One MPPI iteration for episodes idx (``view`` their rows): (updated nominals (B, T, 2),
+        samples, weights (B, K))."""
         c = self.config
         if self.rng is None:
             raise RuntimeError("call reset(scenes) before act()")
         U = self.nominal[idx]
         u = self._sample(U)
         S = self._cost(
-            state.pose, u, self.prev_action[idx], self.obstacles[idx], self.goal[idx], self.ctg[idx]
+            view.pose,
+            u,
+            self.prev_action[idx],
+            np.asarray(view.obstacles, dtype=np.float64),
+            self.goal[idx],
+            self.ctg[idx],
+            view.obstacle_velocity if view.moving else None,
         )
         if c.alpha < 1:
             sig2 = np.array([c.sigma_v, c.sigma_omega]) ** 2
@@ -247,9 +285,10 @@ class MPPIController:
         U_new[..., 1] = np.clip(U_new[..., 1], -self.params.omega_max, self.params.omega_max)
         return U_new, u, w
 
-    def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
+    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
         idx = np.asarray(idx, dtype=np.int64)
-        U_new, _, _ = self.plan(state, idx)
+        self.refresh_map(view, idx)
+        U_new, _, _ = self.plan(view, idx)
         action = U_new[:, 0].copy()
         shifted = np.concatenate([U_new[:, 1:], U_new[:, -1:]], axis=1)
         self.nominal[idx] = shifted

@@ -182,6 +182,25 @@ def cost_to_go_at(
     return q
 
 
+def batch_bounds(goal: np.ndarray, bounds: tuple[float, float] = (-3.0, 9.0)) -> tuple[float, float]:
+    """The grid bounds ``cost_to_go`` uses for goals (B, 2): passing them for any subset of these goals
+    gives a field on the same grid (``refresh_rows``)."""
+    return min(bounds[0], float(goal.min()) - 2.0), max(bounds[1], float(goal.max()) + 2.0)
+
+
+def refresh_rows(
+    ctg: CostToGo, rows: np.ndarray, obstacles: np.ndarray, goal: np.ndarray, bounds, **kw
+) -> None:
+    """Recompute the fields ``rows`` of ``ctg`` (built with ``bounds = batch_bounds(all goals)``) for new
+    ``obstacles`` (len(rows), M, 3) and their ``goal`` (len(rows), 2), in place, on the same grid."""
+    fresh = cost_to_go(obstacles, goal, bounds=bounds, **kw)
+    if fresh.value.shape[1:] != ctg.value.shape[1:] or fresh.origin != ctg.origin:
+        raise ValueError(
+            f"refresh_rows: grid {fresh.value.shape[1:]} at {fresh.origin} is not {ctg.value.shape[1:]}"
+        )
+    ctg.value[rows] = fresh.value
+
+
 # Per-scene fields by scene (canonical obstacles + goal bytes): PAC and the route encoding of the same
 # scene share one field, and an episode's steps reuse it. A 61 x 61 field is 30 kB.
 _SCENE_FIELDS: OrderedDict[bytes, CostToGo] = OrderedDict()

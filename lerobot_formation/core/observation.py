@@ -46,24 +46,32 @@ def observe(
     encoding: str = "grid",
     max_obstacles: int | None = None,
     world_state: np.ndarray | None = None,
+    obstacle_velocity: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """``{"agent_pos": (B, 7), "environment_state": (B, D)}`` of B teams at ``pose`` (B, 3).
 
     The scene arrays (obstacles (S, M, 3), mask (S, M), goal (S, 2)) hold S = B scenes, one per team,
     or S = 1 scene for every row (the frames of one episode). ``world_state`` (B, D) is a world-frame
     encoding computed before for these scenes (the episode's start): returned as it is, not
-    recomputed; an egocentric encoding ignores it.
+    recomputed; an egocentric encoding ignores it. ``obstacle_velocity`` (S, M, 2): the observed
+    obstacle velocities, for an encoding that observes them (None: static).
     """
     B = len(pose)
     if get_encoding(encoding).egocentric:  # moves with the team: one encoding per pose
         if len(goal) != B:
             obstacles, mask, goal = (np.repeat(a, B, axis=0) for a in (obstacles, mask, goal))
-        env = environment_state(obstacles, mask, goal, encoding, max_obstacles, pose=pose)
+            if obstacle_velocity is not None:
+                obstacle_velocity = np.repeat(obstacle_velocity, B, axis=0)
+        env = environment_state(
+            obstacles, mask, goal, encoding, max_obstacles, pose=pose, obstacle_velocity=obstacle_velocity
+        )
     else:
         env = (
             world_state
             if world_state is not None
-            else environment_state(obstacles, mask, goal, encoding, max_obstacles)
+            else environment_state(
+                obstacles, mask, goal, encoding, max_obstacles, obstacle_velocity=obstacle_velocity
+            )
         )
         if len(env) != B:
             env = np.repeat(env, B, axis=0)

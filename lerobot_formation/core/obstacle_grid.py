@@ -22,6 +22,12 @@ recomputed every step.
 observed obstacles (the cost-to-go carrots 1 m and 3 m ahead in the body frame, and PAC's path-blocked
 flag): 2 + 4 max_obstacles + 5 values.
 
+``nearest+velocity`` (``core/velocity_encoding.py``): ``nearest``, then each slot's observed obstacle
+velocity [vx_b, vy_b] in the body frame (moving obstacles, ``core.conditions``): 2 + 6 max_obstacles.
+
+Every encoding takes the obstacles the team perceives (``core.conditions.Perception``); one with
+``velocity`` set gets them as (B, M, 5) rows [x, y, r, vx, vy].
+
 Adding an encoding: one new file that defines ``ENCODING = ObstacleEncoding(...)`` (its ``encode``
 and ``names``), and one line at the bottom of this file, ``register("package.module:ENCODING",
 "name")``: the file is imported when the encoding is first used (it may import this module).
@@ -144,6 +150,8 @@ class ObstacleEncoding:
         names: slots -> the D feature names.
         trailing: values after the rows (e.g. a route hint); a row layout that starts like
             "nearest"'s (``fixed`` 2, ``per_slot`` 4) is what the safety layer decodes.
+        trailing_per_slot: values per obstacle slot after ``trailing`` (e.g. the slots' velocities).
+        velocity: ``encode`` takes obstacles (B, M, 5) [x, y, r, vx, vy] (observed velocities).
     """
 
     name: str
@@ -154,12 +162,15 @@ class ObstacleEncoding:
     encode: Callable[..., np.ndarray]
     names: Callable[[int], list[str]]
     trailing: int = 0
+    trailing_per_slot: int = 0
+    velocity: bool = False
 
     def slots(self, max_obstacles: int | None) -> int:
         return self.default_slots if max_obstacles is None or not self.per_slot else int(max_obstacles)
 
     def dim(self, max_obstacles: int | None = None) -> int:
-        return self.fixed + self.per_slot * self.slots(max_obstacles) + self.trailing
+        slots = self.slots(max_obstacles)
+        return self.fixed + (self.per_slot + self.trailing_per_slot) * slots + self.trailing
 
 
 # Encodings by name: an ObstacleEncoding, or the "module:attribute" path of one (imported when first used).
@@ -202,9 +213,14 @@ def environment_state(
     encoding: str = "grid",
     max_obstacles: int | None = None,
     pose: np.ndarray | None = None,
+    obstacle_velocity: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The ``environment_state`` observation (B, D) float32 of ``encoding`` (see the module docstring)."""
+    """The ``environment_state`` observation (B, D) float32 of ``encoding`` (see the module docstring);
+    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles)."""
     enc = get_encoding(encoding)
+    if enc.velocity:
+        vel = np.zeros((*obstacles.shape[:2], 2)) if obstacle_velocity is None else obstacle_velocity
+        obstacles = np.concatenate([obstacles[..., :3], vel], axis=-1)
     return enc.encode(obstacles, mask, goal, pose, enc.slots(max_obstacles))
 
 
@@ -215,6 +231,7 @@ register(
 register(ObstacleEncoding("nearest", 12, 4, 2, True, _encode_nearest, _nearest_names))
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
 register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
+register("lerobot_formation.core.velocity_encoding:ENCODING", "nearest+velocity")
 ENCODINGS = tuple(ENCODING_REGISTRY)
 
 

@@ -10,8 +10,17 @@ An episode ends on success (midpoint within ``goal_tolerance`` of the goal, no c
 collision (any agent disc touching any obstacle; collision wins if both happen in one step), or on
 timeout after ``max_steps`` control steps. Only live episodes are stepped.
 
-Controllers follow one interface (``Controller``): ``reset(scenes)`` once, then
-``act(state, idx) -> (len(idx), 2)`` for the live episodes ``idx`` (global indices into the batch).
+Realistic conditions (``core.conditions.Conditions``: sensing range, noise, delay, rate limits,
+moving obstacles) live in a ``ConditionedWorld`` that ``Teams`` builds only when some condition is on
+(or its scenes give obstacle velocities); without one every step is what it was before conditions existed.
+
+Controllers follow one interface (``Controller``) and see only what the robots perceive
+(``core.conditions.Perception``: the observed pose and velocity, the observed obstacles, their mask
+and velocities, the goal, and a map version that changes when the observed obstacle set does):
+``reset(view)`` once with the B teams' first perception, then ``act(view, idx) -> (len(idx), 2)``
+for the live episodes ``idx`` (global indices into the batch), ``view`` holding their rows in that
+order. A controller that derives something from the map (a cost-to-go) rebuilds it for a row when
+that row's ``map_version`` changes.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lerobot_formation.core.conditions import ConditionedWorld, Conditions, Perception
 from lerobot_formation.core.dynamics import (
     FormationParams,
     FormationState,
@@ -33,6 +43,7 @@ from lerobot_formation.core.dynamics import (
     step,
 )
 from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
+from lerobot_formation.core.navigation import SceneFields
 from lerobot_formation.core.observation import observe
 from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.pac import PACConfig, PathAwareController
@@ -43,26 +54,56 @@ OUTCOME_NAMES = {RUNNING: "running", SUCCESS: "success", COLLISION: "collision",
 
 
 class Controller(Protocol):
+    """A controller under test: it sees only the teams' ``Perception`` (module docstring)."""
+
     name: str
 
-    def reset(self, scenes: Scenes) -> None: ...
+    def reset(self, view: Perception) -> None: ...
 
-    def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray: ...
+    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray: ...
+
+
+def map_obstacles(view: Perception) -> np.ndarray:
+    """The observed obstacles (B, M, 3) a controller builds its map (cost-to-go) from: the static
+    ones; a moving obstacle is left out (padding: far away, radius 0), it is avoided locally."""
+    if not view.moving:
+        return view.obstacles
+    static = ~np.any(view.obstacle_velocity != 0, axis=-1)
+    return np.where(static[..., None], view.obstacles, np.array([1.0e6, 1.0e6, 0.0]))
 
 
 class PACController:
-    """PAC behind the common controller interface."""
+    """PAC behind the common controller interface, on what the team perceives.
+
+    The cost-to-go (PAC's detour side) is built per team from ``map_obstacles`` of its perception
+    when the episode starts and rebuilt for a team only when its ``map_version`` changes (a new
+    obstacle sensed, or one forgotten): with noise it is the noisy snapshot of that moment. The
+    repulsion, the path check and the footprint governor use the current (noisy, moving) observed
+    obstacles at every step."""
 
     name = "pac"
 
     def __init__(self, config: PACConfig | None = None, params: FormationParams | None = None):
         self.pac = PathAwareController(config, params)
 
-    def reset(self, scenes: Scenes) -> None:
-        self.pac.reset(scenes.obstacles, scenes.goal)
+    def reset(self, view: Perception) -> None:
+        self.pac.reset(map_obstacles(view), view.goal)
+        self.version = np.array(view.map_version, copy=True)
 
-    def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
-        return self.pac.select(idx).command(state.pose)
+    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
+        idx = np.asarray(idx)
+        changed = view.map_version != self.version[idx]
+        if changed.any():
+            rows = idx[changed]
+            fresh = SceneFields.build(
+                map_obstacles(view[changed]), view.goal[changed], self.pac.config.path_inflate
+            )
+            for i, field in zip(rows, fresh.fields, strict=True):
+                self.pac.ctg.fields[i] = field
+            self.version[rows] = view.map_version[changed]
+        sub = self.pac.select(idx)
+        sub.obstacles = view.obstacles
+        return sub.command(view.pose)
 
 
 def step_outcome(
@@ -98,11 +139,13 @@ class Transition:
 
     Attributes:
         prev_pose: (B, 3) midpoint poses before the step.
-        action: (B, 2) the checked action, before clipping.
+        action: (B, 2) the action the dynamics applied (``dynamics.step`` clips it): the checked
+            command itself, or under conditions the executed velocity (delayed, noisy, rate limited).
         outcome: (B,) RUNNING, SUCCESS or COLLISION.
         reward: (B,) ``step_reward``.
         agent_clearance: (B, N) agent-disc gaps to the nearest obstacle (+inf: no obstacle).
         midpoint_clearance: (B,) midpoint to the nearest obstacle surface (+inf: no obstacle).
+        command: (B, 2) the checked command as sent (the same as ``action`` without conditions).
     """
 
     prev_pose: np.ndarray
@@ -111,6 +154,7 @@ class Transition:
     reward: np.ndarray
     agent_clearance: np.ndarray
     midpoint_clearance: np.ndarray
+    command: np.ndarray | None = None
 
     @property
     def terminated(self) -> np.ndarray:
@@ -124,9 +168,12 @@ class Teams:
     Args:
         scenes: one scene per team (copied: ``load`` writes into the copy).
         obstacle_encoding, max_obstacles: what ``observe`` encodes (``core.observation``).
+        conditions: realistic conditions (``core.conditions``); None or all off: none.
 
     Attributes:
         state: the teams' ``FormationState``; ``steps`` (B,) control steps since each team's reset.
+        world: the conditions' state (``ConditionedWorld``), None when no condition is on and the
+            scenes give no obstacle velocities. ``scenes`` holds the true (moving) obstacles.
     """
 
     def __init__(
@@ -135,6 +182,7 @@ class Teams:
         params: FormationParams | None = None,
         obstacle_encoding: str = "grid",
         max_obstacles: int | None = None,
+        conditions: Conditions | None = None,
     ):
         self.params = params or FormationParams()
         self.scenes = scenes.copy()
@@ -144,12 +192,42 @@ class Teams:
         self.state = initial_state(self.scenes.start, self.params)
         self.steps = np.zeros(len(scenes), dtype=np.int64)
         self._world_state: np.ndarray | None = None  # world-frame encodings, once per scene
+        conditions = conditions or Conditions()
+        moving = scenes.velocities is not None and bool(np.any(scenes.velocities))
+        self.world = (
+            ConditionedWorld(conditions, self.scenes, self.state, self.params)
+            if conditions.enabled or moving
+            else None
+        )
+        self._perception: Perception | None = None
+
+    def perceive(self) -> Perception:
+        """What the teams perceive now (``core.conditions.Perception``): the truth without conditions.
+        The arrays are this step's; a caller must not write into them."""
+        if self.world is None:
+            return Perception.exact(self.scenes, self.state)
+        if self._perception is None:
+            self._perception = self.world.perceive(self.state, self.scenes)
+        return self._perception
 
     def __len__(self) -> int:
         return len(self.scenes)
 
     def observe(self) -> dict[str, np.ndarray]:
-        """``core.observation.observe`` of every team (arrays the caller may keep)."""
+        """``core.observation.observe`` of every team (arrays the caller may keep): of what they
+        perceive (``perceive``)."""
+        if self.world is not None:
+            v = self.perceive()
+            return observe(
+                v.pose,
+                v.velocity,
+                v.obstacles,
+                v.mask,
+                v.goal,
+                self.encoding,
+                self.max_obstacles,
+                obstacle_velocity=v.obstacle_velocity,
+            )
         s = self.scenes
         obs = observe(
             self.state.pose,
@@ -171,14 +249,26 @@ class Teams:
         return step_outcome(self.state, self.scenes.obstacles, self.scenes.goal, self.params)
 
     def step(self, action) -> Transition:
-        """Validate ``action`` (B, 2) (``check_action``: a bad one changes nothing), step every team."""
+        """Validate ``action`` (B, 2) (``check_action``: a bad one changes nothing), step every team.
+
+        Under conditions the command goes through ``ConditionedWorld.execute`` (delay, noise, rate
+        limits) first; after the step the obstacles move, then the outcome is judged on where they
+        are, and the teams sense and draw the next step's noise."""
         a = check_action(action, len(self))
         prev = self.state
-        self.state = step(prev, a, self.params)
+        world = self.world
+        applied = a if world is None else world.execute(a)
+        self.state = step(prev, applied, self.params)
+        if world is not None:
+            world.move(self.scenes.obstacles)
         self.steps += 1
         outcome, clear, mid = self.outcome()
+        if world is not None:
+            world.sense(slice(None), self.scenes.obstacles, self.state, self.steps)
+            world.draw(slice(None))
+            self._perception = None
         reward = step_reward(prev.pose, self.state.pose, self.scenes.goal, outcome)
-        return Transition(prev.pose, a, outcome, reward, clear, mid)
+        return Transition(prev.pose, applied, outcome, reward, clear, mid, command=a)
 
     def truncated(self, transition: Transition, max_steps: int) -> np.ndarray:
         """(B,) the time limit ended the episode (and no success or collision did)."""
@@ -191,6 +281,9 @@ class Teams:
         self.steps = self.steps[rows]
         if self._world_state is not None:
             self._world_state = self._world_state[rows]
+        if self.world is not None:
+            self.world.keep(rows)
+            self._perception = None
 
     def load(self, idx: np.ndarray, new: Scenes) -> None:
         """Put scenes ``new`` into the slots ``idx`` (padded to this batch's obstacle rows) and reset
@@ -206,6 +299,9 @@ class Teams:
         )
         self.state.set(idx, initial_state(new.start, self.params))
         self.steps[idx] = 0
+        if self.world is not None:
+            self.world.load(idx, new, initial_state(new.start, self.params))
+            self._perception = None
         if self._world_state is not None:
             self._world_state[idx] = environment_state(
                 new.obstacles, new.mask, new.goal, self.encoding, self.max_obstacles
@@ -239,6 +335,14 @@ class EpisodeRecords:
         midpoint_clearance: (B, T+1) midpoint to nearest obstacle surface (+inf: no obstacle).
         outcome: (B,) SUCCESS, COLLISION or TIMEOUT.
         steps: (B,) control steps taken.
+        obstacle_paths: (B, T+1, M, 2) true obstacle centres at every frame (NaN after the episode's
+            end); None without conditions.
+        seen_step: (B, M) int64 control step at which each obstacle was first observed (-1: never);
+            None without conditions.
+        commands: (B, T, 2) the commands as sent (``actions`` are the executed ones); None without
+            conditions.
+        observations: ``{"agent_pos": (B, T+1, 7), "environment_state": (B, T+1, D)}`` what the
+            teams observed at every frame, if ``rollout`` was asked to record them; else None.
     """
 
     poses: np.ndarray
@@ -251,6 +355,10 @@ class EpisodeRecords:
     outcome: np.ndarray
     steps: np.ndarray
     dt: float = 0.1
+    obstacle_paths: np.ndarray | None = None
+    seen_step: np.ndarray | None = None
+    commands: np.ndarray | None = None
+    observations: dict[str, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.outcome)
@@ -291,9 +399,12 @@ def rollout(
     params: FormationParams | None = None,
     max_steps: int | None = None,
     progress=None,
+    conditions: Conditions | None = None,
+    record_observations: tuple[str, int | None] | None = None,
 ) -> EpisodeRecords:
-    """Run ``controller`` on every scene until each episode ends. ``progress(n_done)`` is called
-    after each step if given."""
+    """Run ``controller`` on every scene until each episode ends, under ``conditions`` (None: none).
+    ``progress(n_done)`` is called after each step if given. ``record_observations`` (encoding,
+    max_obstacles): also record what the teams observe at every frame (``EpisodeRecords.observations``)."""
     params = params or FormationParams()
     T = max_steps or params.max_steps
     B = len(scenes)
@@ -311,14 +422,34 @@ def rollout(
         steps=np.full(B, T, dtype=np.int64),
         dt=params.dt,
     )
-    teams = Teams(scenes, params)
-    controller.reset(scenes)
+    encoding, slots = record_observations or ("grid", None)
+    teams = Teams(scenes, params, encoding, slots, conditions)
+    world = teams.world
+    if world is not None:
+        M = scenes.obstacles.shape[1]
+        rec.obstacle_paths = np.full((B, T + 1, M, 2), nan)
+        rec.obstacle_paths[:, 0] = teams.scenes.obstacles[..., :2]
+        rec.seen_step = world.seen_step.copy()
+        rec.commands = np.full((B, T, 2), nan)
+    if record_observations is not None:
+        first = teams.observe()
+        rec.observations = {k: np.full((B, T + 1, v.shape[1]), nan, v.dtype) for k, v in first.items()}
+        for k, v in first.items():
+            rec.observations[k][:, 0] = v
+    controller.reset(teams.perceive())
     rec.put(slice(None), 0, frame_record(teams.state, scenes.obstacles, params))
     live = np.arange(B)  # the teams' episodes (global indices)
     for t in range(T):
-        transition = teams.step(controller.act(teams.state, live))
+        transition = teams.step(controller.act(teams.perceive(), live))
         rec.put(live, t, step_record(transition.prev_pose, teams.state, transition.action, params))
         rec.put(live, t + 1, frame_record(teams.state, teams.scenes.obstacles, params))
+        if world is not None:
+            rec.obstacle_paths[live, t + 1] = teams.scenes.obstacles[..., :2]
+            rec.seen_step[live] = world.seen_step
+            rec.commands[live, t] = transition.command
+        if rec.observations is not None:
+            for k, v in teams.observe().items():
+                rec.observations[k][live, t + 1] = v
         ended = transition.terminated
         rec.outcome[live[ended]] = transition.outcome[ended]
         rec.steps[live[ended]] = t + 1

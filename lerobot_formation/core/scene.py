@@ -12,8 +12,9 @@ is the scene. The validity check (``scene_validity``) runs on all candidates of 
 
 Scenes files are JSON: ``{"scenes": [{"obstacles": [[x, y, r], ...], "goal": [x, y],
 "start": [x, y, phi]}, ...]}``; ``start`` is optional (default: the paper's start, midpoint at the
-origin facing +y). Loading checks every scene and raises ``ValueError`` naming the scene: only these
-three keys; numbers only (int or float; not bool, str or null); finite values, positive radii,
+origin facing +y), and so is ``velocities`` ([[vx, vy], ...] m/s, one per obstacle: moving obstacles,
+``core.conditions``). Loading checks every scene and raises ``ValueError`` naming the scene: only these
+these keys; numbers only (int or float; not bool, str or null); finite values, positive radii,
 obstacle values within ``MAX_OBSTACLE_VALUE``; start
 and goal within ``MAX_COORDINATE`` of the origin and the goal within ``MAX_GOAL_DISTANCE`` of the
 start (the grids of the passage check and of the controllers' cost-to-go stay small: a team covers
@@ -44,7 +45,8 @@ MAX_COORDINATE = 50.0  # [m] start and goal coordinates within [-MAX_COORDINATE,
 MAX_OBSTACLE_VALUE = (
     1000.0  # [m] obstacle x, y and r within [-1000, 1000] (no overflow, no padding look-alike)
 )
-SCENE_KEYS = ("obstacles", "goal", "start")  # the keys of a scene in a scenes file
+SCENE_KEYS = ("obstacles", "goal", "start", "velocities")  # the keys of a scene in a scenes file
+MAX_OBSTACLE_SPEED = 10.0  # [m/s] a scene's moving obstacles (``velocities``) are at most this fast
 
 
 @dataclass(frozen=True)
@@ -151,6 +153,8 @@ class Scenes:
         goal: (B, 2) midpoint goal [m].
         start: (B, 3) midpoint start pose [x, y, phi].
         seeds: (B,) int64 seed of each scene, -1 for scenes given by hand.
+        velocities: (B, M, 2) [m/s] each obstacle's velocity at the start (moving obstacles,
+            ``core.conditions``), or None: the scenes give none (padded rows and static obstacles 0).
     """
 
     obstacles: np.ndarray
@@ -158,6 +162,7 @@ class Scenes:
     goal: np.ndarray
     start: np.ndarray
     seeds: np.ndarray = field(default=None)  # type: ignore[assignment]
+    velocities: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.seeds is None:
@@ -168,7 +173,10 @@ class Scenes:
 
     def __getitem__(self, idx) -> Scenes:
         idx = np.atleast_1d(np.arange(len(self))[idx])
-        return Scenes(self.obstacles[idx], self.mask[idx], self.goal[idx], self.start[idx], self.seeds[idx])
+        vel = None if self.velocities is None else self.velocities[idx]
+        return Scenes(
+            self.obstacles[idx], self.mask[idx], self.goal[idx], self.start[idx], self.seeds[idx], vel
+        )
 
     def to_list(self) -> list[dict]:
         """Scenes as JSON-friendly dicts (the scenes-file format)."""
@@ -182,16 +190,22 @@ class Scenes:
                     "start": [float(v) for v in self.start[b]],
                 }
             )
+            if self.velocities is not None:
+                out[-1]["velocities"] = [[float(x), float(y)] for x, y in self.velocities[b][self.mask[b]]]
         return out
 
     def padded(self, M: int) -> Scenes:
         """The same scenes with M obstacle rows (M >= the current count; new rows are padding)."""
-        mask = np.pad(self.mask, ((0, 0), (0, M - self.mask.shape[1])))
-        return Scenes(_pad(self.obstacles, M), mask, self.goal, self.start, self.seeds)
+        grow = M - self.mask.shape[1]
+        mask = np.pad(self.mask, ((0, 0), (0, grow)))
+        vel = None if self.velocities is None else np.pad(self.velocities, ((0, 0), (0, grow), (0, 0)))
+        return Scenes(_pad(self.obstacles, M), mask, self.goal, self.start, self.seeds, vel)
 
     def copy(self) -> Scenes:
+        vel = None if self.velocities is None else self.velocities.copy()
         return Scenes(
-            *(np.array(a, copy=True) for a in (self.obstacles, self.mask, self.goal, self.start, self.seeds))
+            *(np.array(a, copy=True) for a in (self.obstacles, self.mask, self.goal, self.start, self.seeds)),
+            vel,
         )
 
     @staticmethod
@@ -204,7 +218,16 @@ class Scenes:
             np.concatenate([p.goal for p in parts]),
             np.concatenate([p.start for p in parts]),
             np.concatenate([p.seeds for p in parts]),
+            None
+            if all(p.velocities is None for p in parts)
+            else np.concatenate([p.velocity_array() for p in parts]),
         )
+
+    def velocity_array(self) -> np.ndarray:
+        """(B, M, 2) the obstacles' velocities, zeros where the scenes give none."""
+        if self.velocities is None:
+            return np.zeros((*self.mask.shape, 2))
+        return self.velocities
 
 
 def _pad(obstacles: np.ndarray, M: int) -> np.ndarray:
@@ -262,25 +285,51 @@ def scenes_from_list(items: list[dict], config: SceneConfig | None = None, check
         ]
         goal = _numbers(s["goal"], "[x, y]", "goal", b)
         start = _numbers(s["start"], "[x, y, phi]", "start", b) if "start" in s else None
-        parsed.append((obs, goal, start))
-    M = max(1, max(len(obs) for obs, _, _ in parsed))
+        vel = _velocities(s["velocities"], len(obs), b) if "velocities" in s else None
+        parsed.append((obs, goal, start, vel))
+    M = max(1, max(len(obs) for obs, _, _, _ in parsed))
     B = len(items)
     obstacles = np.zeros((B, M, 3))
     obstacles[..., :2] = FAR
     mask = np.zeros((B, M), dtype=bool)
     goal = np.zeros((B, 2))
     start = np.tile(np.asarray(config.start, dtype=np.float64), (B, 1))
-    for b, (obs, g, st) in enumerate(parsed):
+    velocities = np.zeros((B, M, 2)) if any(p[3] is not None for p in parsed) else None
+    for b, (obs, g, st, vel) in enumerate(parsed):
         if obs:
             obstacles[b, : len(obs)] = np.stack(obs)
             mask[b, : len(obs)] = True
         goal[b] = g
         if st is not None:
             start[b] = st
-    scenes = Scenes(obstacles, mask, goal, start)
+        if vel is not None and len(vel):
+            velocities[b, : len(vel)] = vel
+    scenes = Scenes(obstacles, mask, goal, start, velocities=velocities)
     if check:
         check_scenes(scenes, config)
     return scenes
+
+
+def _velocities(raw, n: int, b: int) -> np.ndarray:
+    """A scene's ``velocities`` [[vx, vy], ...] (one per obstacle, finite, at most MAX_OBSTACLE_SPEED)."""
+    if isinstance(raw, np.ndarray):
+        raw = raw.tolist()
+    if not isinstance(raw, list | tuple) or len(raw) != n:
+        raise ValueError(
+            f"scene {b}: velocities must be a list [[vx, vy], ...] with one entry per obstacle ({n}), got {raw!r:.120}"
+        )
+    vel = (
+        np.stack([_numbers(v, "[vx, vy]", f"velocities; velocity {m}", b) for m, v in enumerate(raw)])
+        if n
+        else np.zeros((0, 2))
+    )
+    speed = np.hypot(vel[:, 0], vel[:, 1]) if n else np.zeros(0)
+    if not np.all(np.isfinite(speed)) or np.any(speed > MAX_OBSTACLE_SPEED):
+        m = int(np.flatnonzero(~(speed <= MAX_OBSTACLE_SPEED))[0])
+        raise ValueError(
+            f"scene {b}: velocity {m} must be finite and at most {MAX_OBSTACLE_SPEED:g} m/s, got {raw[m]!r}"
+        )
+    return vel
 
 
 def scenes_from_frames(

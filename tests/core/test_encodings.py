@@ -28,7 +28,7 @@ def _random_scene(rng, n, M=16):
 
 
 def test_registry_sizes_and_names():
-    assert set(ENCODINGS) == {"grid", "grid+list", "nearest", "nearest+route"}
+    assert set(ENCODINGS) == {"grid", "grid+list", "nearest", "nearest+route", "nearest+velocity"}
     for name in ENCODING_REGISTRY:
         enc = get_encoding(name)  # "nearest+route" lives in its own file, imported here
         assert len(enc.names(enc.slots(None))) == enc.dim(None) == environment_state_dim(name)
@@ -37,6 +37,8 @@ def test_registry_sizes_and_names():
     assert environment_state_dim("nearest") == 50
     assert environment_state_dim("nearest", 3) == 14
     assert environment_state_dim("nearest+route") == 55
+    assert environment_state_dim("nearest+velocity") == 74
+    assert environment_state_dim("nearest+velocity", 3) == 20
     with pytest.raises(ValueError, match="obstacle encoding must be one of"):
         get_encoding("gird")
 

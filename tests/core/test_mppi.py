@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.dynamics import FormationParams, initial_state, rotate_body
 from lerobot_formation.core.geometry import point_clearance
 from lerobot_formation.core.mppi import MPPIConfig, MPPIController, bilinear
@@ -33,10 +34,10 @@ def test_same_seed_same_actions():
     runs = []
     for seed in (7, 7, 8):
         ctl = MPPIController(MPPIConfig(num_samples=32, horizon=10, seed=seed))
-        ctl.reset(scenes)
+        ctl.reset(Perception.exact(scenes, initial_state(scenes.start)))
         state = initial_state(scenes.start)
         idx = np.arange(3)
-        runs.append(np.stack([ctl.act(state, idx) for _ in range(4)]))
+        runs.append(np.stack([ctl.act(Perception.exact(scenes, state), idx) for _ in range(4)]))
     np.testing.assert_array_equal(runs[0], runs[1])
     assert not np.array_equal(runs[0], runs[2])
 
@@ -45,20 +46,20 @@ def test_reset_restarts_the_noise():
     scenes = sample_scenes([1_000_000])
     ctl = MPPIController(MPPIConfig(num_samples=32, horizon=10, seed=3))
     state, idx = initial_state(scenes.start), np.arange(1)
-    ctl.reset(scenes)
-    a = ctl.act(state, idx)
-    ctl.reset(scenes)
-    np.testing.assert_array_equal(a, ctl.act(state, idx))
+    ctl.reset(Perception.exact(scenes, initial_state(scenes.start)))
+    a = ctl.act(Perception.exact(scenes, state), idx)
+    ctl.reset(Perception.exact(scenes, initial_state(scenes.start)))
+    np.testing.assert_array_equal(a, ctl.act(Perception.exact(scenes, state), idx))
 
 
 def test_actions_respect_bounds():
     params = FormationParams()
     scenes = sample_scenes(np.arange(1_000_000, 1_000_004))
     ctl = MPPIController(MPPIConfig(num_samples=32, horizon=10, sigma_v=5.0, sigma_omega=20.0, v_cruise=2.0))
-    ctl.reset(scenes)
+    ctl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     state, idx = initial_state(scenes.start), np.arange(4)
     for _ in range(5):
-        a = ctl.act(state, idx)
+        a = ctl.act(Perception.exact(scenes, state), idx)
         assert a.shape == (4, 2) and np.isfinite(a).all()
         assert (a[:, 0] >= 0).all() and (a[:, 0] <= params.v_max).all()
         assert (np.abs(a[:, 1]) <= params.omega_max).all()
@@ -69,18 +70,18 @@ def test_actions_respect_bounds():
 def test_subset_idx_shapes_and_bookkeeping():
     scenes = sample_scenes(np.arange(1_000_000, 1_000_005))
     ctl = MPPIController(MPPIConfig(num_samples=16, horizon=8))
-    ctl.reset(scenes)
+    ctl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     full = initial_state(scenes.start)
     before = ctl.nominal.copy()
     idx = np.array([1, 4])
-    a = ctl.act(full[idx], idx)
+    a = ctl.act(Perception.exact(scenes, full)[idx], idx)
     assert a.shape == (2, 2)
     assert ctl.nominal.shape == (5, 8, 2)
     untouched = np.array([0, 2, 3])
     np.testing.assert_array_equal(ctl.nominal[untouched], before[untouched])
     np.testing.assert_array_equal(ctl.prev_action[idx], a)
     assert not np.array_equal(ctl.nominal[idx], before[idx])
-    assert ctl.act(full[[3]], np.array([3])).shape == (1, 2)
+    assert ctl.act(Perception.exact(scenes, full)[[3]], np.array([3])).shape == (1, 2)
 
 
 def test_footprint_matches_pac_geometry():
@@ -100,7 +101,7 @@ def test_footprint_matches_pac_geometry():
 def test_bilinear_matches_grid_values():
     scenes = sample_scenes([1_000_000, 1_000_001])
     ctl = MPPIController()
-    ctl.reset(scenes)
+    ctl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     ctg = ctl.ctg
     ij = np.array([[[10, 20], [31, 40]], [[25, 25], [50, 12]]])  # (B, P, 2) grid nodes
     xy = ctg.origin + ctg.resolution * ij

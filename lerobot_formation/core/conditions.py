@@ -1,0 +1,409 @@
+"""Realistic conditions of an episode: limited sensing, noise, late and inexact commands, rate limits
+and moving obstacles, batched over B teams (numpy only). Every field of ``Conditions`` defaults to off;
+with all of them off ``core.rollout.Teams`` never builds a ``ConditionedWorld`` and every trajectory,
+observation and dataset byte is what it was before the conditions existed.
+
+What the robot perceives (``Perception``) is all a controller under test and every observation
+encoding get:
+
+- sensing: an obstacle is observed once some agent has come within ``sensing_range`` of its surface
+  (agent centre to obstacle surface, checked at the episode's start and after every control step);
+  with ``obstacle_memory`` it stays observed, and keeps being tracked, from then on; without, it is
+  observed only while some agent is within range. Unobserved slots look like padding: (FAR, FAR, 0),
+  mask False, velocity 0.
+- noise: each control step every observed obstacle's centre and radius get Gaussian noise of std
+  ``obstacle_noise`` [m] (radius kept >= ``MIN_OBSERVED_RADIUS``), the midpoint pose gets
+  ``pose_noise`` on x, y [m] and on the heading [rad]. The observed velocities (the team's own and the
+  obstacles') are exact.
+- commands: the command sent at step t is executed at step t + ``action_delay`` (a FIFO per team;
+  during the first ``action_delay`` steps the team executes zeros, i.e. holds still), multiplied
+  component-wise by (1 + ``action_noise`` z), then rate limited (``dynamics.rate_limit``:
+  ``max_linear_accel``, ``max_angular_accel``).
+- moving obstacles: ``moving_obstacles`` of a scene's obstacles move at ``obstacle_speed`` in
+  directions drawn from the scene's seed (or the scene's own ``velocities``), bouncing off the scene's
+  bounds (``scene_bounds``) and off the start and goal zones (the fairness rule below). Collisions
+  with them count like any other and end the episode.
+
+Fairness: a moving obstacle never enters the start zone (a disc of ``ZONE_RADIUS`` around the start
+midpoint) nor the goal zone (the same around the goal): it bounces off their edge as off a wall. Only
+obstacles that start outside both zones are chosen to move, so a team is never hit where it starts
+and a goal is never blocked for good; the static layout is the scene's own (valid: a passage exists).
+
+Randomness: every team has its own ``np.random.Generator`` seeded with (scene seed, ``NOISE_TAG``)
+(a scene without a seed, -1, uses its row in the batch), and draws one fixed-size vector per control
+step (pose 3, action 2, then 3 per real obstacle of its scene): a team's draws do not depend on the
+other teams of its batch, nor on which noises are on. Motion directions come from (scene seed,
+``MOTION_TAG``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from lerobot_formation.core.dynamics import (
+    FormationParams,
+    FormationState,
+    agent_positions,
+    clip_action,
+    rate_limit,
+)
+from lerobot_formation.core.geometry import obstacle_gaps
+from lerobot_formation.core.scene import FAR, Scenes
+
+NOISE_TAG = 0x6E6F6973  # "nois": the per-step noise stream of an episode
+MOTION_TAG = 0x6D6F7665  # "move": which obstacles move, and where to
+ZONE_RADIUS = 1.5  # [m] start and goal zones (formation radius 1.12 m + agent radius + margin)
+BOUNDS_MARGIN = 1.0  # [m] the scene's bounds: its obstacles, start and goal, plus this margin
+MIN_OBSERVED_RADIUS = 0.05  # [m] a noisy radius never drops below this (the slot stays an obstacle)
+
+
+@dataclass(frozen=True)
+class Conditions:
+    """Realistic conditions of an episode; every field's default is 'off' (module docstring).
+
+    Attributes:
+        sensing_range: [m] an obstacle is observed once some agent came within this range of its
+            surface; None: every obstacle is observed from the start.
+        obstacle_memory: keep obstacles once seen (False: only while within range).
+        obstacle_noise: [m] std of the Gaussian noise on each observed obstacle's centre and radius, per step.
+        pose_noise: [m] std of the noise on the observed midpoint position (heading: the same in rad).
+        action_noise: std of the multiplicative Gaussian noise on each command component (a fraction).
+        action_delay: [control steps] commands take effect this many steps late.
+        max_linear_accel: [m/s^2] rate limit on the executed v; None: none.
+        max_angular_accel: [rad/s^2] rate limit on the executed omega; None: none.
+        moving_obstacles: how many of a scene's obstacles move at constant velocity.
+        obstacle_speed: [m/s] their speed.
+    """
+
+    sensing_range: float | None = None
+    obstacle_memory: bool = True
+    obstacle_noise: float = 0.0
+    pose_noise: float = 0.0
+    action_noise: float = 0.0
+    action_delay: int = 0
+    max_linear_accel: float | None = None
+    max_angular_accel: float | None = None
+    moving_obstacles: int = 0
+    obstacle_speed: float = 0.0
+
+    def __post_init__(self) -> None:
+        def number(name: str, value, positive: bool) -> None:
+            ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+            if not ok or not math.isfinite(value) or (value <= 0 if positive else value < 0):
+                need = "a finite number > 0" if positive else "a finite number >= 0"
+                raise ValueError(f"conditions: {name} must be {need}, got {value!r}")
+
+        for name in ("sensing_range", "max_linear_accel", "max_angular_accel"):
+            if getattr(self, name) is not None:
+                number(name, getattr(self, name), positive=True)
+        for name in ("obstacle_noise", "pose_noise", "action_noise", "obstacle_speed"):
+            number(name, getattr(self, name), positive=False)
+        if not isinstance(self.obstacle_memory, bool | np.bool_):
+            raise ValueError(
+                f"conditions: obstacle_memory must be true or false, got {self.obstacle_memory!r}"
+            )
+        for name in ("action_delay", "moving_obstacles"):
+            value = getattr(self, name)
+            if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < 0:
+                raise ValueError(f"conditions: {name} must be an integer >= 0, got {value!r}")
+        if self.action_delay > 1000:
+            raise ValueError(
+                f"conditions: action_delay must be <= 1000 control steps, got {self.action_delay}"
+            )
+        if self.moving_obstacles > 0 and self.obstacle_speed == 0:
+            raise ValueError(
+                f"conditions: moving_obstacles={self.moving_obstacles} needs obstacle_speed > 0 [m/s], got 0"
+            )
+
+    @property
+    def enabled(self) -> bool:
+        """Any field not at its default."""
+        return self != Conditions()
+
+    def changed(self) -> dict:
+        """The fields not at their default, by name (for results files and logs)."""
+        off = Conditions()
+        return {
+            f.name: getattr(self, f.name)
+            for f in fields(self)
+            if getattr(self, f.name) != getattr(off, f.name)
+        }
+
+
+CONDITION_FIELDS = tuple(f.name for f in fields(Conditions))
+
+
+@dataclass
+class Perception:
+    """What B teams perceive at one control step: all a controller under test gets.
+
+    Attributes:
+        pose: (B, 3) observed midpoint pose [x, y, phi] (noisy with ``pose_noise``).
+        velocity: (B, 3) the midpoint velocity [x', y', omega] over the last control step.
+        obstacles: (B, M, 3) observed obstacles [x, y, r]; unobserved slots (FAR, FAR, 0).
+        mask: (B, M) bool, observed (and real) obstacles.
+        obstacle_velocity: (B, M, 2) observed obstacles' velocities [m/s] (0: static or unobserved).
+        goal: (B, 2) the goal.
+        map_version: (B,) int64, incremented whenever the set of observed obstacles of a team changes:
+            a controller caches what it derives from the map (a cost-to-go) by it.
+    """
+
+    pose: np.ndarray
+    velocity: np.ndarray
+    obstacles: np.ndarray
+    mask: np.ndarray
+    obstacle_velocity: np.ndarray
+    goal: np.ndarray
+    map_version: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pose)
+
+    def __getitem__(self, idx) -> Perception:
+        return Perception(
+            self.pose[idx],
+            self.velocity[idx],
+            self.obstacles[idx],
+            self.mask[idx],
+            self.obstacle_velocity[idx],
+            self.goal[idx],
+            self.map_version[idx],
+        )
+
+    @property
+    def moving(self) -> bool:
+        """Some observed obstacle moves."""
+        return bool(np.any(self.obstacle_velocity))
+
+    @staticmethod
+    def exact(scenes: Scenes, state: FormationState) -> Perception:
+        """The perception without conditions: the true scenes and state (arrays shared, not copied)."""
+        B, M, _ = scenes.obstacles.shape
+        return Perception(
+            state.pose,
+            state.velocity,
+            scenes.obstacles,
+            scenes.mask,
+            np.zeros((B, M, 2)),
+            scenes.goal,
+            np.zeros(B, dtype=np.int64),
+        )
+
+
+def episode_rng(seed: int, tag: int) -> np.random.Generator:
+    """The generator of one episode's stream ``tag`` (``NOISE_TAG``, ``MOTION_TAG``)."""
+    return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFF, tag])
+
+
+def scene_bounds(scenes: Scenes) -> np.ndarray:
+    """(B, 4) [x_lo, y_lo, x_hi, y_hi]: the box around a scene's real obstacles, start and goal plus
+    ``BOUNDS_MARGIN``, inside which its moving obstacles' centres stay."""
+    obs, mask = scenes.obstacles, scenes.mask
+    lo_obs = np.where(mask[..., None], obs[..., :2] - obs[..., 2:3], np.inf).min(axis=1)
+    hi_obs = np.where(mask[..., None], obs[..., :2] + obs[..., 2:3], -np.inf).max(axis=1)
+    lo = np.minimum(np.minimum(lo_obs, scenes.start[:, :2]), scenes.goal) - BOUNDS_MARGIN
+    hi = np.maximum(np.maximum(hi_obs, scenes.start[:, :2]), scenes.goal) + BOUNDS_MARGIN
+    return np.concatenate([lo, hi], axis=1)
+
+
+def _zones(scenes: Scenes) -> np.ndarray:
+    """(B, 2, 2) the start and goal zone centres."""
+    return np.stack([scenes.start[:, :2], scenes.goal], axis=1)
+
+
+def obstacle_velocities(scenes: Scenes, conditions: Conditions) -> np.ndarray:
+    """(B, M, 2) each obstacle's velocity [m/s] at the episode's start.
+
+    A scene with its own ``velocities`` keeps them. Otherwise ``moving_obstacles`` of its real
+    obstacles that start outside the start and goal zones (fewer if it has fewer) are chosen, and
+    their directions drawn, by ``episode_rng(seed, MOTION_TAG)``; they move at ``obstacle_speed``."""
+    B, M, _ = scenes.obstacles.shape
+    vel = np.zeros((B, M, 2))
+    given = scenes.velocities
+    k = conditions.moving_obstacles
+    zones = _zones(scenes)
+    for b in range(B):
+        if given is not None and np.any(given[b]):
+            vel[b] = given[b]
+            continue
+        if k == 0:
+            continue
+        centre, r = scenes.obstacles[b, :, :2], scenes.obstacles[b, :, 2]
+        gap = np.linalg.norm(centre[:, None] - zones[b][None], axis=-1) - r[:, None]  # (M, 2)
+        free = np.flatnonzero(scenes.mask[b] & (gap > ZONE_RADIUS).all(axis=1))
+        rng = episode_rng(scenes.seeds[b] if scenes.seeds[b] >= 0 else b, MOTION_TAG)
+        chosen = rng.permutation(free)[:k]
+        angle = rng.uniform(0.0, 2 * np.pi, size=len(chosen))
+        vel[b, chosen] = conditions.obstacle_speed * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+    return vel
+
+
+def move_obstacles(
+    obstacles: np.ndarray, velocity: np.ndarray, dt: float, bounds: np.ndarray, zones: np.ndarray
+) -> None:
+    """Move obstacles (B, M, 3) by velocity (B, M, 2) over dt, in place, and bounce (in place too).
+
+    Bounds (B, 4): a centre that leaves the box is reflected back into it and the velocity component
+    flips. Zones (B, Z, 2): an obstacle whose surface comes within ``ZONE_RADIUS`` of a zone centre
+    while moving toward it gets its velocity reflected about the line to that centre (and keeps its
+    step's position: it turns at the edge)."""
+    moving = np.any(velocity != 0, axis=-1)  # (B, M)
+    if not moving.any():
+        return
+    xy = obstacles[..., :2] + velocity * dt
+    for axis in range(2):
+        lo, hi = bounds[:, axis][:, None], bounds[:, 2 + axis][:, None]
+        below, above = xy[..., axis] < lo, xy[..., axis] > hi
+        xy[..., axis] = np.where(
+            below, 2 * lo - xy[..., axis], np.where(above, 2 * hi - xy[..., axis], xy[..., axis])
+        )
+        velocity[..., axis] = np.where(below | above, -velocity[..., axis], velocity[..., axis])
+    xy = np.clip(xy, bounds[:, None, :2], bounds[:, None, 2:])
+    for z in range(zones.shape[1]):
+        rel = xy - zones[:, z][:, None]  # (B, M, 2)
+        dist = np.linalg.norm(rel, axis=-1)
+        normal = rel / np.maximum(dist, 1e-9)[..., None]
+        toward = np.sum(velocity * normal, axis=-1)  # < 0: approaching the zone centre
+        hit = moving & (dist - obstacles[..., 2] < ZONE_RADIUS) & (toward < 0)
+        velocity[hit] -= 2 * toward[hit][:, None] * normal[hit]
+        xy[hit] = obstacles[hit, :2]  # stay where it was this step, then leave along the new velocity
+    obstacles[..., :2] = np.where(moving[..., None], xy, obstacles[..., :2])
+
+
+class ConditionedWorld:
+    """The conditions' state of B teams, held by ``core.rollout.Teams`` (which keeps the true scenes
+    and state): what each team has seen, its noise stream, its command FIFO and executed velocity,
+    and its obstacles' velocities.
+
+    Args:
+        conditions: the conditions.
+        scenes: the teams' scenes (the Teams' own copy: moving obstacles move in it).
+        state: the teams' state at their start.
+        params: the formation parameters (dt, bounds, agent radius).
+    """
+
+    def __init__(
+        self, conditions: Conditions, scenes: Scenes, state: FormationState, params: FormationParams
+    ):
+        self.conditions = conditions
+        self.params = params
+        B, M, _ = scenes.obstacles.shape
+        self.seen = np.zeros((B, M), dtype=bool)  # observed now (with memory: ever)
+        self.seen_step = np.full((B, M), -1, dtype=np.int64)
+        self.map_version = np.zeros(B, dtype=np.int64)
+        self.queue = np.zeros((B, conditions.action_delay, 2))
+        self.executed = np.zeros((B, 2))  # the velocity applied over the last step (rate limits)
+        self.velocity = np.zeros((B, M, 2))
+        self.bounds = np.zeros((B, 4))
+        self.zones = np.zeros((B, 2, 2))
+        self.noise = np.zeros((B, 5 + 3 * M))
+        self.real = np.zeros((B, M), dtype=bool)  # the scenes' real obstacles (mask)
+        self.rngs: list[np.random.Generator | None] = [None] * B
+        self.load(np.arange(B), scenes, state)
+
+    def load(self, idx: np.ndarray, scenes: Scenes, state: FormationState) -> None:
+        """(Re)start the teams ``idx`` in ``scenes`` (one per index, already in the Teams' arrays) at
+        ``state`` (their start)."""
+        idx = np.asarray(idx)
+        self.seen[idx] = False
+        self.seen_step[idx] = -1
+        self.map_version[idx] = 0
+        self.queue[idx] = 0.0
+        self.executed[idx] = 0.0
+        self.velocity[idx] = obstacle_velocities(scenes, self.conditions)
+        self.bounds[idx] = scene_bounds(scenes)
+        self.zones[idx] = _zones(scenes)
+        for i, seed in zip(idx, scenes.seeds, strict=True):
+            self.rngs[i] = episode_rng(int(seed) if seed >= 0 else int(i), NOISE_TAG)
+        self.real[idx] = scenes.mask
+        self.sense(idx, scenes.obstacles, state, np.zeros(len(idx), dtype=np.int64))
+        self.draw(idx)
+
+    def keep(self, rows) -> None:
+        """Keep only the teams ``rows`` (an index or mask), in that order."""
+        for name in (
+            "seen",
+            "seen_step",
+            "map_version",
+            "queue",
+            "executed",
+            "velocity",
+            "bounds",
+            "zones",
+            "noise",
+            "real",
+        ):
+            setattr(self, name, getattr(self, name)[rows])
+        self.rngs = [self.rngs[i] for i in np.arange(len(self.rngs))[rows]]
+
+    # -- per step ---------------------------------------------------------------------------------
+    def sense(self, idx, obstacles: np.ndarray, state: FormationState, steps: np.ndarray) -> None:
+        """Update what the teams ``idx`` observe at their state (teams ``idx`` of ``state``): obstacles
+        (len(idx), M, 3) are their true obstacles, ``steps`` their control steps."""
+        real = self.real[idx]
+        r = self.conditions.sensing_range
+        if r is None:
+            now = real
+        else:
+            gaps = obstacle_gaps(agent_positions(state), obstacles)  # (b, N, M) agent centre to surface
+            now = real & (gaps.min(axis=1) <= r)
+        old = self.seen[idx]
+        new = now | old if self.conditions.obstacle_memory else now
+        first = new & (self.seen_step[idx] < 0)
+        self.seen_step[idx] = np.where(first, steps[:, None], self.seen_step[idx])
+        self.map_version[idx] += (new != old).any(axis=1)
+        self.seen[idx] = new
+
+    def draw(self, idx) -> None:
+        """Draw the next control step's noise of the teams ``idx``: one vector per team from its own
+        stream (pose 3, action 2, then 3 per real obstacle of its scene)."""
+        for i in np.arange(len(self.seen))[idx]:
+            m = int(self.real[i].sum())
+            z = self.rngs[i].standard_normal(5 + 3 * m)
+            self.noise[i, : 5 + 3 * m] = z
+
+    def execute(self, command: np.ndarray) -> np.ndarray:
+        """The velocity (B, 2) each team executes this step for its ``command`` (B, 2): delayed,
+        noisy, clipped to the bounds, then rate limited (``dynamics.rate_limit``)."""
+        c, p = self.conditions, self.params
+        if c.action_delay:
+            out = self.queue[:, 0].copy()
+            self.queue[:, :-1] = self.queue[:, 1:]
+            self.queue[:, -1] = command
+        else:
+            out = np.array(command, dtype=np.float64)
+        if c.action_noise:
+            out = out * (1.0 + c.action_noise * self.noise[:, 3:5])
+        out = clip_action(out, p)
+        if c.max_linear_accel is not None or c.max_angular_accel is not None:
+            out = rate_limit(self.executed, out, c.max_linear_accel, c.max_angular_accel, p.dt)
+        self.executed = out
+        return out
+
+    def move(self, obstacles: np.ndarray) -> None:
+        """Move the teams' true obstacles (B, M, 3) one control step, in place."""
+        move_obstacles(obstacles, self.velocity, self.params.dt, self.bounds, self.zones)
+
+    def perceive(self, state: FormationState, scenes: Scenes) -> Perception:
+        """What the teams perceive now (``Perception``), from their true state and scenes."""
+        c = self.conditions
+        B, M, _ = scenes.obstacles.shape
+        pose = state.pose
+        if c.pose_noise:
+            pose = pose + c.pose_noise * self.noise[:, :3]
+        obstacles = np.where(self.seen[..., None], scenes.obstacles, np.array([FAR, FAR, 0.0]))
+        if c.obstacle_noise:
+            # the k-th real obstacle of a scene (in row order) takes the draws 5 + 3k .. 7 + 3k
+            k = np.maximum(np.cumsum(self.real, axis=1) - 1, 0)  # (B, M)
+            cols = 5 + 3 * k[..., None] + np.arange(3)  # (B, M, 3)
+            z = np.take_along_axis(self.noise, cols.reshape(B, -1), axis=1).reshape(B, M, 3)
+            noisy = obstacles + c.obstacle_noise * z
+            noisy[..., 2] = np.maximum(noisy[..., 2], MIN_OBSERVED_RADIUS)
+            obstacles = np.where(self.seen[..., None], noisy, obstacles)
+        velocity = np.where(self.seen[..., None], self.velocity, 0.0)
+        return Perception(
+            pose, state.velocity, obstacles, self.seen.copy(), velocity, scenes.goal, self.map_version.copy()
+        )
