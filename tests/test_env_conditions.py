@@ -1,0 +1,154 @@
+"""Realistic conditions through the env, the vector env, the env config (``--env.<field>``), the
+bench and the generator: the same episode path as the engine (``core.rollout.Teams``)."""
+
+from __future__ import annotations
+
+import json
+
+import draccus
+import numpy as np
+import pytest
+
+from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.rollout import PACController, rollout
+from lerobot_formation.core.scene import sample_scenes, scenes_from_list
+from lerobot_formation.env import FormationEnv
+from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.vector_env import FormationVectorEnv
+
+ALL_ON = Conditions(
+    sensing_range=2.0,
+    obstacle_noise=0.03,
+    pose_noise=0.02,
+    action_noise=0.1,
+    action_delay=2,
+    max_linear_accel=1.0,
+    max_angular_accel=4.0,
+    moving_obstacles=1,
+    obstacle_speed=0.2,
+)
+
+
+def test_env_config_fields_from_the_command_line():
+    cfg = draccus.parse(
+        FormationEnvConfig,
+        args=["--sensing_range=3", "--action_delay=2", "--moving_obstacles=1", "--obstacle_speed=0.2"],
+    )
+    assert cfg.conditions() == Conditions(
+        sensing_range=3.0, action_delay=2, moving_obstacles=1, obstacle_speed=0.2
+    )
+    env = cfg.make_env_factory()()
+    assert env.unwrapped.conditions == cfg.conditions()
+    env.close()
+    assert "conditions" not in FormationEnvConfig().gym_kwargs  # off: the env kwargs of before
+    with pytest.raises(ValueError, match="env.action_delay must be an integer >= 0, got -1"):
+        FormationEnvConfig(action_delay=-1)
+
+
+def test_env_observes_what_the_engine_observes():
+    """PAC stepping the env on its perception takes the engine's actions, and the observations the
+    engine records (the dataset's) are the env's."""
+    scenes = sample_scenes([1_000_000])
+    rec = rollout(
+        scenes, PACController(), max_steps=120, conditions=ALL_ON, record_observations=("nearest", None)
+    )
+    env = FormationEnv(obstacle_encoding="nearest", conditions=ALL_ON)
+    obs, _ = env.reset(seed=1_000_000)
+    ctrl = PACController()
+    ctrl.reset(env.teams.perceive())
+    for t in range(int(rec.steps[0])):
+        np.testing.assert_array_equal(obs["environment_state"], rec.observations["environment_state"][0, t])
+        np.testing.assert_array_equal(obs["agent_pos"], rec.observations["agent_pos"][0, t])
+        command = ctrl.act(env.teams.perceive(), np.array([0]))[0]
+        np.testing.assert_array_equal(command, rec.commands[0, t])
+        obs, _, term, _, info = env.step(command)
+        if term:
+            break
+    assert env.render() is None  # no render mode
+
+
+def test_env_hides_unsensed_obstacles_from_the_observation():
+    scene = {"obstacles": [[2.0, 5.0, 0.5]], "goal": [0.0, 10.0], "start": [0.0, 0.0, np.pi / 2]}
+    env = FormationEnv(
+        obstacle_encoding="nearest", conditions=Conditions(sensing_range=1.2), render_mode="rgb_array"
+    )
+    obs, _ = env.reset(options={"scene": scene})
+    present = []
+    for _ in range(120):
+        present.append(obs["environment_state"][2 + 3])  # slot 0's present flag
+        obs, *_ = env.step(np.array([0.5, 0.0], np.float32))
+    present = np.array(present)
+    first = int(np.argmax(present))
+    assert 0 < first and not present[:first].any() and present[first:].all()
+    assert env.render().dtype == np.uint8
+
+
+def test_vector_env_with_conditions_matches_single_envs():
+    actions = np.random.default_rng(1).uniform([0.2, -0.5], [0.6, 0.5], size=(30, 2, 2)).astype(np.float32)
+    venv = FormationVectorEnv(2, obstacle_encoding="nearest+velocity", conditions=ALL_ON)
+    obs, _ = venv.reset(seed=7)
+    singles = [FormationEnv(obstacle_encoding="nearest+velocity", conditions=ALL_ON) for _ in range(2)]
+    single_obs = [e.reset(seed=7 + i)[0] for i, e in enumerate(singles)]
+    ended = np.zeros(2, bool)
+    for a in actions:
+        for i in range(2):
+            if not ended[i]:
+                np.testing.assert_array_equal(obs["environment_state"][i], single_obs[i]["environment_state"])
+        obs, _, term, trunc, _ = venv.step(a)
+        for i, e in enumerate(singles):
+            if not ended[i]:
+                single_obs[i], _, t, _, _ = e.step(a[i])
+                ended[i] |= t
+        assert not (term & ~ended).any()
+
+
+def test_scenes_file_velocities_round_trip(tmp_path):
+    from lerobot_formation.core.scene import load_scenes, save_scenes
+
+    scenes = scenes_from_list(
+        [{"obstacles": [[3.0, 5.0, 0.5]], "goal": [0.0, 10.0], "velocities": [[0.1, -0.2]]}]
+    )
+    save_scenes(scenes, tmp_path / "s.json")
+    back = load_scenes(tmp_path / "s.json")
+    np.testing.assert_array_equal(back.velocities, scenes.velocities)
+    with pytest.raises(ValueError, match="velocities must be a list"):
+        scenes_from_list([{"obstacles": [[3.0, 5.0, 0.5]], "goal": [0.0, 10.0], "velocities": []}])
+    with pytest.raises(ValueError, match="at most 10 m/s"):
+        scenes_from_list([{"obstacles": [[3.0, 5.0, 0.5]], "goal": [0.0, 10.0], "velocities": [[50, 0]]}])
+
+
+def test_bench_takes_condition_flags(tmp_path, capsys):
+    from lerobot_formation import bench
+
+    out = tmp_path / "b"
+    argv = [
+        "--controllers",
+        "pac",
+        "--scenes",
+        "random:2",
+        "--out",
+        str(out),
+        "--no-figures",
+        "--no-progress",
+    ]
+    assert bench.main([*argv, "--env.sensing_range", "2", "--env.action_delay", "1"]) == 0
+    meta = json.loads((out / "results.json").read_text())["meta"]
+    assert meta["conditions"] == {"sensing_range": 2.0, "action_delay": 1}
+    with pytest.raises(SystemExit) as e:
+        bench.main([*argv, "--env.obstacle_noise", "-1"])
+    assert e.value.code == 2
+    assert "--env.obstacle_noise must be a finite number >= 0, got -1.0" in capsys.readouterr().err
+
+
+def test_generator_under_conditions(tmp_path):
+    from datasets_scripts import generate_pac_dataset
+
+    root = tmp_path / "ds"
+    argv = ["--episodes", "1", "--root", str(root), "--repo-id", "local/c", "--workers", "0", "--no-progress"]
+    assert (
+        generate_pac_dataset.main([*argv, "--obstacle-encoding", "nearest", "--env.sensing_range", "2"]) == 0
+    )
+    summary = json.loads((root / "meta" / "generation.json").read_text())
+    assert summary["conditions"] == {"sensing_range": 2.0}
+    with pytest.raises(SystemExit):
+        generate_pac_dataset.parse_args([*argv, "--env.action_delay", "x"])
