@@ -72,9 +72,7 @@ def captured(monkeypatch):
 
 def _take(rec: EpisodeRecords, idx) -> EpisodeRecords:
     """The episodes ``idx`` of ``rec`` (repeats allowed)."""
-    return EpisodeRecords(
-        **{f.name: getattr(rec, f.name)[idx] if f.name != "dt" else rec.dt for f in dataclasses.fields(rec)}
-    )
+    return rec.take(idx)
 
 
 def _panels(fig):

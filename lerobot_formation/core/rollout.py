@@ -25,7 +25,7 @@ that row's ``map_version`` changes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Protocol
 
 import numpy as np
@@ -362,6 +362,19 @@ class EpisodeRecords:
 
     def __len__(self) -> int:
         return len(self.outcome)
+
+    def take(self, idx) -> EpisodeRecords:
+        """The episodes ``idx`` (an index array, repeats allowed, or a mask) as new records."""
+        values = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "dt" or value is None:
+                values[f.name] = value
+            elif isinstance(value, dict):
+                values[f.name] = {k: v[idx] for k, v in value.items()}
+            else:
+                values[f.name] = value[idx]
+        return EpisodeRecords(**values)
 
     def put(self, idx, t: int, values: dict[str, np.ndarray]) -> None:
         """Write ``frame_record`` or ``step_record`` values of the episodes ``idx`` at time step t."""

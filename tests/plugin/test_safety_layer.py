@@ -13,6 +13,7 @@ from plugin_helpers import (
     tiny_config,
 )
 
+from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.scene import FAR
 from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
@@ -137,13 +138,13 @@ def test_engine_and_select_action_run_the_same_safety_layer(
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
     params = FormationParams()
     engine = DiffusionController(path, candidates=k, safety_filter=safety_filter, seed=7, params=params)
-    engine.reset(scene)
+    state = initial_state(scene.start, params)
+    engine.reset(Perception.exact(scene, state))
     policy, pre, post = load_policy(path)
     policy.reset()
     gen = torch.Generator().manual_seed(7)  # the engine's noise, drawn in the same order
-    state = initial_state(scene.start, params)
     for _ in range(30):
-        a_engine = engine.act(state, np.array([0]))
+        a_engine = engine.act(Perception.exact(scene, state), np.array([0]))
         obs = {
             OBS_STATE: torch.from_numpy(midpoint_state(state.pose, state.velocity)),
             OBS_ENV_STATE: torch.from_numpy(
