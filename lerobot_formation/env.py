@@ -170,6 +170,7 @@ class FormationEnv(gym.Env):
         self.scene: Scenes | None = None
         self.teams: Teams | None = None  # the episode: core.rollout.Teams of one team
         self._ended: str | None = None  # "success" / "collision" once the episode has terminated
+        self.applied_action: np.ndarray | None = None  # (1, 2) the action the last step executed
 
     @property
     def state(self) -> FormationState | None:
@@ -209,6 +210,7 @@ class FormationEnv(gym.Env):
         if a.shape != (2,):
             raise ValueError(f"action must have shape (2,) [v, omega], got {a.shape}")
         transition = self.teams.step(a[None])
+        self.applied_action = transition.action  # (1, 2): the action executed (under conditions: late, noisy)
         self._path.append(self._positions())
         terminated = bool(transition.terminated[0])
         if terminated:

@@ -87,7 +87,7 @@ class FormationEpisodeMetrics(gym.Wrapper):
         obs, info = self.env.reset(seed=seed, options=options)
         self._reset_seed = None if seed is None else int(seed)
         base = self.env.unwrapped
-        self._frames = [frame_record(base.state, base.scene.obstacles, base.params)]
+        self._frames = [frame_record(base.state, base.teams.scenes.obstacles, base.params)]
         self._steps = []
         return obs, info
 
@@ -97,9 +97,9 @@ class FormationEpisodeMetrics(gym.Wrapper):
         base = self.env.unwrapped
         prev_pose = base.state.pose.copy()
         obs, reward, terminated, truncated, info = self.env.step(action)
-        action = np.asarray(action, np.float64)[None]
+        action = base.applied_action  # what ran: under conditions, the delayed, noisy, rate-limited command
         self._steps.append(step_record(prev_pose, base.state, action, base.params))
-        self._frames.append(frame_record(base.state, base.scene.obstacles, base.params))
+        self._frames.append(frame_record(base.state, base.teams.scenes.obstacles, base.params))
         if terminated or truncated:
             record = self._finish(info)
             record["episode_index"] = self.episodes_done

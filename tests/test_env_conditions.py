@@ -152,3 +152,19 @@ def test_generator_under_conditions(tmp_path):
     assert summary["conditions"] == {"sensing_range": 2.0}
     with pytest.raises(SystemExit):
         generate_pac_dataset.parse_args([*argv, "--env.action_delay", "x"])
+
+
+def test_episode_metrics_see_moving_obstacles_and_executed_actions():
+    from lerobot_formation.episode_metrics import INFO_KEY, FormationEpisodeMetrics
+
+    crossing = {"obstacles": [[-4.0, 5.0, 0.5]], "goal": [0.0, 10.0], "velocities": [[0.4, 0.0]]}
+    env = FormationEpisodeMetrics(FormationEnv(conditions=Conditions(action_delay=3)))
+    env.reset(options={"scene": crossing})
+    for _ in range(300):
+        _, _, term, _, info = env.step(np.array([0.5, 0.0], np.float32))
+        if term:
+            break
+    metrics = info[INFO_KEY]
+    assert metrics["outcome"] == "collision"
+    assert metrics["formation_min_clearance"] < 0.0  # against where the obstacle was, not where it started
+    np.testing.assert_array_equal(env.unwrapped.applied_action, [[0.5, 0.0]])
