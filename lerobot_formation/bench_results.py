@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from lerobot_formation.controllers import needs_policy
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.metrics import episode_metrics, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
 from lerobot_formation.core.scene import SamplingReport, Scenes
@@ -33,12 +35,17 @@ def safety_rates(stats: dict) -> dict:
     }
 
 
-def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
+def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dict:
+    """A controller's summary (``summarize``) plus ``episodes``: per episode its scene's ``index`` in
+    the scene set (``indices[b]``, default b: a shard keeps the whole set's), seed, outcome, steps and
+    metrics."""
     per = episode_metrics(rec, scenes.start, scenes.goal)
     summary = summarize(per)
+    indices = np.arange(len(rec)) if indices is None else np.asarray(indices)
     episodes = []
     for b in range(len(rec)):
         e = {
+            "index": int(indices[b]),
             "seed": int(scenes.seeds[b]),
             "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
             "steps": int(rec.steps[b]),
@@ -50,10 +57,17 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
 
 
 def write_results(
-    out: Path, results: dict, label: str, args, report: SamplingReport, error: str | None = None
+    out: Path,
+    results: dict,
+    label: str,
+    args,
+    report: SamplingReport,
+    error: str | None = None,
+    conditions: Conditions | None = None,
 ):
     """results.json and tables.md of the controllers in ``results``; ``error`` marks a run that stopped
-    early (``meta.incomplete``, ``meta.error``), with what finished before it."""
+    early (``meta.incomplete``, ``meta.error``), with what finished before it. ``meta`` also records
+    the ``conditions`` (null: none) and ``args.shard`` (null: the whole set)."""
     # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
     # other scene sets under "by_scenes".
     payload = dict(results.get(label, {}))
@@ -67,6 +81,8 @@ def write_results(
         "num_inference_steps": args.num_inference_steps,
         "date": time.strftime("%Y-%m-%d"),
         "scene_sampling": report.as_dict() if report.drawn else None,
+        "shard": getattr(args, "shard", None),
+        "conditions": asdict(conditions) if conditions is not None else None,
         "incomplete": error is not None,
         "error": error,
     }

@@ -15,6 +15,7 @@ from pathlib import Path
 from lerobot_formation.bench_figures import write_comparison_figure, write_figures
 from lerobot_formation.bench_results import controller_results, safety_rates
 from lerobot_formation.controllers import make_controller
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import Controller, EpisodeRecords, rollout
 from lerobot_formation.core.scene import Scenes
@@ -26,15 +27,17 @@ def evaluate(
     params: FormationParams | None = None,
     progress: bool = False,
     desc: str | None = None,
+    conditions: Conditions | None = None,
 ) -> EpisodeRecords:
-    """Roll ``controller`` out on every scene (batched) and return the records."""
+    """Roll ``controller`` out on every scene (batched) under ``conditions`` and return the records."""
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(scenes), desc=desc or getattr(controller, "name", "eval"), unit="ep")
     try:
-        return rollout(scenes, controller, params, progress=bar.update if bar is not None else None)
+        update = bar.update if bar is not None else None
+        return rollout(scenes, controller, params, progress=update, conditions=conditions)
     finally:
         if bar is not None:
             bar.close()
@@ -46,10 +49,21 @@ class BenchInputError(ValueError):
 
 
 def run_set(
-    names, scenes, params, args, out: Path, label: str, bundle, figures: bool, into: dict | None = None
+    names,
+    scenes,
+    params,
+    args,
+    out: Path,
+    label: str,
+    bundle,
+    figures: bool,
+    into: dict | None = None,
+    conditions: Conditions | None = None,
+    indices=None,
 ) -> dict:
-    """Run the controllers ``names`` on ``scenes``; each finished controller's entry is put into
-    ``into`` (default: a new dict, returned) at once, so a later failure keeps it."""
+    """Run the controllers ``names`` on ``scenes`` under ``conditions``; each finished controller's
+    entry is put into ``into`` (default: a new dict, returned) at once, so a later failure keeps it.
+    ``indices``: each scene's index in its whole scene set (a shard's), default 0..len-1."""
     results, records = (into if into is not None else {}), {}
     spec = (args.unseen if label == "unseen" else args.scenes) or ""
     for name in names:
@@ -60,8 +74,10 @@ def run_set(
             raise BenchInputError(f"controller {name}: {e}") from e
         # Progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them.
         progress = not args.no_progress and sys.stderr.isatty()
-        rec = evaluate(ctrl, scenes, params, progress=progress, desc=f"{name} ({label})")
-        entry = controller_results(rec, scenes)
+        rec = evaluate(
+            ctrl, scenes, params, progress=progress, desc=f"{name} ({label})", conditions=conditions
+        )
+        entry = controller_results(rec, scenes, indices)
         entry["wall_time_s"] = time.perf_counter() - t0
         if getattr(ctrl, "stats", None):  # the safety layer's interventions
             entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}

@@ -21,6 +21,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import (
     FormationParams,
     FormationState,
@@ -239,6 +240,10 @@ class EpisodeRecords:
         midpoint_clearance: (B, T+1) midpoint to nearest obstacle surface (+inf: no obstacle).
         outcome: (B,) SUCCESS, COLLISION or TIMEOUT.
         steps: (B,) control steps taken.
+        obstacle_paths: (B, T+1, M, 2) true obstacle centres at every frame (NaN after the episode's
+            end); None when the obstacles do not move (conditions off).
+        seen_step: (B, M) int64 control step at which each obstacle was first observed (-1: never);
+            None when every obstacle is known from the start (conditions off).
     """
 
     poses: np.ndarray
@@ -251,6 +256,8 @@ class EpisodeRecords:
     outcome: np.ndarray
     steps: np.ndarray
     dt: float = 0.1
+    obstacle_paths: np.ndarray | None = None
+    seen_step: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.outcome)
@@ -291,9 +298,15 @@ def rollout(
     params: FormationParams | None = None,
     max_steps: int | None = None,
     progress=None,
+    conditions: Conditions | None = None,
 ) -> EpisodeRecords:
     """Run ``controller`` on every scene until each episode ends. ``progress(n_done)`` is called
-    after each step if given."""
+    after each step if given. ``conditions``: only None or all off (``Conditions.enabled`` False) is
+    run here; realistic conditions raise ``NotImplementedError``."""
+    if conditions is not None and conditions.enabled:
+        raise NotImplementedError(
+            f"realistic conditions are not in this engine yet (issue 23, item 2), got {conditions}"
+        )
     params = params or FormationParams()
     T = max_steps or params.max_steps
     B = len(scenes)

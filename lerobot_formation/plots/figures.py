@@ -380,6 +380,14 @@ SCENE_SET_KINDS = {
     "dense": "dense preset (8-10 obstacles)",
     "goals": "goals preset (other goals and start headings)",
     "wide": "wide preset (a mix of all presets)",
+    "bend": "bend preset (a narrow corridor with a bend)",
+    "trap": "trap preset (a U opening toward the team)",
+    "crowd": "crowd preset (20-30 small obstacles)",
+    "long": "long preset (goals 14-20 m away)",
+    "behind": "behind preset (goal behind the start)",
+    "structures": "structures (bend, trap, crowd, long, behind)",
+    "mixed-hard": "hard presets mixed by seed",
+    **{f"level{k}": f"graded level {k}" for k in range(6)},
 }
 
 
