@@ -246,3 +246,19 @@ def test_bad_shard(shard, tmp_path, capsys):
     with pytest.raises(SystemExit):
         bench_main(["--scenes", "random:3", f"--shard={shard}", "--out", str(tmp_path)])
     assert f"--shard must be I/N with 0 <= I < N (e.g. 0/4), got {shard!r}" in capsys.readouterr().err
+
+
+def test_bench_hands_a_levels_conditions_to_the_engine(tmp_path):
+    # this engine runs no realistic conditions yet: that level4's reach it is what raises
+    with pytest.raises(NotImplementedError, match="action_delay=1"):
+        bench_main(
+            ["--controllers", "route-pursuit", "--scenes", "level4:1", "--no-figures", "--out", str(tmp_path)]
+        )
+    assert (
+        bench_main(
+            ["--controllers", "route-pursuit", "--scenes", "level3:1", "--no-figures", "--out", str(tmp_path)]
+        )
+        == 0
+    )
+    meta = json.loads((tmp_path / "results.json").read_text())["meta"]
+    assert meta["seed"] == get_level("level3").seed and meta["conditions"]["sensing_range"] is None

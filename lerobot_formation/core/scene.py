@@ -161,7 +161,9 @@ HARD_PRESETS = ("gates", "blockers", "dense", "goals")
 # obstacles than the policy's encoding observes (12), long routes, goals behind the start.
 SCENE_PRESETS.update(
     {
-        "bend": SceneConfig(n_obstacles=(0, 0), structure="bend", heading_offset=(-0.2, 0.2)),
+        "bend": SceneConfig(
+            n_obstacles=(0, 0), structure="bend", heading_offset=(-0.2, 0.2), gate_gap=(1.8, 2.2)
+        ),
         "trap": SceneConfig(n_obstacles=(0, 3), radius=(0.2, 0.6), structure="trap"),
         "crowd": SceneConfig(
             n_obstacles=(20, 30),
