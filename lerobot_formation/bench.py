@@ -27,6 +27,13 @@ another policy type, a controller the checkpoint cannot serve) is one line ``err
 and exit code 2. If a controller fails after others finished, ``results.json`` and ``tables.md`` are
 still written with the finished ones (``meta.incomplete``, ``meta.error``) before the error.
 Clearance metrics are null (n/a in the tables) for scenes with no obstacle.
+
+Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.levels``)
+under the level's conditions, from the level's first seed unless ``--seed`` is given.
+
+Sharding: ``--shard I/N`` runs the scenes whose index i in the scene set has i % N == I (each keeps
+its seed and index); ``lerobot-formation-bench-merge`` (``python -m lerobot_formation.bench_merge``)
+combines the N shards' folders into the results.json and tables.md of one run.
 """
 
 from __future__ import annotations
@@ -35,6 +42,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from lerobot_formation.bench_figures import write_success_figure
 from lerobot_formation.bench_results import write_results
 from lerobot_formation.condition_flags import add_condition_arguments, conditions_from_args
@@ -42,6 +51,7 @@ from lerobot_formation.controllers import controller_names, needs_policy
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
 from lerobot_formation.evaluation import BenchInputError, run_set
+from lerobot_formation.levels import get_level
 from lerobot_formation.scene_sets import parse_scenes
 from lerobot_formation.threads import add_threads_argument, apply_threads
 
@@ -52,12 +62,23 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--scenes",
         default="random:20",
-        help="random:N, <preset>:N (paper, wide, gates, blockers, dense, goals), hard:N, dataset:N or FILE.json",
+        help="random:N, <preset>:N (paper, wide, gates, blockers, dense, goals, bend, trap, crowd, long, "
+        "behind), hard:N, structures:N, mixed-hard:N, levelK:N (K = 0..5), dataset:N or FILE.json",
     )
     ap.add_argument(
         "--unseen", default=None, help="also run the diffusion controllers on these scenes (random:N)"
     )
-    ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START, help="first seed for random:N")
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help=f"first seed of the scene sets (default {UNSEEN_SEED_START}; a level's own for levelK:N)",
+    )
+    ap.add_argument(
+        "--shard",
+        default=None,
+        help="I/N: run only the scenes whose index i has i %% N == I (merge with lerobot-formation-bench-merge)",
+    )
     ap.add_argument("--policy.path", dest="policy_path", default=None, help="LeRobot checkpoint folder")
     ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="dataset for dataset:N")
     ap.add_argument("--candidates", type=int, default=10, help="K of the adaptive policy")
@@ -84,9 +105,30 @@ def _fail(message: str):
     raise SystemExit(2)
 
 
+def parse_shard(text: str | None) -> tuple[int, int] | None:
+    """``"I/N"`` -> (I, N) with 0 <= I < N; None -> None; ValueError naming the value otherwise."""
+    if text is None:
+        return None
+    index, _, count = text.partition("/")
+    try:
+        i, n = int(index), int(count)
+    except ValueError:
+        i, n = -1, 0
+    if not 0 <= i < n:
+        raise ValueError(f"--shard must be I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
+    return i, n
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
+    try:
+        shard = parse_shard(args.shard)
+        level = get_level(args.scenes.split(":")[0]) if args.scenes.startswith("level") else None
+    except ValueError as e:
+        _fail(str(e))
+    if args.seed is None:  # resolved here, so results.json records the seed used
+        args.seed = level.seed if level is not None else UNSEEN_SEED_START
     apply_threads(args.threads)
     names = [c.strip() for c in args.controllers.split(",") if c.strip()]
     for n in names:
@@ -100,15 +142,29 @@ def main(argv: list[str] | None = None) -> int:
     if args.num_inference_steps is not None and args.num_inference_steps < 1:
         _fail(f"--num-inference-steps must be >= 1, got {args.num_inference_steps}")
     try:
-        conditions = conditions_from_args(args)
+        flags = conditions_from_args(args)
     except ValueError as e:
         _fail(str(e).replace("conditions: ", "--env."))
+    if level is not None and flags.enabled:
+        _fail(
+            f"{args.scenes} fixes its own conditions ({level.conditions.changed() or 'none'}); drop --env flags {flags.changed()}"
+        )
+    conditions = level.conditions if level is not None else flags
     report = SamplingReport()
     try:
         scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
         unseen = parse_scenes(args.unseen, args.seed) if args.unseen else None
     except ValueError as e:
         _fail(str(e))
+    indices = unseen_indices = None
+    if shard is not None:  # a deterministic slice; each scene keeps its seed and its index in the set
+        indices = np.arange(shard[0], len(scenes), shard[1])
+        scenes = scenes[indices]
+        if unseen is not None:
+            unseen_indices = np.arange(shard[0], len(unseen), shard[1])
+            unseen = unseen[unseen_indices]
+        if len(indices) == 0:
+            _fail(f"--shard {args.shard}: the scene set {args.scenes} has no scene of this shard")
     params = FormationParams()
     out = Path(args.out)
     bundle = None
@@ -140,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
             not args.no_figures,
             into=results[label],
             conditions=conditions,
+            indices=indices,
         )
         if unseen is not None and diffusion:
             results["unseen"] = {}
@@ -154,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                 not args.no_figures,
                 results["unseen"],
                 conditions=conditions,
+                indices=unseen_indices,
             )
     except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
         done = [f"{k}/{c}" for k, v in results.items() for c in v]

@@ -33,12 +33,17 @@ def safety_rates(stats: dict) -> dict:
     }
 
 
-def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
+def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dict:
+    """A controller's summary (``summarize``) plus ``episodes``: per episode its scene's ``index`` in
+    the scene set (``indices[b]``, default b: a shard keeps the whole set's), seed, outcome, steps and
+    metrics."""
     per = episode_metrics(rec, scenes.start, scenes.goal)
     summary = summarize(per)
+    indices = np.arange(len(rec)) if indices is None else np.asarray(indices)
     episodes = []
     for b in range(len(rec)):
         e = {
+            "index": int(indices[b]),
             "seed": int(scenes.seeds[b]),
             "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
             "steps": int(rec.steps[b]),
@@ -74,11 +79,11 @@ def write_results(
         "num_inference_steps": args.num_inference_steps,
         "date": time.strftime("%Y-%m-%d"),
         "scene_sampling": report.as_dict() if report.drawn else None,
+        "shard": getattr(args, "shard", None),
         "incomplete": error is not None,
         "error": error,
     }
-    if conditions:  # none on: no key, as before conditions existed
-        payload["meta"]["conditions"] = conditions
+    payload["meta"]["conditions"] = conditions or {}  # the fields not at their default
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, default=_clean))
     os.replace(tmp, out / "results.json")

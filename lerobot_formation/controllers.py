@@ -56,6 +56,7 @@ def _mppi(name, params, args, bundle=None):
 CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "pac": _pac,
     "mppi": _mppi,
+    "route-pursuit": "lerobot_formation.core.route_pursuit:make_route_pursuit",
     "diffusion": _diffusion(False, None),  # standard: one sample per replan
     "diffusion-adaptive": _diffusion(True, None, adaptive=True),  # best-of-K, world-frame cost-to-go rule
     "diffusion-bestof": _diffusion(True, "none"),  # the policy's best-of-K (footprint, then progress)

@@ -65,10 +65,11 @@ def run_set(
     figures: bool,
     into: dict | None = None,
     conditions: Conditions | None = None,
+    indices=None,
 ) -> dict:
-    """Run the controllers ``names`` on ``scenes`` under ``conditions`` (None: none); each finished
-    controller's entry is put into ``into`` (default: a new dict, returned) at once, so a later
-    failure keeps it."""
+    """Run the controllers ``names`` on ``scenes`` under ``conditions``; each finished controller's
+    entry is put into ``into`` (default: a new dict, returned) at once, so a later failure keeps it.
+    ``indices``: each scene's index in its whole scene set (a shard's), default 0..len-1."""
     results, records = (into if into is not None else {}), {}
     spec = (args.unseen if label == "unseen" else args.scenes) or ""
     for name in names:
@@ -82,7 +83,7 @@ def run_set(
         rec = evaluate(
             ctrl, scenes, params, progress=progress, desc=f"{name} ({label})", conditions=conditions
         )
-        entry = controller_results(rec, scenes)
+        entry = controller_results(rec, scenes, indices)
         entry["wall_time_s"] = time.perf_counter() - t0
         if getattr(ctrl, "stats", None):  # the safety layer's interventions
             entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}

@@ -21,6 +21,8 @@ from PIL import Image, ImageDraw, ImageFont
 COLORS = {
     "background": (255, 255, 255),
     "obstacle": (110, 110, 120),
+    "obstacle_unsensed": (215, 215, 222),  # not sensed yet: the true obstacle, faint
+    "obstacle_trail": (180, 130, 90),  # where a moving obstacle has been
     "goal": (170, 230, 170),
     "edge": (60, 60, 60),
     "leader": (40, 90, 200),
@@ -82,21 +84,35 @@ class Renderer:
         goal_radius: float = 0.3,
         agent_radius: float = 0.1,
         n_leaders: int = 2,
+        sensed: np.ndarray | None = None,
+        obstacle_trails: np.ndarray | None = None,
     ) -> np.ndarray:
         """One frame.
 
         Args:
-            obstacles: (M, 3) [x, y, r]; rows with r = 0 are skipped.
+            obstacles: (M, 3) [x, y, r] where the obstacles are now (moving ones at their current
+                position); rows with r = 0 are skipped.
             goal: (2,).
             positions: (N, 2) current agent positions, leaders first.
             edges: (edge_i, edge_j) agent index arrays of the formation graph.
             paths: (T, N, 2) positions so far, or None.
+            sensed: (M,) bool, False for obstacles the team has not sensed yet (drawn faint); None:
+                all drawn alike.
+            obstacle_trails: (T, M, 2) obstacle centres so far (a moving obstacle's trail), or None.
         """
         img = np.empty((self.size, self.size, 3), dtype=np.uint8)
         img[:] = COLORS["background"]
         self._discs(img, np.asarray(goal)[None], np.array([goal_radius]), COLORS["goal"])
         obstacles = np.asarray(obstacles)
-        self._discs(img, obstacles[:, :2], obstacles[:, 2], COLORS["obstacle"])
+        if obstacle_trails is not None and len(obstacle_trails):
+            trails = np.asarray(obstacle_trails, dtype=np.float64)
+            self._stamp(img, trails[np.isfinite(trails).all(axis=-1)], COLORS["obstacle_trail"])
+        if sensed is None:
+            self._discs(img, obstacles[:, :2], obstacles[:, 2], COLORS["obstacle"])
+        else:
+            sensed = np.asarray(sensed, dtype=bool)
+            self._discs(img, obstacles[~sensed, :2], obstacles[~sensed, 2], COLORS["obstacle_unsensed"])
+            self._discs(img, obstacles[sensed, :2], obstacles[sensed, 2], COLORS["obstacle"])
         if paths is not None and len(paths):
             self._stamp(img, paths[:, n_leaders:], COLORS["path_follower"])
             self._stamp(img, paths[:, :n_leaders], COLORS["path_leader"])

@@ -1,4 +1,10 @@
-"""The bench's scene sets: ``random:N``, ``<preset>:N``, ``hard:N``, ``dataset:N`` or a scenes file."""
+"""The bench's scene sets: ``random:N``, ``<preset>:N``, ``hard:N``, ``<mix>:N``, ``levelK:N``,
+``dataset:N`` or a scenes file.
+
+``<mix>:N`` (``core.scene.SCENE_MIXES``: ``structures``, ``mixed-hard``) draws seed s from preset
+``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.levels``),
+from the level's own first seed unless a seed is given.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +14,13 @@ import numpy as np
 
 from lerobot_formation.core.scene import (
     HARD_PRESETS,
+    SCENE_MIXES,
     SCENE_PRESETS,
+    UNSEEN_SEED_START,
     SamplingReport,
     Scenes,
     load_scenes,
+    sample_mixed,
     sample_scenes,
     scene_preset,
     scenes_from_frames,
@@ -48,14 +57,25 @@ def dataset_scenes(root: str | Path, n: int) -> Scenes:
 
 def parse_scenes(
     spec: str,
-    seed: int,
+    seed: int | None,
     dataset_root: str | None = None,
     policy_path: str | None = None,
     report: SamplingReport | None = None,
 ) -> Scenes:
-    """``random:N``, ``dataset:N`` or a path to a scenes JSON file. ``report`` counts rejected draws."""
+    """The scenes of ``spec`` (module docstring) from first seed ``seed`` (None: a level's own seed,
+    else ``UNSEEN_SEED_START``). ``report`` counts rejected draws."""
     kind, _, count = spec.partition(":")
-    if kind in ("random", "dataset", "hard") or kind in SCENE_PRESETS:
+    if kind.startswith("level") and count:
+        from lerobot_formation.levels import get_level
+
+        try:
+            n = int(count)
+        except ValueError as e:
+            raise ValueError(f"--scenes {kind}:N needs an integer N, got {spec!r}") from e
+        level = get_level(kind)
+        return parse_scenes(f"{level.scenes}:{n}", level.seed if seed is None else seed, report=report)
+    seed = UNSEEN_SEED_START if seed is None else seed
+    if kind in ("random", "dataset", "hard") or kind in SCENE_PRESETS or kind in SCENE_MIXES:
         try:
             n = int(count)
         except ValueError as e:
@@ -66,6 +86,8 @@ def parse_scenes(
             return sample_scenes(seed + np.arange(n), report=report)
         if kind in SCENE_PRESETS:
             return sample_scenes(seed + np.arange(n), scene_preset(kind), report=report)
+        if kind in SCENE_MIXES:
+            return sample_mixed(seed + np.arange(n), SCENE_MIXES[kind], report=report)
         if kind == "hard":  # N/4 scenes of each hard preset, seeds seed.. of each
             k = len(HARD_PRESETS)
             sizes = [n // k + (1 if i < n % k else 0) for i in range(k)]

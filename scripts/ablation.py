@@ -9,7 +9,7 @@ default holds at most 5 obstacles) say so instead of a number.
     python scripts/ablation.py --new pretrained/formation_diffusion_safe --old pretrained/formation_diffusion_cpu \\
         --sets random:100,hard:100 --out outputs/ablation
 
-Rows: PAC; MPPI; the old default (paper data, egocentric grid+list list) standard and adaptive; the
+Rows: PAC; MPPI; route pursuit (``core/route_pursuit.py``, no learning); the old default (paper data, egocentric grid+list list) standard and adaptive; the
 new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escapes, CBF filter,
 both, both + escapes ("escapes": ``escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
 also replaces sampled chunks that make too little progress; without it, only when none is safe);
@@ -45,7 +45,11 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     adv = {"escape_advantage": args.escape_advantage}
     no_adv = {"escape_advantage": None}  # escape manoeuvres only when no sampled chunk is safe
     blend = {"replan_blend_steps": args.blend_steps}
-    rows = [("PAC", None, "pac", None, {}), ("MPPI", None, "mppi", None, {})]
+    rows = [
+        ("PAC", None, "pac", None, {}),
+        ("MPPI", None, "mppi", None, {}),
+        ("route pursuit", None, "route-pursuit", None, {}),
+    ]
     if args.old:
         rows += [("old default, standard", args.old, "diffusion", None, {})]
         rows += [("old default, adaptive K=10 (world-frame rule)", args.old, "diffusion-adaptive", None, {})]

@@ -274,3 +274,73 @@ def test_success_chart_says_not_run_where_a_controller_skipped_a_set(captured, t
     texts = [t.get_text() for t in fig.axes[0].texts]
     assert texts.count("not run") == 1  # pac on set b; diffusion's 0 % is a bar with its count
     assert "0 %\n0/2" in texts
+
+
+def _with_conditions(rec: EpisodeRecords, scenes: Scenes) -> EpisodeRecords:
+    """``rec`` as the engine records realistic conditions: obstacle 1 of each scene never sensed,
+    obstacle 2 moving 0.03 m per step along +x (NaN after each episode's end)."""
+    B, T1 = rec.poses.shape[:2]
+    paths = np.repeat(scenes.obstacles[:, None, :, :2], T1, axis=1).copy()
+    paths[:, :, 2, 0] += 0.03 * np.arange(T1)[None, :]
+    paths[np.arange(T1)[None, :] > rec.steps[:, None]] = np.nan
+    seen = np.zeros(scenes.mask.shape, dtype=np.int64)
+    seen[:, 1] = -1
+    return dataclasses.replace(rec, obstacle_paths=paths, seen_step=seen)
+
+
+@pytest.fixture(scope="module")
+def conditioned():
+    scenes = scenes_from_list(
+        [
+            {"obstacles": [[0.5, 2.0, 0.4], [3.0, 3.0, 0.5], [-1.5, 1.0, 0.3]], "goal": [5.0, 5.0]},
+            {"obstacles": [[2.0, 1.0, 0.3], [4.0, 1.0, 0.5], [-1.0, 3.0, 0.4]], "goal": [5.0, 5.0]},
+        ],
+        check=False,
+    )
+    rec = rollout(scenes, Straight(0.5), max_steps=30)
+    return scenes, _with_conditions(rec, scenes)
+
+
+def _legend_labels(fig) -> list[str]:
+    return [t.get_text() for legend in fig.legends for t in legend.get_texts()]
+
+
+def test_figures_show_the_sensed_map_and_moving_obstacles(conditioned, captured, tmp_path):
+    scenes, rec = conditioned
+    figures.plot_trajectories(rec, scenes, [0, 1], tmp_path / "t.png", title="sensed")
+    figures.plot_failures(rec, scenes, tmp_path / "f.png")
+    figures.plot_controller_comparison({"a": rec, "b": rec}, scenes, [0, 1], tmp_path / "c.png")
+    assert all((tmp_path / f).stat().st_size > 1000 for f in ("t.png", "f.png", "c.png"))
+    for fig in captured:
+        labels = _legend_labels(fig)
+        assert "obstacle never sensed" in labels and any(
+            label.startswith("moving obstacle") for label in labels
+        )
+    ax = _panels(captured[0])[1]  # scene 1, ended by a timeout after 30 steps
+    faint = [p for p in ax.patches if getattr(p, "get_alpha", lambda: None)() == 0.2]
+    assert len(faint) == 1 and np.allclose(faint[0].center, (4.0, 1.0))  # the never-sensed obstacle
+    moved = [line for line in ax.lines if line.get_linestyle() == ":"]
+    assert len(moved) == 1 and np.isclose(moved[0].get_xdata()[-1], -1.0 + 0.03 * 30)
+    # without conditions: no new legend entries
+    plain = dataclasses.replace(rec, obstacle_paths=None, seen_step=None)
+    figures.plot_trajectories(plain, scenes, [0, 1], tmp_path / "p.png")
+    assert not {"obstacle never sensed"} & set(_legend_labels(captured[-1]))
+
+
+def test_renderer_draws_unsensed_obstacles_faint_and_trails():
+    from lerobot_formation.render import COLORS, Renderer
+
+    r = Renderer(size=100, bounds=(0.0, 10.0))
+    obstacles = np.array([[2.0, 2.0, 0.5], [7.0, 7.0, 0.5]])
+    positions = np.array([[5.0, 1.0], [5.5, 1.0], [5.0, 0.5], [5.5, 0.5]])
+    edges = (np.array([0]), np.array([1]))
+    trail = np.stack([np.c_[np.linspace(2.0, 2.0, 5), np.linspace(5.0, 4.0, 5)], np.full((5, 2), np.nan)], 1)
+    img = r.draw(
+        obstacles, (9.0, 1.0), positions, edges, sensed=np.array([True, False]), obstacle_trails=trail
+    )
+    pixel = lambda x, y: tuple(img[r._to_pixel(np.array([x, y]))])  # noqa: E731
+    assert pixel(2.0, 2.0) == COLORS["obstacle"]
+    assert pixel(7.0, 7.0) == COLORS["obstacle_unsensed"]
+    assert pixel(2.0, 4.5) == COLORS["obstacle_trail"]
+    plain = r.draw(obstacles, (9.0, 1.0), positions, edges)
+    assert tuple(plain[r._to_pixel(np.array([7.0, 7.0]))]) == COLORS["obstacle"]

@@ -35,6 +35,12 @@ from lerobot_formation.core.dynamics import rotate_body
 from lerobot_formation.core.geometry import obstacle_gaps
 from lerobot_formation.core.navigation import grid_cell, grid_size, inflated_cells, neighbour_slices
 
+STRUCTURES = ("none", "bend", "trap")
+# Obstacle slots of a structure: the bend's 4 walls of BEND_WALL circles (the corner drops a few),
+# the trap's back wall of TRAP_BACK circles and its 2 arms of TRAP_ARM circles.
+BEND_WALL, TRAP_BACK, TRAP_ARM = 9, 7, 4
+STRUCTURE_SLOTS = {"none": 0, "bend": 4 * BEND_WALL, "trap": TRAP_BACK + 2 * TRAP_ARM}
+WALL_RADIUS = (0.3, 0.4)  # [m] radius of the circles a structure's walls are built of
 FAR = 1.0e6  # [m] padded obstacle rows sit here, radius 0, so they never touch anything
 PAPER_START = (0.0, 0.0, np.pi / 2)  # midpoint pose [x, y, phi] of the paper's start
 # Seed ranges of the evaluation protocols (disjoint, like diffusion_policy's train/test seeds).
@@ -79,8 +85,16 @@ class SceneConfig:
     blocker_prob: float = 0.0  # chance of an obstacle centred on the straight line
     blocker_radius: tuple[float, float] = (0.5, 1.0)  # [m]
     paper_prob: float = 0.0  # chance that a candidate uses the paper's layout instead
+    # A structure built of obstacles (``STRUCTURES``): "bend" a narrow corridor with one bend, the
+    # team inside its first leg and the goal past its second; "trap" a U of obstacles between start
+    # and goal opening toward the team. ``n_obstacles`` more are scattered along the start-goal line.
+    structure: str = "none"
 
     def __post_init__(self) -> None:
+        if self.structure not in STRUCTURES:
+            raise ValueError(f"structure must be one of {STRUCTURES}, got {self.structure!r}")
+        if self.structure != "none" and self.goal_distance is not None:
+            raise ValueError(f"structure {self.structure!r} places its own goal; goal_distance must be None")
         lo, hi = self.n_obstacles
         if not 0 <= lo <= hi:
             raise ValueError(f"n_obstacles must be a range 0 <= lo <= hi, got {self.n_obstacles}")
@@ -107,12 +121,22 @@ class SceneConfig:
     @property
     def wide(self) -> bool:
         """False for the paper's layout (fixed goal and start, centres in a square)."""
-        return self.goal_distance is not None or self.gate_prob > 0 or self.blocker_prob > 0
+        return (
+            self.goal_distance is not None
+            or self.gate_prob > 0
+            or self.blocker_prob > 0
+            or self.structure != "none"
+        )
 
     @property
     def max_obstacles(self) -> int:
         """Obstacle slots a scene of this distribution can need."""
-        return self.n_obstacles[1] + (4 if self.gate_prob > 0 else 0) + (1 if self.blocker_prob > 0 else 0)
+        return (
+            self.n_obstacles[1]
+            + (4 if self.gate_prob > 0 else 0)
+            + (1 if self.blocker_prob > 0 else 0)
+            + STRUCTURE_SLOTS[self.structure]
+        )
 
 
 # Named scene distributions (``--scene-preset`` of the generator, ``<preset>:N`` scene sets of the bench).
@@ -135,6 +159,43 @@ SCENE_PRESETS: dict[str, SceneConfig] = {
     ),
 }
 HARD_PRESETS = ("gates", "blockers", "dense", "goals")
+# Structures no preset above draws (issue 23): a narrow bent corridor, a concave trap, a crowd of more
+# obstacles than the policy's encoding observes (12), long routes, goals behind the start.
+SCENE_PRESETS.update(
+    {
+        "bend": SceneConfig(
+            n_obstacles=(0, 0), structure="bend", heading_offset=(-0.2, 0.2), gate_gap=(1.8, 2.2)
+        ),
+        "trap": SceneConfig(n_obstacles=(0, 3), radius=(0.2, 0.6), structure="trap"),
+        "crowd": SceneConfig(
+            n_obstacles=(20, 30),
+            radius=(0.15, 0.3),
+            goal_distance=(8.0, 11.0),
+            heading_offset=(-np.pi / 4, np.pi / 4),
+            lateral=3.0,
+        ),
+        "long": SceneConfig(
+            n_obstacles=(6, 12),
+            radius=(0.2, 1.0),
+            goal_distance=(14.0, 20.0),
+            heading_offset=(-np.pi / 2, np.pi / 2),
+            gate_prob=0.3,
+            blocker_prob=0.5,
+        ),
+        "behind": SceneConfig(
+            n_obstacles=(2, 6),
+            radius=(0.2, 1.0),
+            goal_distance=(4.0, 8.0),
+            heading_offset=(2 * np.pi / 3, 4 * np.pi / 3),
+            blocker_prob=0.5,
+        ),
+    }
+)
+STRUCTURE_PRESETS = ("bend", "trap", "crowd", "long", "behind")
+# Mixtures of presets, a pure function of the seed: seed s draws from presets[s % len(presets)]
+# (``sample_mixed``). "structures": the five above; "mixed-hard": the hard presets (unlike the
+# ``hard:N`` scene set, whose blocks of N/4 scenes per preset depend on N).
+SCENE_MIXES: dict[str, tuple[str, ...]] = {"structures": STRUCTURE_PRESETS, "mixed-hard": HARD_PRESETS}
 
 
 def scene_preset(name: str) -> SceneConfig:
@@ -541,7 +602,101 @@ def _draw_candidates(
         obstacles = np.concatenate([xy, r[..., None]], axis=-1)
         obstacles[~mask] = (FAR, FAR, 0.0)
         return obstacles, mask, goal, start
+    if config.structure != "none":
+        return _draw_structure(rng, config, start)
     return _draw_wide(rng, config, goal, start)
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance of points p (C, K, 2) to the segments [a, b] (C, 2) -> (C, K)."""
+    d = (b - a)[:, None]
+    rel = p - a[:, None]
+    t = np.clip(np.sum(rel * d, -1) / np.maximum(np.sum(d * d, -1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(rel - t[..., None] * d, axis=-1)
+
+
+def _draw_structure(rng: np.random.Generator, config: SceneConfig, start: np.ndarray):
+    """Candidates of a structure preset (``SceneConfig.structure``), built from touching wall circles.
+
+    bend: legs of lengths L1, L2 in [2.5, 4] m, turned by 60-90 degrees to either side; the walls run
+    at gap / 2 + r to each side of the centre line (surface gap ``gate_gap``); wall circles closer than
+    that to the other leg (the inner corner) are dropped, the outer walls run on past the corner.
+    The team starts at the corridor's mouth facing along it; the goal is 1.8 m past its end.
+    trap: a U, back wall across the start-goal line 2.5-3.5 m ahead, arms 1.2-2 m long reaching back
+    toward the team, 2.2-3 m between the arms; the goal 2.5-4 m behind the back wall.
+    """
+    C, M = config.chunk, config.max_obstacles
+    n_lo, n_hi = config.n_obstacles
+    s0 = start[:, :2]
+    bearing = rng.uniform(*config.goal_bearing, size=C)
+    offset = rng.uniform(*config.heading_offset, size=C)
+    r_wall = rng.uniform(*WALL_RADIUS, size=C)
+    u = np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)
+    n = np.stack([-u[:, 1], u[:, 0]], axis=-1)
+    walls = []  # (C, K, 2) centres, (C, K) kept
+    if config.structure == "bend":
+        L1, L2 = rng.uniform(2.5, 4.0, size=C), rng.uniform(2.5, 4.0, size=C)
+        turn = rng.choice([-1.0, 1.0], size=C) * rng.uniform(np.pi / 3, np.pi / 2, size=C)
+        gap = rng.uniform(*config.gate_gap, size=C)
+        w = gap / 2 + r_wall  # centre line to wall centres
+        u2 = np.stack([np.cos(bearing + turn), np.sin(bearing + turn)], axis=-1)
+        n2 = np.stack([-u2[:, 1], u2[:, 0]], axis=-1)
+        corner = s0 + L1[:, None] * u
+        end = corner + L2[:, None] * u2
+        goal = corner + (L2 + 1.8)[:, None] * u2
+        frac = np.linspace(0.0, 1.0, BEND_WALL)[None, :]
+        s1 = 0.8 + frac * (L1 + w - 0.8)[:, None]  # leg 1 walls, on past the corner
+        s2 = -w[:, None] + frac * (L2 + w)[:, None]  # leg 2 walls, from before the corner
+        for side in (-1.0, 1.0):
+            walls.append(s0[:, None] + s1[..., None] * u[:, None] + (side * w)[:, None, None] * n[:, None])
+            walls.append(
+                corner[:, None] + s2[..., None] * u2[:, None] + (side * w)[:, None, None] * n2[:, None]
+            )
+        centres = np.concatenate(walls, axis=1)
+        line = np.minimum(_segment_distance(centres, s0, corner), _segment_distance(centres, corner, end))
+        kept = line >= w[:, None] - 1e-6
+        heading = bearing + offset
+    else:  # trap
+        depth = rng.uniform(2.5, 3.5, size=C)
+        arm = rng.uniform(1.2, 2.0, size=C)
+        half = rng.uniform(1.1, 1.5, size=C)
+        shift = rng.uniform(-0.5, 0.5, size=C)
+        goal_past = rng.uniform(2.5, 4.0, size=C)
+        mouth = s0 + depth[:, None] * u + shift[:, None] * n  # middle of the back wall
+        across = np.linspace(-1.0, 1.0, TRAP_BACK)[None, :] * half[:, None]
+        walls.append(mouth[:, None] + across[..., None] * n[:, None])
+        back = np.linspace(1.0, 0.0, TRAP_ARM, endpoint=False)[::-1][None, :] * arm[:, None]
+        for side in (-1.0, 1.0):
+            walls.append(
+                mouth[:, None] - back[..., None] * u[:, None] + (side * half)[:, None, None] * n[:, None]
+            )
+        centres = np.concatenate(walls, axis=1)
+        kept = np.ones(centres.shape[:2], dtype=bool)
+        goal = s0 + (depth + goal_past)[:, None] * u
+        heading = bearing + offset
+    # n_obstacles more along the start-goal line
+    dist = np.linalg.norm(goal - s0, axis=-1)
+    g_u = (goal - s0) / dist[:, None]
+    g_n = np.stack([-g_u[:, 1], g_u[:, 0]], axis=-1)
+    count = rng.integers(n_lo, n_hi + 1, size=C)
+    along = rng.uniform(0.15, 0.95, size=(C, n_hi))
+    lateral = rng.uniform(-config.lateral, config.lateral, size=(C, n_hi))
+    r = rng.uniform(config.radius[0], config.radius[1], size=(C, n_hi))
+    obstacles = np.zeros((C, M, 3))
+    obstacles[..., :2] = FAR
+    mask = np.zeros((C, M), dtype=bool)
+    K = centres.shape[1]
+    obstacles[:, :K, :2] = centres
+    obstacles[:, :K, 2] = r_wall[:, None]
+    mask[:, :K] = kept
+    obstacles[:, K : K + n_hi, :2] = (
+        s0[:, None] + (along * dist[:, None])[..., None] * g_u[:, None] + lateral[..., None] * g_n[:, None]
+    )
+    obstacles[:, K : K + n_hi, 2] = r
+    mask[:, K : K + n_hi] = np.arange(n_hi)[None, :] < count[:, None]
+    obstacles[~mask] = (FAR, FAR, 0.0)
+    start = np.concatenate([start[:, :2], heading[:, None]], axis=1)
+    return obstacles, mask, goal, start
 
 
 def _draw_wide(rng: np.random.Generator, config: SceneConfig, goal: np.ndarray, start: np.ndarray):
@@ -669,6 +824,24 @@ def sample_scenes(seeds, config: SceneConfig | None = None, report: SamplingRepo
             f"no valid scene found for seeds {seeds[pending][:5].tolist()}: impossible SceneConfig?"
         )
     return Scenes(out_obs, out_mask, out_goal, out_start, seeds.copy())
+
+
+def sample_mixed(seeds, presets: tuple[str, ...], report: SamplingReport | None = None) -> Scenes:
+    """The scene of each seed s drawn from preset ``presets[s % len(presets)]``, in the order of
+    ``seeds`` (obstacle rows padded to the largest preset's)."""
+    seeds = np.atleast_1d(np.asarray(seeds, dtype=np.int64))
+    if seeds.ndim != 1 or len(seeds) == 0:
+        raise ValueError(f"seeds must be a non-empty 1-D sequence, got shape {seeds.shape}")
+    which = seeds % len(presets)
+    parts, order = [], []
+    for k, name in enumerate(presets):
+        rows = np.flatnonzero(which == k)
+        if len(rows):
+            parts.append(sample_scenes(seeds[rows], scene_preset(name), report=report))
+            order.append(rows)
+    M = max(scene_preset(name).max_obstacles for name in presets)
+    merged = Scenes.concat([p.padded(M) for p in parts])
+    return merged[np.argsort(np.concatenate(order), kind="stable")]
 
 
 def _validity_first(cand: Scenes, config: SceneConfig, P: int, C: int) -> tuple[np.ndarray, np.ndarray]:

@@ -71,7 +71,11 @@ def collision_point(
     if int(rec.outcome[b]) != COLLISION:
         return None
     pos = rec.positions[b, int(rec.steps[b])]  # (N, 2)
-    obstacles = scenes.obstacles[b]
+    obstacles = scenes.obstacles[b].copy()
+    if rec.obstacle_paths is not None:  # moving obstacles: where they were at the end
+        now = rec.obstacle_paths[b, int(rec.steps[b])]
+        ok = np.isfinite(now).all(axis=1)
+        obstacles[ok, :2] = now[ok]
     clear = agent_clearances(pos[None], obstacles[None], agent_radius)[0]  # (N,)
     agent = int(np.argmin(clear))
     gaps = np.linalg.norm(pos[agent] - obstacles[:, :2], axis=-1) - obstacles[:, 2]
@@ -91,6 +95,9 @@ def _limits(rec: EpisodeRecords, scenes: Scenes, indices: Sequence[int], margin:
         pts += [ob[:, :2] - ob[:, 2:], ob[:, :2] + ob[:, 2:]]
         pos = rec.positions[b, : int(rec.steps[b]) + 1].reshape(-1, 2)
         pts.append(pos[np.isfinite(pos).all(axis=1)])
+        if rec.obstacle_paths is not None:  # moving obstacles' centres over the episode
+            track = rec.obstacle_paths[b, : int(rec.steps[b]) + 1][:, scenes.mask[b]].reshape(-1, 2)
+            pts.append(track[np.isfinite(track).all(axis=1)])
     pts = np.concatenate(pts)
     lo, hi = pts.min(axis=0) - margin, pts.max(axis=0) + margin
     centre, half = (lo + hi) / 2, (hi - lo).max() / 2
@@ -108,13 +115,12 @@ def _draw_episode(
     params: FormationParams | None = None,
     title: str | None = None,
 ) -> None:
-    """Obstacles, goal (disc: the goal tolerance), every agent's path, formation snapshots and, for a
-    collision, the contact point and the agent that hit; for a timeout, the final midpoint."""
+    """Obstacles (``_draw_obstacles``), goal (disc: the goal tolerance), every agent's path, formation
+    snapshots and, for a collision, the contact point and the agent that hit; for a timeout, the final
+    midpoint."""
     params = params or FormationParams()
     agent_radius = params.agent_radius
-    for (x, y, r), m in zip(scenes.obstacles[b], scenes.mask[b], strict=True):
-        if m:
-            ax.add_patch(plt.Circle((x, y), r, color="0.6", zorder=1))
+    _draw_obstacles(ax, rec, scenes, b)
     ax.add_patch(
         plt.Circle(tuple(scenes.goal[b]), params.goal_tolerance, color="tab:green", alpha=0.25, zorder=1)
     )
@@ -151,6 +157,46 @@ def _draw_episode(
     if len(text) > 48:  # about what fits over a PANEL-wide axis at 9 pt
         text = f"{head}\n{detail}, {int(rec.steps[b]) * rec.dt:.1f} s"
     ax.set_title(text, fontsize=9)
+
+
+def _draw_obstacles(ax, rec: EpisodeRecords, scenes: Scenes, b: int) -> None:
+    """Episode b's obstacles: filled grey discs where they stand at its end. Under realistic conditions
+    (``EpisodeRecords.seen_step`` / ``obstacle_paths`` set), an obstacle the team never sensed is drawn
+    faint with a dashed outline (the true map beyond the sensed one), and a moving obstacle's path is a
+    dotted line from a dashed outline of where it started."""
+    seen = rec.seen_step[b] if rec.seen_step is not None else None
+    paths = rec.obstacle_paths[b, : int(rec.steps[b]) + 1] if rec.obstacle_paths is not None else None
+    for m, ((x, y, r), present) in enumerate(zip(scenes.obstacles[b], scenes.mask[b], strict=True)):
+        if not present:
+            continue
+        if paths is not None:
+            track = paths[:, m][np.isfinite(paths[:, m]).all(axis=1)]
+            if len(track) and np.ptp(track, axis=0).max() > 1e-9:  # it moved
+                ax.plot(track[:, 0], track[:, 1], ":", color="tab:brown", lw=1.2, zorder=1)
+                ax.add_patch(plt.Circle(tuple(track[0]), r, fill=False, ec="tab:brown", ls="--", lw=0.8))
+            if len(track):
+                x, y = track[-1]
+        if seen is not None and seen[m] < 0:
+            ax.add_patch(plt.Circle((x, y), r, color="0.6", alpha=0.2, zorder=1))
+            ax.add_patch(plt.Circle((x, y), r, fill=False, ec="0.35", ls="--", lw=0.8, zorder=1))
+        else:
+            ax.add_patch(plt.Circle((x, y), r, color="0.6", zorder=1))
+
+
+UNSENSED_MARK = Patch(
+    facecolor=(0.6, 0.6, 0.6, 0.2), edgecolor="0.35", ls="--", label="obstacle never sensed"
+)
+MOVING_MARK = Line2D([], [], color="tab:brown", ls=":", label="moving obstacle: path from start (dashed)")
+
+
+def _condition_marks(records: Sequence[EpisodeRecords], indices: Sequence[int]) -> list:
+    """Legend entries for realistic conditions shown in the panels: never-sensed and moving obstacles."""
+    marks = []
+    if any(r.seen_step is not None and (r.seen_step[list(indices)] < 0).any() for r in records):
+        marks.append(UNSENSED_MARK)
+    if any(r.obstacle_paths is not None for r in records):
+        marks.append(MOVING_MARK)
+    return marks
 
 
 PANEL = 3.7  # [in] side of one scene panel
@@ -219,7 +265,8 @@ def plot_trajectories(
         else:
             ax.axis("off")
     head = f"{title}: " if title else ""
-    _finish_panels(fig, graph, f"{head}{_plural(len(indices), 'episode')}", _marks(rec.outcome[indices]))
+    marks = _marks(rec.outcome[indices]) + _condition_marks([rec], indices)
+    _finish_panels(fig, graph, f"{head}{_plural(len(indices), 'episode')}", marks)
     return _save(fig, path)
 
 
@@ -313,7 +360,7 @@ def plot_failures(
         graph,
         f"{head}{len(bad)} of {_plural(len(all_bad), 'failure')} shown ({_plural(n_coll, 'collision')}, "
         f"{_plural(len(all_bad) - n_coll, 'timeout')}; {len(rec)} episodes)",
-        _marks(rec.outcome[bad]),
+        _marks(rec.outcome[bad]) + _condition_marks([rec], bad),
     )
     return _save(fig, path, dpi=100)
 
@@ -356,9 +403,8 @@ def plot_controller_comparison(
             )
     shown = np.concatenate([records[n].outcome[indices] for n in names])
     head = f"{title}: " if title else ""
-    _finish_panels(
-        fig, graph, f"{head}{len(names)} controllers on the same {len(indices)} scenes", _marks(shown)
-    )
+    marks = _marks(shown) + _condition_marks(list(records.values()), indices)
+    _finish_panels(fig, graph, f"{head}{len(names)} controllers on the same {len(indices)} scenes", marks)
     return _save(fig, path, dpi=100)
 
 
@@ -380,6 +426,14 @@ SCENE_SET_KINDS = {
     "dense": "dense preset (8-10 obstacles)",
     "goals": "goals preset (other goals and start headings)",
     "wide": "wide preset (a mix of all presets)",
+    "bend": "bend preset (a narrow corridor with a bend)",
+    "trap": "trap preset (a U opening toward the team)",
+    "crowd": "crowd preset (20-30 small obstacles)",
+    "long": "long preset (goals 14-20 m away)",
+    "behind": "behind preset (goal behind the start)",
+    "structures": "structures (bend, trap, crowd, long, behind)",
+    "mixed-hard": "hard presets mixed by seed",
+    **{f"level{k}": f"graded level {k}" for k in range(6)},
 }
 
 

@@ -1,0 +1,100 @@
+"""Route pursuit: a learning-free baseline that steers the leaders' midpoint down the route hint.
+
+At every control step it computes the same ``route_features`` that the default policy observes
+(``core/route_encoding.py``: a grid cost-to-go over the goal and the ``slots`` nearest obstacles,
+obstacles inflated by PAC's ``path_inflate``) and pursues its near point, the carrot ``NEAR_CELLS``
+cells (1 m) down the steepest descent from the midpoint (pure pursuit of a moving look-ahead point).
+
+With the carrot (or, within ``r_goal`` of the goal, the goal itself) at body-frame coordinates
+(x_b, y_b) (x right, y along the heading) and d_goal the midpoint's distance to the goal::
+
+    e     = atan2(-x_b, y_b)                                        heading error, + is to the left
+    v     = v_max * max(cos e, 0)^2 * clip(d_goal / d0, v_min_frac, 1)
+    omega = clip(k * e, -omega_max, omega_max)
+
+The cos^2 factor stops the team while it turns toward a carrot behind it (the followers' rear corners
+swing out when the square turns fast), and the last factor slows it down within d0 of the goal.
+There is no footprint check and no memory: the cost-to-go's inflation alone keeps the square off
+the obstacles. Deterministic: the same scene and pose give the same command.
+
+It plans only with what the team perceives (``core.conditions.Perception``): the observed, possibly
+noisy obstacles at their observed positions, and the observed pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_formation.core.conditions import Perception
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.obstacle_grid import world_to_body
+from lerobot_formation.core.route_encoding import route_features
+
+
+@dataclass(frozen=True)
+class RoutePursuitConfig:
+    """Gains of route pursuit; defaults tuned on tuning seeds 5,000,000+ (docs/benchmark.md)."""
+
+    v_max: float = 0.5  # [m/s] cruise speed (the dynamics clip at FormationParams.v_max = 0.6)
+    k: float = 2.0  # [1/s] heading gain
+    d0: float = 1.0  # [m] slow down within this distance to the goal ...
+    v_min_frac: float = 0.3  # ... to no less than this fraction of v_max
+    r_goal: float = 0.6  # [m] within this distance, aim at the goal instead of the carrot
+    slots: int = 12  # obstacles observed (the nearest ``slots``, as the default policy's encoding)
+
+    def __post_init__(self) -> None:
+        for name in ("v_max", "k", "d0", "r_goal"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"RoutePursuitConfig.{name} must be a positive number, got {value}")
+        if not 0.0 <= self.v_min_frac <= 1.0:
+            raise ValueError(f"RoutePursuitConfig.v_min_frac must be in [0, 1], got {self.v_min_frac}")
+        if self.slots < 1:
+            raise ValueError(f"RoutePursuitConfig.slots must be >= 1, got {self.slots}")
+
+
+def heading_error(target_body: np.ndarray) -> np.ndarray:
+    """Angle (B,) from the heading to body-frame points (B, 2) (x right, y ahead), + to the left."""
+    return np.arctan2(-target_body[:, 0], target_body[:, 1])
+
+
+def pursuit_command(
+    target_body: np.ndarray, goal_distance: np.ndarray, config: RoutePursuitConfig, omega_max: float
+) -> np.ndarray:
+    """[v, omega] (B, 2) toward body-frame targets (B, 2) (see the module docstring)."""
+    e = heading_error(target_body)
+    slow = np.clip(goal_distance / config.d0, config.v_min_frac, 1.0)
+    v = config.v_max * np.maximum(np.cos(e), 0.0) ** 2 * slow
+    omega = np.clip(config.k * e, -omega_max, omega_max)
+    return np.stack([v, omega], axis=-1)
+
+
+class RoutePursuitController:
+    """Route pursuit behind the ``rollout.Controller`` interface (``reset(view)``, ``act(view, idx)``)."""
+
+    name = "route-pursuit"
+
+    def __init__(self, config: RoutePursuitConfig | None = None, params: FormationParams | None = None):
+        self.config = config or RoutePursuitConfig()
+        self.params = params or FormationParams()
+
+    def reset(self, view: Perception) -> None:
+        """Nothing to build: the route is recomputed from the perception at every step."""
+
+    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
+        obstacles, mask, goal = view.obstacles, view.mask, view.goal
+        pose = np.asarray(view.pose, dtype=np.float64)
+        features = route_features(obstacles, mask, goal, pose, self.config.slots)
+        target = features[:, :2].astype(np.float64)  # the 1 m carrot, body frame
+        goal_body = world_to_body(goal, pose)
+        d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
+        near = d_goal < self.config.r_goal
+        target[near] = goal_body[near]
+        return pursuit_command(target, d_goal, self.config, self.params.omega_max)
+
+
+def make_route_pursuit(name: str, params: FormationParams, args=None, bundle=None) -> RoutePursuitController:
+    """The controller registry's factory (``controllers.CONTROLLER_FACTORIES``): default gains."""
+    return RoutePursuitController(params=params)

@@ -1,0 +1,257 @@
+"""Issue 23: route pursuit, the structure presets, the graded levels and sharded evaluation."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from lerobot_formation.bench import main as bench_main
+from lerobot_formation.bench_merge import main as merge_main
+from lerobot_formation.controllers import make_controller
+from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.rollout import SUCCESS, Teams, rollout
+from lerobot_formation.core.route_pursuit import RoutePursuitConfig, RoutePursuitController
+from lerobot_formation.core.scene import (
+    FAR,
+    SCENE_PRESETS,
+    STRUCTURE_PRESETS,
+    Scenes,
+    passage_exists,
+    sample_mixed,
+    sample_scenes,
+    scene_preset,
+    scene_validity,
+)
+from lerobot_formation.evaluation import evaluate
+from lerobot_formation.levels import LEVELS, get_level, level_env_fields, level_scenes
+from lerobot_formation.scene_sets import parse_scenes
+
+
+def _scene(obstacles, goal, start=(0.0, 0.0, np.pi / 2)) -> Scenes:
+    obs = (
+        np.array(obstacles, dtype=np.float64).reshape(1, -1, 3)
+        if obstacles
+        else np.array([[[FAR, FAR, 0.0]]])
+    )
+    return Scenes(obs, obs[..., 2] > 0, np.array([goal], np.float64), np.array([start], np.float64))
+
+
+# -- route pursuit ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("obstacles", "goal"),
+    [([], (3.0, 4.0)), ([(0.0, 3.0, 0.6)], (0.0, 6.0))],  # empty; one obstacle on the straight line
+    ids=["empty", "blocked-line"],
+)
+def test_route_pursuit_reaches_the_goal(obstacles, goal):
+    scenes = _scene(obstacles, goal)
+    rec = rollout(scenes, RoutePursuitController())
+    assert rec.outcome[0] == SUCCESS
+    if obstacles:  # it went around, not through
+        assert np.nanmin(rec.agent_clearance[0]) > 0
+
+
+def test_route_pursuit_deterministic_and_in_bounds():
+    params = FormationParams()
+    scenes = sample_scenes(5_000_000 + np.arange(6), scene_preset("dense"))
+    a = rollout(scenes, RoutePursuitController(params=params), params)
+    b = rollout(scenes, RoutePursuitController(params=params), params)
+    np.testing.assert_array_equal(a.poses, b.poses)
+    # the raw commands, before the engine clips them
+    ctrl = RoutePursuitController(params=params)
+    view = Teams(scenes, params).perceive()
+    ctrl.reset(view)
+    rng = np.random.default_rng(0)
+    for _ in range(5):  # random poses around the scenes, headings all round
+        pose = np.c_[rng.uniform(-2, 8, (6, 2)), rng.uniform(-np.pi, np.pi, 6)]
+        u = ctrl.act(dataclasses.replace(view, pose=pose), np.arange(6))
+        assert u.shape == (6, 2) and np.isfinite(u).all()
+        assert (u[:, 0] >= 0).all() and (u[:, 0] <= params.v_max).all()
+        assert (np.abs(u[:, 1]) <= params.omega_max).all()
+
+
+def test_route_pursuit_is_registered_and_its_config_checked():
+    ctrl = make_controller("route-pursuit", FormationParams(), None)
+    assert isinstance(ctrl, RoutePursuitController) and ctrl.name == "route-pursuit"
+    with pytest.raises(ValueError, match="k must be a positive number, got -1"):
+        RoutePursuitConfig(k=-1.0)
+
+
+# -- structures ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset", STRUCTURE_PRESETS)
+def test_structure_presets_valid_and_deterministic(preset):
+    config = scene_preset(preset)
+    seeds = 5_000_000 + np.arange(8)
+    a, b = sample_scenes(seeds, config), sample_scenes(seeds, config)
+    np.testing.assert_array_equal(a.obstacles, b.obstacles)
+    np.testing.assert_array_equal(a.goal, b.goal)
+    assert scene_validity(a, config)[0].all() and passage_exists(a, config).all()
+    count = a.mask.sum(axis=1)
+    dist = np.linalg.norm(a.goal - a.start[:, :2], axis=1)
+    to_goal = np.arctan2(*(a.goal - a.start[:, :2])[:, ::-1].T)
+    facing = np.cos(to_goal - a.start[:, 2])
+    if preset == "bend":  # four walls of touching circles, the corner's inner ones dropped
+        assert (count >= 20).all()
+        # the straight line to the goal leaves the corridor: it passes an obstacle
+        assert _line_blocked(a).all()
+    if preset == "trap":
+        assert (count >= 15).all() and _line_blocked(a).all()
+    if preset == "crowd":
+        assert (count >= 20).all() and (count > 12).all()  # more than the nearest 12 the policy sees
+    if preset == "long":
+        assert (dist >= 14).all()
+    if preset == "behind":
+        assert (facing < -0.4).all()
+
+
+def _line_blocked(s: Scenes) -> np.ndarray:
+    """Whether the straight segment start-goal passes within an obstacle's radius (B,)."""
+    p, g = s.start[:, None, :2], s.goal[:, None]
+    d = g - p
+    t = np.clip(np.sum((s.obstacles[..., :2] - p) * d, -1) / np.sum(d * d, -1), 0, 1)
+    gap = np.linalg.norm(p + t[..., None] * d - s.obstacles[..., :2], axis=-1) - s.obstacles[..., 2]
+    return ((gap < 0) & s.mask).any(axis=1)
+
+
+def test_structures_mix_is_a_function_of_the_seed():
+    seeds = 5_000_000 + np.arange(10)
+    mixed = sample_mixed(seeds, STRUCTURE_PRESETS)
+    np.testing.assert_array_equal(mixed.seeds, seeds)
+    for k, seed in enumerate(seeds):
+        alone = sample_scenes([seed], scene_preset(STRUCTURE_PRESETS[seed % 5]))
+        m = alone.obstacles.shape[1]
+        np.testing.assert_array_equal(mixed.obstacles[k, :m], alone.obstacles[0])
+        assert not mixed.mask[k, m:].any()
+    # a prefix of a larger set is the smaller set
+    np.testing.assert_array_equal(
+        parse_scenes("structures:4", 7).obstacles, parse_scenes("structures:10", 7)[:4].padded(36).obstacles
+    )
+
+
+# -- levels -------------------------------------------------------------------------------------
+
+
+def test_levels_fixed_and_deterministic():
+    assert list(LEVELS) == [f"level{k}" for k in range(6)]
+    for level in LEVELS.values():
+        assert level.seed >= 1_000_000 and level.seed < 5_000_000  # evaluation seeds, not tuning ones
+    a, b = level_scenes("level3", 5), level_scenes("level3", 5)
+    np.testing.assert_array_equal(a.obstacles, b.obstacles)
+    np.testing.assert_array_equal(a.seeds, 1_000_000 + np.arange(5))
+    np.testing.assert_array_equal(parse_scenes("level3:5", None).obstacles, a.obstacles)
+    np.testing.assert_array_equal(level_scenes("level5", 5).obstacles, a.obstacles)  # same scenes as 3
+    assert level_scenes("level3", 3, seed=5_000_000).seeds[0] == 5_000_000
+    hardest = get_level("5").conditions
+    assert hardest.sensing_range == 3.0 and hardest.obstacle_memory and hardest.action_delay == 1
+    assert hardest.moving_obstacles == 2 and hardest.obstacle_speed == 0.3 and hardest.enabled
+    assert not get_level("level0").conditions.enabled
+
+
+def test_level_errors_and_env_fields():
+    with pytest.raises(ValueError, match=r"unknown level 'level9'; choose from \('level0'"):
+        get_level("level9")
+    with pytest.raises(ValueError, match="unknown level"):
+        parse_scenes("level9:5", None)
+    fields = level_env_fields("level5")
+    assert fields["scene_preset"] == "structures" and fields["sensing_range"] == 3.0
+    assert set(fields) == {"scene_preset", *CONDITION_FIELDS}
+    assert level_env_fields("level0")["scene_preset"] == "paper" and "paper" in SCENE_PRESETS
+
+
+def test_route_pursuit_runs_under_conditions():
+    scenes = _scene([], (3.0, 4.0))
+    rec = evaluate(RoutePursuitController(), scenes, conditions=Conditions(action_delay=1))
+    assert len(rec) == 1 and rec.outcome[0] == SUCCESS
+
+
+# -- sharded evaluation -------------------------------------------------------------------------
+
+
+def _bench(out, *extra):
+    argv = ["--controllers", "route-pursuit,pac", "--scenes", "level0:7", "--seed", "5000000"]
+    assert bench_main([*argv, "--no-figures", "--no-progress", "--out", str(out), *extra]) == 0
+    return json.loads((out / "results.json").read_text())
+
+
+def _without_wall_time(payload: dict) -> dict:
+    for entries in payload["by_scenes"].values():
+        for entry in entries.values():
+            entry.pop("wall_time_s")
+    return payload["by_scenes"]
+
+
+def _edited_copy(src, dst, edit) -> str:
+    """A copy of shard folder ``src`` at ``dst`` with ``edit(payload)`` applied to its results.json."""
+    payload = json.loads((src / "results.json").read_text())
+    edit(payload)
+    dst.mkdir()
+    (dst / "results.json").write_text(json.dumps(payload))
+    return str(dst)
+
+
+def test_three_shards_merge_to_the_whole_run(tmp_path, capsys):
+    whole = _bench(tmp_path / "whole")
+    shards = [_bench(tmp_path / f"s{i}", "--shard", f"{i}/3") for i in range(3)]
+    assert [len(s["pac"]["episodes"]) for s in shards] == [3, 2, 2]
+    assert [e["index"] for e in shards[1]["pac"]["episodes"]] == [1, 4]
+    assert [e["seed"] for e in shards[1]["pac"]["episodes"]] == [5_000_001, 5_000_004]
+    folders = [str(tmp_path / f"s{i}") for i in (2, 0, 1)]  # any order
+    assert merge_main([*folders, "--out", str(tmp_path / "merged")]) == 0
+    merged = json.loads((tmp_path / "merged" / "results.json").read_text())
+    assert merged["meta"]["shard"] is None and merged["meta"]["scenes"] == "level0:7"
+    assert _without_wall_time(merged) == _without_wall_time(whole)
+    assert [e["index"] for e in merged["pac"]["episodes"]] == list(range(7))
+    assert (tmp_path / "merged" / "tables.md").read_text() == (tmp_path / "whole" / "tables.md").read_text()
+
+    # refused, and nothing written: a missing shard, a shard twice, other settings, a whole run
+    capsys.readouterr()
+    s0, s1, s2 = (tmp_path / f"s{i}" for i in range(3))
+    cases = [
+        ([s0, s1], "shards ['2/3'] are missing"),
+        ([s0, s1, s2, s0], "shard 0/3 given twice"),
+        ([s0, s1, _edited_copy(s2, tmp_path / "e1", lambda p: p["meta"].update(seed=7))], "seed = 7"),
+        (
+            [s0, s1, _edited_copy(s2, tmp_path / "e2", lambda p: p["by_scenes"]["level0"].pop("pac"))],
+            "different controllers",
+        ),
+        (
+            [s0, s1, _edited_copy(s2, tmp_path / "e3", lambda p: p["meta"].update(conditions={"x": 1}))],
+            "conditions",
+        ),
+        (
+            [s0, _edited_copy(s1, tmp_path / "e4", lambda p: p["meta"].update(shard="2/3")), s2],
+            "shard 2/3 given twice",
+        ),
+        ([s0, s1, tmp_path / "whole"], "is not a shard"),
+        ([s0, s1, tmp_path / "nowhere"], "no results.json"),
+    ]
+    for folders, message in cases:
+        assert merge_main([*map(str, folders), "--out", str(tmp_path / "m2")]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "m2").exists()
+
+
+@pytest.mark.parametrize("shard", ["3/3", "1", "a/b", "-1/2"])
+def test_bad_shard(shard, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        bench_main(["--scenes", "random:3", f"--shard={shard}", "--out", str(tmp_path)])
+    assert f"--shard must be I/N with 0 <= I < N (e.g. 0/4), got {shard!r}" in capsys.readouterr().err
+
+
+def test_bench_hands_a_levels_conditions_to_the_engine(tmp_path, capsys):
+    argv = ["--controllers", "route-pursuit", "--no-figures", "--no-progress", "--out", str(tmp_path)]
+    assert bench_main([*argv, "--scenes", "level4:1"]) == 0
+    meta = json.loads((tmp_path / "results.json").read_text())["meta"]
+    assert meta["seed"] == get_level("level4").seed
+    assert meta["conditions"] == get_level("level4").conditions.changed()
+    assert bench_main([*argv, "--scenes", "level3:1"]) == 0
+    meta = json.loads((tmp_path / "results.json").read_text())["meta"]
+    assert meta["seed"] == get_level("level3").seed and meta["conditions"] == {}
+    with pytest.raises(SystemExit):  # a level fixes its conditions
+        bench_main([*argv, "--scenes", "level3:1", "--env.sensing_range", "2"])
+    assert "level3:1 fixes its own conditions" in capsys.readouterr().err
