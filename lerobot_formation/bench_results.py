@@ -38,8 +38,10 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
     summary = summarize(per)
     episodes = []
     for b in range(len(rec)):
+        seed = int(scenes.seeds[b])
         e = {
-            "seed": int(scenes.seeds[b]),
+            "scene_index": b,  # in the scene set (--scenes / --unseen): names a scene of a file
+            "seed": seed if seed >= 0 else None,  # None: a scene of a file, it has no seed
             "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
             "steps": int(rec.steps[b]),
         }

@@ -32,7 +32,12 @@ from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
 from lerobot_formation.env import FormationEnv
-from lerobot_formation.episode_metrics import FormationEpisodeMetrics, new_run_id
+from lerobot_formation.episode_metrics import (
+    FormationEpisodeMetrics,
+    check_metrics_file,
+    new_run_id,
+    start_metrics_file,
+)
 from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
 from lerobot_formation.render import EpisodeOverlay
 
@@ -113,6 +118,9 @@ class FormationEnvConfig(EnvConfig):
         render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
         episode_metrics_path: if set, every finished episode appends its formation metrics (one
             JSON line) to this file; see ``lerobot_formation.episode_metrics``.
+        episode_metrics_exists: what to do when ``episode_metrics_path`` already holds an earlier
+            run's lines: ``"error"`` (refuse at start-up, naming the file), ``"append"`` or
+            ``"overwrite"``.
         features: env observation/action features, keyed by the env's own keys; the
             ``environment_state`` shape follows ``obstacle_encoding``.
         features_map: env keys to LeRobot keys (``agent_pos`` -> ``observation.state``,
@@ -138,6 +146,8 @@ class FormationEnvConfig(EnvConfig):
     render_mode: str = "rgb_array"
     # If set, each finished episode appends its formation metrics as a JSON line to this file.
     episode_metrics_path: str | None = None
+    # If episode_metrics_path already holds an earlier run's lines: error (refuse), append or overwrite.
+    episode_metrics_exists: str = "error"
     # Parallel tasks of a multi-task benchmark (LeRobot's EnvConfig field; one task here).
     max_parallel_tasks: int = 1
     # Skip gymnasium's env checker when LeRobot makes the env (LeRobot's EnvConfig field).
@@ -177,6 +187,11 @@ class FormationEnvConfig(EnvConfig):
                 load_scenes(self.scenes_file, SCENE_PRESETS[self.scene_preset])
             except ValueError as e:
                 raise config_error(f"env.scenes_file: {e}") from e
+        if self.episode_metrics_path is not None:
+            try:  # at start-up: lerobot-train builds its eval envs only at the first evaluation
+                check_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
+            except (ValueError, FileExistsError) as e:
+                raise config_error(str(e)) from e
         self.features["environment_state"] = PolicyFeature(
             type=FeatureType.ENV, shape=(environment_state_dim(self.obstacle_encoding),)
         )
@@ -228,6 +243,8 @@ class FormationEnvConfig(EnvConfig):
         """
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        if self.episode_metrics_path is not None:
+            start_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
         run_id = new_run_id()  # one per evaluation run, shared by its sub-envs and worker processes
         fns = [self.make_env_factory(run_id, i) for i in range(n_envs)]
         if use_async_envs and n_envs > 1:
