@@ -4,6 +4,10 @@ help text on every option, and LeRobot's torchcodec/FFmpeg traceback cut to one 
 import argparse
 import dataclasses
 import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 from draccus.wrappers.docstring import get_attribute_docstring, get_preferred_help_text
@@ -87,3 +91,38 @@ def test_torchcodec_warning_becomes_one_note(caplog):
         logger.warning("another warning")
     assert [r.getMessage() for r in caplog.records] == [TORCHCODEC_NOTE, "another warning"]
     assert "\n" not in TORCHCODEC_NOTE
+
+
+@pytest.mark.slow  # ~25 s quiet, ~55 s on the shared 2-core machine
+def test_lerobot_edit_dataset_merge_with_the_plugin_prints_no_traceback(tmp_path):
+    """LeRobot's merge loads no plugin: through ``lerobot_formation.with_plugin`` it prints at most the
+    one-line note (none where FFmpeg is installed), where it alone prints a traceback per dataset."""
+    for i in range(2):
+        argv = ["--episodes", "1", "--root", str(tmp_path / f"s{i}"), "--repo-id", f"local/s{i}"]
+        assert gen.main(argv + ["--seed", str(i), "--no-progress"]) == 0
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
+    args = [
+        "lerobot-edit-dataset", "--new_repo_id", "local/merged", "--new_root", str(tmp_path / "merged"),
+        "--operation.type", "merge", "--operation.repo_ids", "['local/s0','local/s1']",
+        "--operation.roots", f"['{tmp_path / 's0'}','{tmp_path / 's1'}']",
+    ]  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "lerobot_formation.with_plugin", *args],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "libtorchcodec" not in proc.stderr, proc.stderr[-3000:]
+    assert proc.stderr.count("torchcodec cannot be loaded") <= 1
+    assert (tmp_path / "merged" / "meta" / "info.json").is_file()
+
+
+def test_with_plugin_names_the_lerobot_scripts_it_takes(capsys):
+    from lerobot_formation.with_plugin import main
+
+    assert main(["lerobot-nope"]) == 2
+    err = capsys.readouterr().err
+    assert "got 'lerobot-nope'" in err and "lerobot-edit-dataset" in err and "\n" == err[-1]
