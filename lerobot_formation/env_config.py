@@ -38,7 +38,11 @@ from lerobot_formation.episode_metrics import (
     new_run_id,
     start_metrics_file,
 )
-from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
+from lerobot_formation.lerobot_compat import (
+    caller_policy_config,
+    install_offline_dataset_root_check,
+    report_resume_with_nothing_to_train,
+)
 from lerobot_formation.render import EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
@@ -208,6 +212,7 @@ class FormationEnvConfig(EnvConfig):
         policy_cfg = caller_policy_config()
         if policy_cfg is not None:
             check_policy_features(self, policy_cfg)
+            report_resume_with_nothing_to_train()
         return super().get_env_processors()
 
     @property

@@ -25,7 +25,7 @@ def test_bench_prints_its_summary_and_no_bar_off_a_terminal(no_progress, tmp_pat
     argv = ["--controllers", "pac", "--scenes", "random:2", "--out", str(tmp_path), "--no-figures"]
     assert bench.main(argv + ["--no-progress"] * no_progress) == 0
     out, err = capsys.readouterr()
-    assert "[random] pac: success" in out and "wrote" in out
+    assert "[random:2] pac: success" in out and "wrote" in out
     assert not any(piece in err for piece in BAR), err  # captured stderr is not a terminal
 
 
@@ -126,3 +126,36 @@ def test_with_plugin_names_the_lerobot_scripts_it_takes(capsys):
     assert main(["lerobot-nope"]) == 2
     err = capsys.readouterr().err
     assert "got 'lerobot-nope'" in err and "lerobot-edit-dataset" in err and "\n" == err[-1]
+
+
+def test_the_demo_lists_its_figures_once_and_names_its_sets(tmp_path, capsys):
+    from lerobot_formation.demo import main as demo_main
+
+    out = tmp_path / "demo"
+    argv = ["--controllers", "pac", "--scenes", "random:2", "--unseen", "hard:4", "--out", str(out)]
+    assert demo_main(argv + ["--no-progress"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "both sets are unseen" in lines[0] and "random:2" in lines[0] and "hard:4" in lines[0]
+    assert any(line.startswith("[random:2] pac: success") for line in lines)
+    figure_lines = [line for line in lines if "pac_random_trajectories.png" in line]
+    assert len(figure_lines) == 1, lines
+    assert lines[-1].startswith("demo: done in ") and str(out / "tables.md") in lines[-1]
+    assert "figures listed above" in lines[-1]
+
+
+def test_generator_summary_counts_what_it_ran_and_names_the_hub_folder():
+    summary = {"episodes": 20, "frames": 100, "mb": 0.1, "seconds": 1.0}
+    summary.update(pac_attempted=23, pac_succeeded=23, pac_success_rate=1.0, pushed_to="hub/local/x")
+    line = gen.summary_line(summary, "data/x")
+    assert "episodes 20," in line and "PAC succeeded on 23 of 23 scenes (100.0%)" in line
+    assert "the first 20 successes kept" in line and line.endswith("-> data/x; hub folder -> hub/local/x")
+    summary.update(pac_attempted=25, pac_succeeded=20, pac_success_rate=0.8, pushed_to=None)
+    line = gen.summary_line(summary, "data/x")
+    assert "PAC succeeded on 20 of 25 scenes (80.0%)," in line and "kept" not in line and "hub" not in line
+
+
+@pytest.mark.parametrize("build", ["bench", "generator"])
+def test_help_shows_the_defaults(build, monkeypatch, capsys):
+    ap = bench.build_parser() if build == "bench" else _parser_of(gen.parse_args, ["--episodes", "1"], monkeypatch)
+    text = " ".join(ap.format_help().split())
+    assert "(default: 1000000)" in text if build == "bench" else "(default: 1878)" in text
