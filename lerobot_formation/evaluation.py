@@ -70,7 +70,7 @@ def run_set(
             from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
 
             title = f"{name} on {scene_set_label(spec, args.seed)}" if spec else ""
-            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
+            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title, spec)
             records[name] = rec
         results[name] = entry
         lo, hi = entry["success_ci95"]
