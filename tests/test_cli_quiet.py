@@ -156,6 +156,10 @@ def test_generator_summary_counts_what_it_ran_and_names_the_hub_folder():
 
 @pytest.mark.parametrize("build", ["bench", "generator"])
 def test_help_shows_the_defaults(build, monkeypatch, capsys):
-    ap = bench.build_parser() if build == "bench" else _parser_of(gen.parse_args, ["--episodes", "1"], monkeypatch)
+    ap = (
+        bench.build_parser()
+        if build == "bench"
+        else _parser_of(gen.parse_args, ["--episodes", "1"], monkeypatch)
+    )
     text = " ".join(ap.format_help().split())
     assert "(default: 1000000)" in text if build == "bench" else "(default: 1878)" in text
