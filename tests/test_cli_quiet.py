@@ -163,3 +163,18 @@ def test_help_shows_the_defaults(build, monkeypatch, capsys):
     )
     text = " ".join(ap.format_help().split())
     assert "(default: 1000000)" in text if build == "bench" else "(default: 1878)" in text
+
+
+@pytest.mark.slow  # a fresh interpreter importing LeRobot: ~15 s quiet, ~45 s on the shared machine
+def test_loading_a_dataset_after_the_plugin_prints_at_most_one_note(tmp_path):
+    """The docs' LeRobotDataset load (``import lerobot_formation.plugin`` first): no FFmpeg traceback."""
+    assert gen.main(["--episodes", "1", "--root", str(tmp_path / "ds"), "--no-progress"]) == 0
+    code = (
+        "import lerobot_formation.plugin; from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; "
+        f"print(D('local/formation_pac', root={str(tmp_path / 'ds')!r}).num_episodes)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "libtorchcodec" not in proc.stderr, proc.stderr[-3000:]
+    assert len(proc.stderr.strip().splitlines()) <= 1, proc.stderr
