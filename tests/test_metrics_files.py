@@ -102,3 +102,13 @@ def test_results_json_episodes_name_file_scenes_by_index(tmp_path):
     assert bench_main(argv) == 0
     episodes = json.loads((out2 / "results.json").read_text())["pac"]["episodes"]
     assert [(e["scene_index"], e["seed"]) for e in episodes] == [(0, 1_000_000), (1, 1_000_001)]
+
+
+def test_the_vector_env_reports_the_file_index_too(tmp_path):
+    from lerobot_formation.vector_env import FormationVectorEnv
+
+    vec = FormationVectorEnv(2, scenes_file=str(_scenes_file(tmp_path)))
+    _, info = vec.reset(seed=0)
+    assert info["scene_index"].tolist() == [0.0, 1.0] and info["scene_seed"].tolist() == [-1, -1]
+    _, info = FormationVectorEnv(2).reset(seed=5)
+    assert np.isnan(info["scene_index"]).all() and info["scene_seed"].tolist() == [5, 6]
