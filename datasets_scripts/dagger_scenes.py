@@ -112,7 +112,11 @@ def dagger_scenes(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="dagger_scenes", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="dagger_scenes",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     ap.add_argument("--policy.path", dest="policy_path", required=True, help="checkpoint folder")
     ap.add_argument("--scene-preset", default="wide", choices=tuple(SCENE_PRESETS), help="scene distribution")
     ap.add_argument("--rollouts", type=int, default=400, help="policy episodes to run")

@@ -62,7 +62,9 @@ PAPER_EPISODES = 1878
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(
-        prog="lerobot-formation-generate", description="PAC demonstrations as a LeRobot dataset (v3.0)."
+        prog="lerobot-formation-generate",
+        description="PAC demonstrations as a LeRobot dataset (v3.0).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     ap.add_argument(
         "--episodes", type=int, default=PAPER_EPISODES, help="successful episodes to keep (all shards)"
@@ -196,12 +198,21 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             f"PAC succeeded on {summary['pac_succeeded']} of the {summary['pac_attempted']} scenes of {args.scenes}",
             file=sys.stderr,
         )
-    print(
-        f"episodes {summary['episodes']}, frames {summary['frames']}, {summary['mb']:.1f} MB, "
-        f"PAC success while generating {summary['pac_success_rate']:.1%} "
-        f"({summary['pac_succeeded']}/{summary['pac_attempted']}), {summary['seconds']:.1f} s -> {args.root}"
-    )
+    print(summary_line(summary, args.root))
     return 0
+
+
+def summary_line(summary: dict, root: str) -> str:
+    """The one-line summary: what was written, and PAC's success over the scenes it ran. PAC runs whole
+    batches of scenes, so it can run more scenes than episodes were asked for; the line says so."""
+    ran, ok, kept = summary["pac_attempted"], summary["pac_succeeded"], summary["episodes"]
+    pac = f"PAC succeeded on {ok} of {ran} scenes ({summary['pac_success_rate']:.1%})"
+    if ok > kept:
+        pac += f"; scenes run in whole batches, the first {kept} successes kept"
+    line = f"episodes {kept}, frames {summary['frames']}, {summary['mb']:.1f} MB, {pac}, {summary['seconds']:.1f} s -> {root}"
+    if summary.get("pushed_to"):
+        line += f"; hub folder -> {summary['pushed_to']}"
+    return line
 
 
 if __name__ == "__main__":

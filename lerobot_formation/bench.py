@@ -57,7 +57,11 @@ from lerobot_formation.threads import add_threads_argument, apply_threads
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="lerobot-formation-bench", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="lerobot-formation-bench",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     ap.add_argument("--controllers", default="pac", help=f"comma-separated, from {controller_names()}")
     ap.add_argument(
         "--scenes",

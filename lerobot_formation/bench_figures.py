@@ -8,24 +8,31 @@ from lerobot_formation.core.rollout import EpisodeRecords
 from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes
 
 
-def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes, title: str = "") -> list[str]:
-    """The per-controller figures, files named ``name``_*.png, titled ``title`` (default ``name``)."""
+def write_figures(
+    out: Path, name: str, rec: EpisodeRecords, scenes: Scenes, title: str = "", spec: str = ""
+) -> list[str]:
+    """The per-controller figures, files named ``name``_*.png, titled ``title`` (default ``name``);
+    ``spec`` (the --scenes value) names each scene's preset in the panel titles."""
     from lerobot_formation.plots import (
         plot_failures,
         plot_final_error_histogram,
         plot_formation_errors,
         plot_trajectories,
     )
+    from lerobot_formation.scene_sets import scene_set_presets
 
     title = title or name
+    presets = scene_set_presets(spec, len(scenes)) if spec else None
     shown = list(range(min(6, len(rec))))  # the same first scenes for every controller
     files = [
-        plot_trajectories(rec, scenes, shown, out / f"{name}_trajectories.png", title=title),
-        plot_formation_errors(rec, shown, out / f"{name}_formation_error.png", title=title, scenes=scenes),
+        plot_trajectories(rec, scenes, shown, out / f"{name}_trajectories.png", title=title, presets=presets),
+        plot_formation_errors(
+            rec, shown, out / f"{name}_formation_error.png", title=title, scenes=scenes, presets=presets
+        ),
         plot_final_error_histogram(rec, out / f"{name}_final_error_hist.png", title=title),
     ]
     if (rec.outcome != 1).any():
-        files.append(plot_failures(rec, scenes, out / f"{name}_failures.png", title=title))
+        files.append(plot_failures(rec, scenes, out / f"{name}_failures.png", title=title, presets=presets))
     return [f.name for f in files]
 
 
@@ -38,10 +45,13 @@ def write_comparison_figure(
     seed: int = UNSEEN_SEED_START,
 ) -> str:
     from lerobot_formation.plots import comparison_scenes, plot_controller_comparison, scene_set_label
+    from lerobot_formation.scene_sets import scene_set_presets
 
     path = out / f"controllers_{label}.png"
     title = scene_set_label(spec, seed) if spec else label
-    return plot_controller_comparison(records, scenes, comparison_scenes(records, 3), path, title=title).name
+    presets = scene_set_presets(spec, len(scenes)) if spec else None
+    shown = comparison_scenes(records, 3)
+    return plot_controller_comparison(records, scenes, shown, path, title=title, presets=presets).name
 
 
 def write_success_figure(out: Path, results: dict[str, dict], specs: dict[str, str], seed: int) -> str:

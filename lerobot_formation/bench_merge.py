@@ -55,8 +55,8 @@ def read_shard(folder: Path) -> dict:
 
 def _merge_entries(entries: list[dict], where: str) -> dict:
     """One controller's entry from its shard entries: episodes by index, summary recomputed."""
-    episodes = sorted((e for entry in entries for e in entry["episodes"]), key=lambda e: e["index"])
-    index = np.array([e["index"] for e in episodes])
+    episodes = sorted((e for entry in entries for e in entry["episodes"]), key=lambda e: e["scene_index"])
+    index = np.array([e["scene_index"] for e in episodes])
     if len(np.unique(index)) != len(index):
         raise ValueError(f"{where}: scene indices appear in more than one shard (overlapping shards)")
     if len(index) and not np.array_equal(index, np.arange(len(index))):

@@ -34,7 +34,7 @@ def safety_rates(stats: dict) -> dict:
 
 
 def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dict:
-    """A controller's summary (``summarize``) plus ``episodes``: per episode its scene's ``index`` in
+    """A controller's summary (``summarize``) plus ``episodes``: per episode its ``scene_index`` in
     the scene set (``indices[b]``, default b: a shard keeps the whole set's), seed, outcome, steps and
     metrics."""
     per = episode_metrics(rec, scenes.start, scenes.goal)
@@ -42,9 +42,12 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dic
     indices = np.arange(len(rec)) if indices is None else np.asarray(indices)
     episodes = []
     for b in range(len(rec)):
+        seed = int(scenes.seeds[b])
         e = {
-            "index": int(indices[b]),
-            "seed": int(scenes.seeds[b]),
+            "scene_index": int(
+                indices[b]
+            ),  # in the whole scene set (a shard keeps it); names a scene of a file
+            "seed": seed if seed >= 0 else None,  # None: a scene of a file, it has no seed
             "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
             "steps": int(rec.steps[b]),
         }

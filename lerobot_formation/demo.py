@@ -28,13 +28,19 @@ def main(argv: list[str] | None = None) -> int:
         ]  # fmt: skip
     else:
         defaults = ["--controllers", "pac,mppi", "--scenes", "random:100", "--out", "outputs/demo"]
+    args = build_parser().parse_args(defaults + argv)
+    if args.unseen:  # say what the two sets are: both unseen, the second the hard suite
+        print(
+            f"demo: {args.controllers} on {args.scenes}, then the diffusion controllers on {args.unseen}; "
+            f"scene seeds from {args.seed} on, which no training dataset uses (both sets are unseen)"
+        )
     start = time.time()
     code = bench_main(defaults + argv)
-    args = build_parser().parse_args(defaults + argv)
-    if code == 0 and not args.no_figures:  # the last line names what to open
+    if code == 0:  # the last line names what to open (the bench listed the figures once, above)
         out = Path(args.out)
-        pngs = sorted(p.name for p in out.glob("*.png") if p.stat().st_mtime >= start - 1)
-        print(f"demo: {len(pngs)} figures in {out}: {', '.join(pngs)}")
+        pngs = [p for p in out.glob("*.png") if p.stat().st_mtime >= start - 1] if not args.no_figures else []
+        figures = f" and the {len(pngs)} figures listed above" if pngs else ""
+        print(f"demo: done in {time.time() - start:.1f} s; open {out / 'tables.md'}{figures}")
     return code
 
 

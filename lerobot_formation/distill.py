@@ -152,7 +152,9 @@ def _save_last(out: Path, policy, optimizer, scheduler, step, losses: list[float
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m lerobot_formation.distill", description=__doc__.split("\n")[0]
+        prog="python -m lerobot_formation.distill",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     ap.add_argument("--teacher", required=True, help="formation_diffusion checkpoint folder (the teacher)")
     ap.add_argument(

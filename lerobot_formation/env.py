@@ -45,7 +45,8 @@ raise ``ValueError``.
 
 ## Info
 ``is_success``, ``is_collision``, ``formation_error``, ``clearance`` (smallest agent gap),
-``midpoint_clearance`` (both ``None`` in a scene with no obstacle), ``scene_seed``.
+``midpoint_clearance`` (both ``None`` in a scene with no obstacle), ``scene_seed`` (-1 for a scene of a
+file or given by hand), ``scene_index`` (the scene's index in ``scenes_file``, else ``None``).
 
 ## Realistic conditions
 ``conditions=Conditions(...)`` (``core.conditions``: sensing range and memory, obstacle and pose
@@ -168,6 +169,7 @@ class FormationEnv(gym.Env):
         self.task_description = TASK
         self._renderer = Renderer(render_size) if render_mode == "rgb_array" else None
         self.scene: Scenes | None = None
+        self.scene_index: int | None = None  # index in scenes_file of the current scene
         self.teams: Teams | None = None  # the episode: core.rollout.Teams of one team
         self._ended: str | None = None  # "success" / "collision" once the episode has terminated
         self.applied_action: np.ndarray | None = None  # (1, 2) the action the last step executed
@@ -184,11 +186,13 @@ class FormationEnv(gym.Env):
             scene_index(seed, len(self.scenes), self.scenes_file)  # before seeding: a clear ValueError
         super().reset(seed=seed)
         options = options or {}
+        self.scene_index = None  # set for a scene of scenes_file; a sampled or given scene has none
         if options.get("scene") is not None:
             self.scene = scene_from_option(options["scene"], self.scene_config)
         elif self.scenes is not None:
             idx = seed if seed is not None else int(self.np_random.integers(len(self.scenes)))
-            self.scene = self.scenes[scene_index(idx, len(self.scenes), self.scenes_file)]
+            self.scene_index = scene_index(idx, len(self.scenes), self.scenes_file)
+            self.scene = self.scenes[self.scene_index]
         else:
             s = seed if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
             self.scene = sample_scenes([s], self.scene_config)
@@ -248,4 +252,5 @@ class FormationEnv(gym.Env):
             "clearance": _finite_or_none(info["clearance"][0]),  # None: the scene has no obstacle
             "midpoint_clearance": _finite_or_none(info["midpoint_clearance"][0]),
             "scene_seed": int(info["scene_seed"][0]),
+            "scene_index": self.scene_index,
         }

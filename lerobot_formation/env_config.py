@@ -33,8 +33,17 @@ from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
 from lerobot_formation.env import FormationEnv
-from lerobot_formation.episode_metrics import FormationEpisodeMetrics, new_run_id
-from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
+from lerobot_formation.episode_metrics import (
+    FormationEpisodeMetrics,
+    check_metrics_file,
+    new_run_id,
+    start_metrics_file,
+)
+from lerobot_formation.lerobot_compat import (
+    caller_policy_config,
+    install_offline_dataset_root_check,
+    report_resume_with_nothing_to_train,
+)
 from lerobot_formation.render import EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
@@ -118,6 +127,9 @@ class FormationEnvConfig(EnvConfig):
             max_linear_accel, max_angular_accel, moving_obstacles, obstacle_speed: realistic
             conditions (``core.conditions.Conditions``, docs/conditions.md), all off by default, e.g.
             ``--env.sensing_range=3 --env.action_delay=2``; the in-training evaluation uses them too.
+        episode_metrics_exists: what to do when ``episode_metrics_path`` already holds an earlier
+            run's lines: ``"error"`` (refuse at start-up, naming the file), ``"append"`` or
+            ``"overwrite"``.
         features: env observation/action features, keyed by the env's own keys; the
             ``environment_state`` shape follows ``obstacle_encoding``.
         features_map: env keys to LeRobot keys (``agent_pos`` -> ``observation.state``,
@@ -164,6 +176,8 @@ class FormationEnvConfig(EnvConfig):
     moving_obstacles: int = 0
     # [m/s] their speed.
     obstacle_speed: float = 0.0
+    # If episode_metrics_path already holds an earlier run's lines: error (refuse), append or overwrite.
+    episode_metrics_exists: str = "error"
     # Parallel tasks of a multi-task benchmark (LeRobot's EnvConfig field; one task here).
     max_parallel_tasks: int = 1
     # Skip gymnasium's env checker when LeRobot makes the env (LeRobot's EnvConfig field).
@@ -207,6 +221,11 @@ class FormationEnvConfig(EnvConfig):
                 load_scenes(self.scenes_file, SCENE_PRESETS[self.scene_preset])
             except ValueError as e:
                 raise config_error(f"env.scenes_file: {e}") from e
+        if self.episode_metrics_path is not None:
+            try:  # at start-up: lerobot-train builds its eval envs only at the first evaluation
+                check_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
+            except (ValueError, FileExistsError) as e:
+                raise config_error(str(e)) from e
         self.features["environment_state"] = PolicyFeature(
             type=FeatureType.ENV, shape=(environment_state_dim(self.obstacle_encoding),)
         )
@@ -223,6 +242,7 @@ class FormationEnvConfig(EnvConfig):
         policy_cfg = caller_policy_config()
         if policy_cfg is not None:
             check_policy_features(self, policy_cfg)
+            report_resume_with_nothing_to_train()
         return super().get_env_processors()
 
     def conditions(self) -> Conditions:
@@ -266,6 +286,8 @@ class FormationEnvConfig(EnvConfig):
         """
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        if self.episode_metrics_path is not None:
+            start_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
         run_id = new_run_id()  # one per evaluation run, shared by its sub-envs and worker processes
         fns = [self.make_env_factory(run_id, i) for i in range(n_envs)]
         if use_async_envs and n_envs > 1:

@@ -8,7 +8,9 @@ episode ends:
 1. adds ``info["formation_metrics"]``: the SPEC "Metrics" of the episode, recorded and computed by
    the engine's own code (``core.rollout.frame_record`` / ``step_record``, then
    ``core.metrics.episode_metrics``), plus ``outcome``, ``steps``,
-   ``scene_seed`` and ``reset_seed``. A vector env carries it in ``info["final_info"]``;
+   ``scene_seed`` (None for a scene without one: from a scenes file or given by hand),
+   ``scene_index`` (the scene's index in ``scenes_file``, None for a sampled scene) and
+   ``reset_seed``. A vector env carries it in ``info["final_info"]``;
    any Python caller of ``FormationEnvConfig.create_envs`` sees it;
 2. if ``log_path`` is set, appends the same record as one JSON line to that file (NaN -> null),
    with ``run_id`` (one per ``create_envs`` call: start time and pid, shared by its sub-envs and
@@ -20,6 +22,10 @@ episode ends:
    ``per_task[*].metrics`` / per-episode ``seed`` through ``reset_seed``. Episodes LeRobot
    discards (the surplus of the last batch when ``n_episodes`` is not a multiple of the batch
    size) are logged too; their ``reset_seed`` is past the last seed LeRobot reports.
+3. a run never mixes silently with an earlier one: ``start_metrics_file`` (called by
+   ``FormationEnvConfig`` at start-up and per ``create_envs``) refuses a file that already holds
+   lines unless ``episode_metrics_exists`` is ``"append"`` or ``"overwrite"``; the runs a process
+   has started itself (every in-training evaluation of one ``lerobot-train``) append.
 
 Episode metrics key list: ``core.metrics.METRIC_KEYS`` and ``FLAG_KEYS`` (``success``,
 ``collision``, ``timeout``).
@@ -49,6 +55,35 @@ from lerobot_formation.core.rollout import (
 )
 
 INFO_KEY = "formation_metrics"
+METRICS_FILE_MODES = ("error", "append", "overwrite")
+_STARTED: set[Path] = set()  # metrics files this process has started a run in (it appends to them)
+
+
+def check_metrics_file(path: str | os.PathLike, mode: str) -> None:
+    """Raise ``ValueError`` for an unknown ``mode`` and ``FileExistsError`` if ``mode`` is ``"error"``
+    and ``path`` already holds lines that this process did not write."""
+    if mode not in METRICS_FILE_MODES:
+        raise ValueError(f"env.episode_metrics_exists must be one of {METRICS_FILE_MODES}, got {mode!r}")
+    resolved = Path(path).resolve()
+    if mode == "error" and resolved not in _STARTED and resolved.is_file() and resolved.stat().st_size:
+        with open(resolved, "rb") as f:
+            lines = sum(1 for _ in f)
+        raise FileExistsError(
+            f"episode metrics file {path} already holds {lines} lines of an earlier run; name a new file, "
+            "or pass --env.episode_metrics_exists=append to add to it or =overwrite to replace it"
+        )
+
+
+def start_metrics_file(path: str | os.PathLike, mode: str) -> None:
+    """Check ``path`` (``check_metrics_file``) once per process and, with ``"overwrite"``, remove the
+    earlier run's file; later runs of this process append to it."""
+    resolved = Path(path).resolve()
+    if resolved in _STARTED:
+        return
+    check_metrics_file(path, mode)
+    if mode == "overwrite" and resolved.is_file():
+        resolved.unlink()
+    _STARTED.add(resolved)
 
 
 def new_run_id() -> str:
@@ -123,7 +158,8 @@ class FormationEpisodeMetrics(gym.Wrapper):
         record: dict[str, Any] = {
             "outcome": OUTCOME_NAMES[outcome],
             "steps": len(self._steps),
-            "scene_seed": int(info["scene_seed"]),
+            "scene_seed": int(info["scene_seed"]) if info["scene_seed"] >= 0 else None,  # None: no seed
+            "scene_index": info.get("scene_index"),
             "reset_seed": self._reset_seed,
         }
         for key, value in metrics.items():

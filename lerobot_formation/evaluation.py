@@ -92,12 +92,12 @@ def run_set(
             from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
 
             title = f"{name} on {scene_set_label(spec, args.seed)}" if spec else ""
-            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
+            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title, spec)
             records[name] = rec
         results[name] = entry
         lo, hi = entry["success_ci95"]
-        print(
-            f"[{label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
+        print(  # the set by its spec (random:50, hard:20, dataset:100): "unseen" is not what it is
+            f"[{spec or label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
             f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
             flush=True,
         )

@@ -171,6 +171,39 @@ def caller_policy_config():
     return frame.f_locals.get("policy_cfg")
 
 
+def report_resume_with_nothing_to_train() -> str | None:
+    """When ``lerobot-train --resume=true`` resumes a run that has already reached its ``--steps``,
+    log why it will train 0 steps and return that line (else None).
+
+    LeRobot then just saves nothing and ends ("End of training") without saying why. Called from
+    ``FormationEnvConfig.get_env_processors``: LeRobot's ``train`` calls
+    ``make_env_pre_post_processors`` after it has loaded the checkpoint's step (``step``, ``cfg`` in
+    its frame); elsewhere this does nothing.
+    """
+    import sys
+
+    try:
+        frame = sys._getframe(3)  # this <- get_env_processors <- make_env_pre_post_processors <- train
+    except ValueError:
+        return None
+    if frame.f_code.co_name != "train":
+        return None
+    cfg, step = frame.f_locals.get("cfg"), frame.f_locals.get("step")
+    if (
+        not isinstance(step, int)
+        or not getattr(cfg, "resume", False)
+        or step < getattr(cfg, "steps", step + 1)
+    ):
+        return None
+    line = (
+        f"resume: the checkpoint {getattr(cfg, 'checkpoint_path', '')} is at step {step} and the run's "
+        f"--steps is {cfg.steps}, so there is nothing to train (0 steps); pass --steps=N with N > {step} "
+        "to train on"
+    )
+    logging.getLogger("lerobot_formation").warning(line)
+    return line
+
+
 def train_dataloader_worker_kwargs(cfg) -> dict:
     """The DataLoader worker options ``lerobot-train`` passes for a ``TrainPipelineConfig`` (its private
     ``_dataloader_worker_kwargs``: prefetch factor, persistent workers, multiprocessing context)."""

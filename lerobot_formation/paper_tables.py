@@ -59,6 +59,13 @@ PAPER_THREE_WAY = {
         {"mppi": (0.202, 0.028), "diffusion": (0.188, 0.023), "pac": (0.225, 0.026)},
     ),
 }
+CLEARANCE_NOTE = (
+    "Min and mean clearance (ours): the distance from the formation's midpoint to the nearest obstacle "
+    "surface (SPEC's definition), minimum / mean over the episode. The paper does not define its "
+    "clearance, so its 0.3-0.5 m may measure something else (e.g. from an agent's disc, which is "
+    "smaller: our whole formation's minimum is the row 'Formation Min Clearance'); compare the two "
+    "columns with that caveat."
+)
 EXTRA_ROWS = {
     "formation_min_clearance": "Formation Min Clearance (m), all episodes",
     "final_formation_error": "Final Formation Error (m)",
@@ -120,6 +127,8 @@ def three_way_table(results: dict, label: str) -> str:
         "",
         f"Episodes per controller: {n}. Success in % with Wilson 95 % interval. Path and motion rows are "
         "mean ± std over successful episodes; the formation minimum clearance is over all episodes.",
+        "",
+        CLEARANCE_NOTE,
         "",
     ]
     return "\n".join(lines)

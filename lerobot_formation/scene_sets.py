@@ -55,6 +55,22 @@ def dataset_scenes(root: str | Path, n: int) -> Scenes:
     )
 
 
+def scene_set_presets(spec: str, n: int) -> list[str]:
+    """The preset of each of the ``n`` scenes ``parse_scenes(spec, ...)`` gives, for figure titles:
+    ``random:N`` -> "paper", ``<preset>:N`` -> that preset, ``hard:N`` -> its presets in
+    ``HARD_PRESETS`` order, ``dataset:N`` -> "dataset", a scenes file -> "file"."""
+    kind, _, count = spec.partition(":")
+    if kind == "hard":
+        k = len(HARD_PRESETS)
+        sizes = [n // k + (1 if i < n % k else 0) for i in range(k)]
+        return [p for p, m in zip(HARD_PRESETS, sizes, strict=True) for _ in range(m)]
+    if kind == "random":
+        return ["paper"] * n
+    if kind in SCENE_PRESETS or kind == "dataset":
+        return [kind] * n
+    return ["file"] * n
+
+
 def parse_scenes(
     spec: str,
     seed: int | None,

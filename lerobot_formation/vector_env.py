@@ -6,8 +6,8 @@ the returned observation already belongs to its next episode and ``infos["final_
 ``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i;
 with ``scenes_file``, scene s + i of the file (a seed past its end raises ``ValueError``, as in
 ``FormationEnv``), and an autoreset picks a scene of the file at random. Info ``clearance`` and
-``midpoint_clearance`` are NaN in a scene with no obstacle (``FormationEnv``: None). ``conditions``
-(``core.conditions.Conditions``) as in ``FormationEnv``.
+``midpoint_clearance`` are NaN in a scene with no obstacle, ``scene_index`` (the scene's index in
+``scenes_file``) NaN for a sampled or given scene (``FormationEnv``: None for both).
 """
 
 from __future__ import annotations
@@ -71,11 +71,13 @@ class FormationVectorEnv(VectorEnv):
     def _steps(self) -> np.ndarray:
         return self.teams.steps
 
-    def _scenes_for(self, seeds: np.ndarray) -> Scenes:
+    def _scenes_for(self, seeds: np.ndarray) -> tuple[Scenes, np.ndarray]:
+        """The scenes of ``seeds`` and their indices in ``scenes_file`` (NaN: sampled, no file)."""
         if self.file_scenes is not None:
             n = len(self.file_scenes)
-            return self.file_scenes[[scene_index(s, n, self.scenes_file) for s in np.asarray(seeds).ravel()]]
-        return sample_scenes(seeds, self.scene_config)
+            idx = [scene_index(s, n, self.scenes_file) for s in np.asarray(seeds).ravel()]
+            return self.file_scenes[idx], np.asarray(idx, dtype=np.float64)
+        return sample_scenes(seeds, self.scene_config), np.full(len(np.atleast_1d(seeds)), np.nan)
 
     def reset(self, *, seed=None, options: dict | None = None):
         B = self.num_envs
@@ -94,8 +96,10 @@ class FormationVectorEnv(VectorEnv):
             )
         options = options or {}
         new = options.get("scenes")
+        # The scene's index in scenes_file, as FormationEnv's info["scene_index"] (NaN for its None).
+        self._scene_index = np.full(B, np.nan)
         if new is None:
-            new = self._scenes_for(seeds)
+            new, self._scene_index = self._scenes_for(seeds)
         elif len(new) != B:
             raise ValueError(f"options['scenes'] must hold {B} scenes, got {len(new)}")
         self.teams = Teams(
@@ -120,7 +124,8 @@ class FormationVectorEnv(VectorEnv):
             infos["_final_info"] = done.copy()
             high = len(self.file_scenes) if self.file_scenes is not None else 2**31 - 1
             seeds = self.np_random.integers(0, high, size=len(idx))
-            self.teams.load(idx, self._scenes_for(seeds))
+            scenes, self._scene_index[idx] = self._scenes_for(seeds)
+            self.teams.load(idx, scenes)
             obs = self.teams.observe()
         return obs, transition.reward.astype(np.float64), terminated, truncated, infos
 
@@ -128,4 +133,5 @@ class FormationVectorEnv(VectorEnv):
         info = self.teams.info(outcome, clear, mid)
         for key in ("clearance", "midpoint_clearance"):  # NaN: the scene has no obstacle
             info[key] = np.where(np.isfinite(info[key]), info[key], np.nan)
+        info["scene_index"] = self._scene_index.copy()
         return info

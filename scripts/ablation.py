@@ -152,7 +152,9 @@ def _mean(entry: dict, key: str, digits: int = 3) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("--new", required=True, help="checkpoint of the new model")
     ap.add_argument("--old", default=None, help="checkpoint of the previous default")
     ap.add_argument("--dagger", default=None, help="checkpoint after a DAgger round")

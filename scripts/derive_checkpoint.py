@@ -33,7 +33,9 @@ def _same_text(a: Path, b: Path) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("checkpoint", type=Path, help="a pretrained_model folder")
     ap.add_argument("dest", type=Path)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="policy config field")

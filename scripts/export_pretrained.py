@@ -21,7 +21,7 @@ from safetensors.torch import load_file, save_file
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("checkpoint", type=Path)
     ap.add_argument("dest", type=Path)
     ap.add_argument("--dataset.root", dest="dataset_root", required=True)

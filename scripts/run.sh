@@ -4,7 +4,8 @@
 #   scripts/run.sh demo   - the main job on the built-in default (no dataset, GPU or network)
 #   scripts/run.sh test   - lint + the fast test tier (slow tests skipped)
 #   scripts/run.sh test -m slow - lint + only the slow tier (benchmark-like tests); other args go to pytest
-#   scripts/run.sh setup  - only create/refresh the environment
+#   scripts/run.sh setup  - only create/refresh the environment (one [setup] line per stage, with its
+#                           time and the size of .venv: docs/setup.md)
 # Threads: OMP_NUM_THREADS and MKL_NUM_THREADS default to 1 (the models are tiny; more threads on a
 # small or shared machine oversubscribe the cores); set them, or LEROBOT_FORMATION_THREADS, or pass
 # --threads N to the demo, to use more.
@@ -71,25 +72,67 @@ PY
   fi
 }
 
+# Setup talks: one line per stage with its time and the size of .venv after it (docs/setup.md).
+venv_size() {
+  du -sk .venv 2>/dev/null | awk '{ if ($1 >= 1048576) printf "%.1f GB", $1 / 1048576; else printf "%d MB", $1 / 1024 }'
+}
+stage_done() { echo "[setup] $1 in $((SECONDS - $2)) s, .venv now $(venv_size)"; }
+
+# pip's output without its noise: the "Location" warnings, blank lines and setuptools' warning boxes
+# (the editable install's "InformationOnly: Editable installation" box: a `file.py:N: Category: text`
+# header, a block between two "!!" lines, then the indented source line). Anything else is kept.
+quiet_pip() {
+  awk '
+    box == 0 && held == "" && /\.py:[0-9]+: [A-Za-z]*(Warning|InformationOnly): / { held = $0; next }
+    held != "" && $0 == "!!" { box = 1; held = ""; next }
+    held != "" { print held; held = "" }
+    box == 1 { if ($0 == "!!") box = 2; next }
+    box == 2 { box = 0; if ($0 ~ /^  /) next }
+    /^WARNING: Location/ || /^[[:space:]]*$/ { next }
+    /^Editable install will be performed using a meta path finder\.$/ { next }
+    /^Options like `package-data`/ || /^`packages\.find\.exclude\/include` may have no effect\.$/ { next }
+    { print }
+    END { if (held != "") print held }
+  '
+}
+
+torch_build() {
+  .venv/bin/python -c 'import torch; print(torch.__version__.split("+")[0], "(CUDA build)" if torch.version.cuda else "(CPU build)")'
+}
+
 setup() {
   local stamp=.venv/.installed
-  local want
+  local want start
   want="$(cat pyproject.toml plugin_shim/pyproject.toml 2>/dev/null | sha256sum | cut -c1-16)"
   if [ -x .venv/bin/python ] && [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
     return 0
   fi
+  start=$SECONDS
   if [ ! -x .venv/bin/python ]; then
     local py
     py="$(find_python)" || { echo "error: no Python >= 3.12 found (PATH, pyenv, /usr/bin)" >&2; exit 1; }
-    echo "creating .venv with $py ($("$py" --version))"
+    echo "[setup] creating .venv with $py ($("$py" --version 2>&1)); a first setup takes minutes and GBs (docs/setup.md)"
     "$py" -m venv .venv
   fi
-  .venv/bin/python -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
+  .venv/bin/python -m pip install -q --upgrade pip 2>&1 | quiet_pip || true
+  stage_done "environment and pip ready" "$start"
   # An installed torch satisfies the project's pins, so the next install keeps it.
-  .venv/bin/python -c 'import torch' 2>/dev/null || install_cpu_torch
-  .venv/bin/python -m pip install -q -e '.[dev]' 2>&1 | grep -v "^WARNING: Location" || true
+  if ! .venv/bin/python -c 'import torch' 2>/dev/null; then
+    start=$SECONDS
+    install_cpu_torch
+    if ! .venv/bin/python -c 'import torch' 2>/dev/null; then
+      echo "[setup] installing torch from PyPI (the CUDA build and its nvidia-* wheels: the largest download)"
+      .venv/bin/python -m pip install -q "${TORCH_SPECS[@]}" 2>&1 | quiet_pip || true
+    fi
+    stage_done "torch $(torch_build 2>/dev/null || echo '(not importable)') installed" "$start"
+  fi
+  start=$SECONDS
+  .venv/bin/python -m pip install -q -e '.[dev]' 2>&1 | quiet_pip || true
+  stage_done "LeRobot $(.venv/bin/python -c 'import importlib.metadata as m; print(m.version("lerobot"))' 2>/dev/null || echo '?') + lerobot_formation installed" "$start"
   if [ -d plugin_shim ]; then
-    .venv/bin/python -m pip install -q --no-deps ./plugin_shim 2>&1 | grep -v "^WARNING: Location" || true
+    start=$SECONDS
+    .venv/bin/python -m pip install -q --no-deps ./plugin_shim 2>&1 | quiet_pip || true
+    stage_done "plugin shim lerobot_env_formation installed" "$start"
   fi
   .venv/bin/python -c 'import lerobot_formation, lerobot, torch' || { echo "error: install failed" >&2; exit 1; }
   echo "$want" > "$stamp"

@@ -4,6 +4,10 @@ help text on every option, and LeRobot's torchcodec/FFmpeg traceback cut to one 
 import argparse
 import dataclasses
 import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 from draccus.wrappers.docstring import get_attribute_docstring, get_preferred_help_text
@@ -21,7 +25,7 @@ def test_bench_prints_its_summary_and_no_bar_off_a_terminal(no_progress, tmp_pat
     argv = ["--controllers", "pac", "--scenes", "random:2", "--out", str(tmp_path), "--no-figures"]
     assert bench.main(argv + ["--no-progress"] * no_progress) == 0
     out, err = capsys.readouterr()
-    assert "[random] pac: success" in out and "wrote" in out
+    assert "[random:2] pac: success" in out and "wrote" in out
     assert not any(piece in err for piece in BAR), err  # captured stderr is not a terminal
 
 
@@ -87,3 +91,90 @@ def test_torchcodec_warning_becomes_one_note(caplog):
         logger.warning("another warning")
     assert [r.getMessage() for r in caplog.records] == [TORCHCODEC_NOTE, "another warning"]
     assert "\n" not in TORCHCODEC_NOTE
+
+
+@pytest.mark.slow  # ~25 s quiet, ~55 s on the shared 2-core machine
+def test_lerobot_edit_dataset_merge_with_the_plugin_prints_no_traceback(tmp_path):
+    """LeRobot's merge loads no plugin: through ``lerobot_formation.with_plugin`` it prints at most the
+    one-line note (none where FFmpeg is installed), where it alone prints a traceback per dataset."""
+    for i in range(2):
+        argv = ["--episodes", "1", "--root", str(tmp_path / f"s{i}"), "--repo-id", f"local/s{i}"]
+        assert gen.main(argv + ["--seed", str(i), "--no-progress"]) == 0
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
+    args = [
+        "lerobot-edit-dataset", "--new_repo_id", "local/merged", "--new_root", str(tmp_path / "merged"),
+        "--operation.type", "merge", "--operation.repo_ids", "['local/s0','local/s1']",
+        "--operation.roots", f"['{tmp_path / 's0'}','{tmp_path / 's1'}']",
+    ]  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "lerobot_formation.with_plugin", *args],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "libtorchcodec" not in proc.stderr, proc.stderr[-3000:]
+    assert proc.stderr.count("torchcodec cannot be loaded") <= 1
+    assert (tmp_path / "merged" / "meta" / "info.json").is_file()
+
+
+def test_with_plugin_names_the_lerobot_scripts_it_takes(capsys):
+    from lerobot_formation.with_plugin import main
+
+    assert main(["lerobot-nope"]) == 2
+    err = capsys.readouterr().err
+    assert "got 'lerobot-nope'" in err and "lerobot-edit-dataset" in err and "\n" == err[-1]
+
+
+def test_the_demo_lists_its_figures_once_and_names_its_sets(tmp_path, capsys):
+    from lerobot_formation.demo import main as demo_main
+
+    out = tmp_path / "demo"
+    argv = ["--controllers", "pac", "--scenes", "random:2", "--unseen", "hard:4", "--out", str(out)]
+    assert demo_main(argv + ["--no-progress"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "both sets are unseen" in lines[0] and "random:2" in lines[0] and "hard:4" in lines[0]
+    assert any(line.startswith("[random:2] pac: success") for line in lines)
+    figure_lines = [line for line in lines if "pac_random_trajectories.png" in line]
+    assert len(figure_lines) == 1, lines
+    assert lines[-1].startswith("demo: done in ") and str(out / "tables.md") in lines[-1]
+    assert "figures listed above" in lines[-1]
+
+
+def test_generator_summary_counts_what_it_ran_and_names_the_hub_folder():
+    summary = {"episodes": 20, "frames": 100, "mb": 0.1, "seconds": 1.0}
+    summary.update(pac_attempted=23, pac_succeeded=23, pac_success_rate=1.0, pushed_to="hub/local/x")
+    line = gen.summary_line(summary, "data/x")
+    assert "episodes 20," in line and "PAC succeeded on 23 of 23 scenes (100.0%)" in line
+    assert "the first 20 successes kept" in line and line.endswith("-> data/x; hub folder -> hub/local/x")
+    summary.update(pac_attempted=25, pac_succeeded=20, pac_success_rate=0.8, pushed_to=None)
+    line = gen.summary_line(summary, "data/x")
+    assert "PAC succeeded on 20 of 25 scenes (80.0%)," in line and "kept" not in line and "hub" not in line
+
+
+@pytest.mark.parametrize("build", ["bench", "generator"])
+def test_help_shows_the_defaults(build, monkeypatch, capsys):
+    ap = (
+        bench.build_parser()
+        if build == "bench"
+        else _parser_of(gen.parse_args, ["--episodes", "1"], monkeypatch)
+    )
+    text = " ".join(ap.format_help().split())
+    assert "(default: 1000000)" in text if build == "bench" else "(default: 1878)" in text
+
+
+@pytest.mark.slow  # a fresh interpreter importing LeRobot: ~15 s quiet, ~45 s on the shared machine
+def test_loading_a_dataset_after_the_plugin_prints_at_most_one_note(tmp_path):
+    """The docs' LeRobotDataset load (``import lerobot_formation.plugin`` first): no FFmpeg traceback."""
+    assert gen.main(["--episodes", "1", "--root", str(tmp_path / "ds"), "--no-progress"]) == 0
+    code = (
+        "import lerobot_formation.plugin; from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; "
+        f"print(D('local/formation_pac', root={str(tmp_path / 'ds')!r}).num_episodes)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "libtorchcodec" not in proc.stderr, proc.stderr[-3000:]
+    assert len(proc.stderr.strip().splitlines()) <= 1, proc.stderr

@@ -13,6 +13,7 @@ from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords, PACController, rollout
 from lerobot_formation.core.scene import Scenes, sample_scenes, scenes_from_list
 from lerobot_formation.plots import figures
+from lerobot_formation.scene_sets import scene_set_presets
 
 PAPER_START = [0.0, 0.0, np.pi / 2]  # midpoint at the origin, heading +y
 
@@ -85,13 +86,30 @@ def _assert_labelled(fig):
         assert "[" in ax.get_xlabel() and ax.get_ylabel(), (ax.get_xlabel(), ax.get_ylabel())
 
 
-def test_scene_label_is_the_seed_or_the_index_in_the_scene_set(mixed, pac_run):
-    assert figures.scene_label(mixed[0], 1) == "scene 1"
-    assert figures.scene_label(pac_run[0], 2) == "seed 1000002"
+def test_scene_label_is_the_preset_the_index_and_the_seed(mixed, pac_run):
+    assert figures.scene_label(mixed[0], 1) == "scene 1"  # no seed (given by hand), no preset known
+    assert figures.scene_label(pac_run[0], 2) == "scene 2, seed 1000002"
     twice = Scenes.concat([pac_run[0][:2], pac_run[0][:2]])  # the hard suite: each preset from seed S on
-    assert [figures.scene_label(twice, b) for b in (1, 3)] == [
-        "scene 1, seed 1000001",
-        "scene 3, seed 1000001",
+    presets = scene_set_presets("hard:4", 4)
+    assert presets == ["gates", "blockers", "dense", "goals"]
+    assert [figures.scene_label(twice, b, presets) for b in (1, 3)] == [
+        "blockers scene 1, seed 1000001",
+        "goals scene 3, seed 1000001",
+    ]
+    assert scene_set_presets("random:2", 2) == ["paper", "paper"] and scene_set_presets("x.json", 1) == [
+        "file"
+    ]
+
+
+def test_trajectory_titles_name_the_preset_and_the_legend_the_goal_tolerance(pac_run, captured, tmp_path):
+    scenes, rec = pac_run
+    figures.plot_trajectories(rec, scenes, [0, 1], tmp_path / "t.png", presets=["gates", "dense"])
+    (fig,) = captured
+    titles = [ax.get_title() for ax in _panels(fig)]
+    assert titles[0].startswith("gates scene 0, seed 1000000") and titles[1].startswith("dense scene 1")
+    (legend,) = fig.legends
+    assert f"goal tolerance ({FormationParams().goal_tolerance:g} m)" in [
+        t.get_text() for t in legend.get_texts()
     ]
 
 
@@ -140,7 +158,7 @@ def test_trajectories_show_up_to_six_labelled_panels(pac_run, captured, tmp_path
     (fig,) = captured
     assert len(_panels(fig)) == 6
     _assert_labelled(fig)
-    assert _panels(fig)[0].get_title().startswith("scene 0, seed 1000000: success")  # scenes repeat
+    assert _panels(fig)[0].get_title().startswith("scene 0, seed 1000000: success")
 
 
 def test_histogram_title_gives_the_true_number_of_successful_runs(pac_run, captured, tmp_path):
@@ -162,7 +180,10 @@ def test_formation_errors_are_labelled_by_scene(pac_run, captured, tmp_path):
     (fig,) = captured
     _assert_labelled(fig)
     (legend,) = fig.legends  # one for both panels
-    assert [t.get_text() for t in legend.get_texts()] == ["seed 1000000", "seed 1000001"]
+    assert [t.get_text() for t in legend.get_texts()] == ["scene 0, seed 1000000", "scene 1, seed 1000001"]
+    # The velocity error is defined on the figure, with why it can exceed the leaders' speed cap.
+    notes = " ".join(t.get_text() for t in fig.texts)
+    assert "|v_i - v_i*|" in notes and "exceed the leaders' 0.6 m/s cap" in notes
 
 
 def test_controllers_side_by_side_on_the_same_scenes(mixed, captured, tmp_path):

@@ -198,14 +198,14 @@ def test_three_shards_merge_to_the_whole_run(tmp_path, capsys):
     whole = _bench(tmp_path / "whole")
     shards = [_bench(tmp_path / f"s{i}", "--shard", f"{i}/3") for i in range(3)]
     assert [len(s["pac"]["episodes"]) for s in shards] == [3, 2, 2]
-    assert [e["index"] for e in shards[1]["pac"]["episodes"]] == [1, 4]
+    assert [e["scene_index"] for e in shards[1]["pac"]["episodes"]] == [1, 4]
     assert [e["seed"] for e in shards[1]["pac"]["episodes"]] == [5_000_001, 5_000_004]
     folders = [str(tmp_path / f"s{i}") for i in (2, 0, 1)]  # any order
     assert merge_main([*folders, "--out", str(tmp_path / "merged")]) == 0
     merged = json.loads((tmp_path / "merged" / "results.json").read_text())
     assert merged["meta"]["shard"] is None and merged["meta"]["scenes"] == "level0:7"
     assert _without_wall_time(merged) == _without_wall_time(whole)
-    assert [e["index"] for e in merged["pac"]["episodes"]] == list(range(7))
+    assert [e["scene_index"] for e in merged["pac"]["episodes"]] == list(range(7))
     assert (tmp_path / "merged" / "tables.md").read_text() == (tmp_path / "whole" / "tables.md").read_text()
 
     # refused, and nothing written: a missing shard, a shard twice, other settings, a whole run

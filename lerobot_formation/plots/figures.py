@@ -1,8 +1,8 @@
 """Matplotlib figures of batched rollouts (EpisodeRecords + Scenes), in the spirit of the paper's Fig. 3-4.
 
-Every panel has labelled axes with units. A scene is named by its seed, or by its index in the scene
-set when it has none (seed -1: scenes given by hand or read from a scenes file) or shares it with
-another scene of the set, see ``scene_label``.
+Every panel has labelled axes with units. A scene is named by its preset (when the caller knows it),
+its index in the scene set and its seed (when it has one), see ``scene_label``; every metric is
+defined where it is drawn.
 """
 
 from __future__ import annotations
@@ -33,14 +33,13 @@ MAX_TRAJECTORY_PANELS = 6
 MAX_FAILURE_PANELS = 9
 
 
-def scene_label(scenes: Scenes, b: int) -> str:
-    """``"seed 1000003"``, or ``"scene 12"`` (index in the scene set) for a scene without a seed, or
-    ``"scene 4, seed 1000000"`` for a seed that more than one scene of the set has (the hard suite
-    draws the same seeds from each of its presets, in the order of ``HARD_PRESETS``)."""
+def scene_label(scenes: Scenes, b: int, presets: Sequence[str] | None = None) -> str:
+    """The scene's preset (when known), its index in the scene set and its seed (when it has one):
+    ``"gates scene 3, seed 1000000"``, ``"scene 12"`` (a scenes file). The index tells apart scenes
+    that share a seed (the hard suite draws the same seeds from each of its presets)."""
+    head = f"{presets[b]} scene {b}" if presets is not None else f"scene {b}"
     seed = int(scenes.seeds[b])
-    if seed < 0:
-        return f"scene {b}"
-    return f"scene {b}, seed {seed}" if np.count_nonzero(scenes.seeds == seed) > 1 else f"seed {seed}"
+    return f"{head}, seed {seed}" if seed >= 0 else head
 
 
 def _grid(n: int, max_cols: int = 3) -> tuple[int, int]:
@@ -114,6 +113,7 @@ def _draw_episode(
     limits=None,
     params: FormationParams | None = None,
     title: str | None = None,
+    presets: Sequence[str] | None = None,
 ) -> None:
     """Obstacles (``_draw_obstacles``), goal (disc: the goal tolerance), every agent's path, formation
     snapshots and, for a collision, the contact point and the agent that hit; for a timeout, the final
@@ -152,7 +152,7 @@ def _draw_episode(
     xlim, ylim = limits or _limits(rec, scenes, [b])
     ax.set(xlim=xlim, ylim=ylim, xlabel="x [m]", ylabel="y [m]")
     ax.tick_params(labelsize=7)
-    head = title if title is not None else scene_label(scenes, b)
+    head = title if title is not None else scene_label(scenes, b, presets)
     text = f"{head}: {detail}, {int(rec.steps[b]) * rec.dt:.1f} s"
     if len(text) > 48:  # about what fits over a PANEL-wide axis at 9 pt
         text = f"{head}\n{detail}, {int(rec.steps[b]) * rec.dt:.1f} s"
@@ -208,8 +208,12 @@ def _panels(rows: int, cols: int):
     return plt.subplots(rows, cols, figsize=size, squeeze=False)
 
 
-def _finish_panels(fig, graph: FormationGraph, title: str, extra: Sequence = ()) -> None:
-    """Shared legend (agents, snapshots, obstacle, goal, ``extra`` markers) below the panels, title above."""
+def _finish_panels(
+    fig, graph: FormationGraph, title: str, extra: Sequence = (), goal_tolerance: float | None = None
+) -> None:
+    """Shared legend (agents, snapshots, obstacle, goal, the goal tolerance disc, ``extra`` markers)
+    below the panels, title above."""
+    goal_tolerance = FormationParams().goal_tolerance if goal_tolerance is None else goal_tolerance
     handles = [
         Line2D([], [], color=AGENT_COLORS[a % len(AGENT_COLORS)], label=name)
         for a, name in enumerate(graph.agents)
@@ -218,6 +222,7 @@ def _finish_panels(fig, graph: FormationGraph, title: str, extra: Sequence = ())
         Line2D([], [], color="k", lw=0.6, marker=".", label="formation snapshot"),
         Patch(color="0.6", label="obstacle"),
         Line2D([], [], color="tab:green", marker="*", ls="", ms=10, label="goal"),
+        Patch(color="tab:green", alpha=0.25, label=f"goal tolerance ({goal_tolerance:g} m)"),
         *extra,
     ]
     width, height = fig.get_size_inches()
@@ -252,8 +257,10 @@ def plot_trajectories(
     title: str = "",
     graph: FormationGraph | None = None,
     params: FormationParams | None = None,
+    presets: Sequence[str] | None = None,
 ) -> Path:
-    """Trajectories of all agents with formation snapshots: one panel per episode, up to 6."""
+    """Trajectories of all agents with formation snapshots: one panel per episode, up to 6, each titled
+    with its scene (``scene_label``: preset, index in the set, seed)."""
     params = params or FormationParams()
     graph = graph or params.graph
     indices = list(indices)[:MAX_TRAJECTORY_PANELS]
@@ -261,39 +268,60 @@ def plot_trajectories(
     fig, axs = _panels(rows, cols)
     for k, ax in enumerate(axs.ravel()):
         if k < len(indices):
-            _draw_episode(ax, rec, scenes, indices[k], graph, params=params)
+            _draw_episode(ax, rec, scenes, indices[k], graph, params=params, presets=presets)
         else:
             ax.axis("off")
     head = f"{title}: " if title else ""
     marks = _marks(rec.outcome[indices]) + _condition_marks([rec], indices)
-    _finish_panels(fig, graph, f"{head}{_plural(len(indices), 'episode')}", marks)
+    _finish_panels(fig, graph, f"{head}{_plural(len(indices), 'episode')}", marks, params.goal_tolerance)
     return _save(fig, path)
 
 
+FOLLOWER_VELOCITY_ERROR_NOTE = (
+    "formation error e_d = ||d - d*||: the distances d between the agents of the formation graph's edges "
+    "against their template values d*. Follower velocity error: mean over the two followers of |v_i - v_i*|, v_i* the velocity of the "
+    "follower's slot in the square the leaders carry (v + omega x r). A slot 1.1 m from the midpoint moves "
+    "at up to 0.6 + 1.5 x 1.1 = 2.3 m/s when the team turns, and the error adds the follower's own "
+    "velocity, so it can exceed the leaders' 0.6 m/s cap."
+)
+
+
 def plot_formation_errors(
-    rec: EpisodeRecords, indices, path: str | Path, title: str = "", scenes: Scenes | None = None
+    rec: EpisodeRecords,
+    indices,
+    path: str | Path,
+    title: str = "",
+    scenes: Scenes | None = None,
+    presets: Sequence[str] | None = None,
 ) -> Path:
-    """Formation error e_d and the followers' velocity error over time for the given episodes."""
-    fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
+    """Formation error e_d and the followers' velocity error over time for the given episodes, with the
+    velocity error defined under the panels (``FOLLOWER_VELOCITY_ERROR_NOTE``)."""
+    fig, axs = plt.subplots(1, 2, figsize=(10, 4.4))
     for b in indices:
         ep = rec.episode(b)
         t = np.arange(len(ep["formation_error"])) * rec.dt
-        label = scene_label(scenes, b) if scenes is not None else f"episode {b}"
+        label = scene_label(scenes, b, presets) if scenes is not None else f"episode {b}"
         axs[0].plot(t, ep["formation_error"], lw=1, label=label)
         axs[1].plot(t[1:], ep["follower_velocity_error"], lw=1, label=label)
-    axs[0].set(xlabel="time [s]", ylabel="formation error $e_d$ [m]", yscale="log", title="formation error")
+    axs[0].set(
+        xlabel="time [s]",
+        ylabel="formation error $e_d$ [m]",
+        yscale="log",
+        title="formation error $e_d$ (see below)",
+    )
     axs[1].set(
         xlabel="time [s]",
         ylabel="follower velocity error [m/s]",
         yscale="log",
-        title="follower velocity error",
+        title="follower velocity error $|v_i - v_i^*|$ (see below)",
     )
     for ax in axs:
         ax.grid(alpha=0.3)
     # One legend beside both panels (the same episodes, the same colours), clear of the curves.
     fig.legend(*axs[0].get_legend_handles_labels(), loc="center right", fontsize=7, title="episode")
+    fig.text(0.01, 0.01, textwrap.fill(FOLLOWER_VELOCITY_ERROR_NOTE, 150), fontsize=7, va="bottom")
     _suptitle(fig, title)
-    fig.tight_layout(rect=(0, 0, 0.83, 1))
+    fig.tight_layout(rect=(0, 0.13, 0.83, 1))
     return _save(fig, path)
 
 
@@ -334,6 +362,7 @@ def plot_failures(
     title: str = "",
     graph: FormationGraph | None = None,
     params: FormationParams | None = None,
+    presets: Sequence[str] | None = None,
 ) -> Path:
     """Failure cases (collisions, timeouts), up to 9, in a grid sized to their number.
 
@@ -348,7 +377,7 @@ def plot_failures(
     fig, axs = _panels(rows, cols)
     for k, ax in enumerate(axs.ravel()):
         if k < len(bad):
-            _draw_episode(ax, rec, scenes, bad[k], graph, snapshots=3, params=params)
+            _draw_episode(ax, rec, scenes, bad[k], graph, snapshots=3, params=params, presets=presets)
         else:
             ax.axis("off")
     if not len(bad):
@@ -361,6 +390,7 @@ def plot_failures(
         f"{head}{len(bad)} of {_plural(len(all_bad), 'failure')} shown ({_plural(n_coll, 'collision')}, "
         f"{_plural(len(all_bad) - n_coll, 'timeout')}; {len(rec)} episodes)",
         _marks(rec.outcome[bad]) + _condition_marks([rec], bad),
+        params.goal_tolerance,
     )
     return _save(fig, path, dpi=100)
 
@@ -382,6 +412,7 @@ def plot_controller_comparison(
     title: str = "",
     graph: FormationGraph | None = None,
     params: FormationParams | None = None,
+    presets: Sequence[str] | None = None,
 ) -> Path:
     """All controllers side by side on the same scenes: one row per scene, one column per controller."""
     params = params or FormationParams()
@@ -399,12 +430,18 @@ def plot_controller_comparison(
                 graph,
                 limits=limits,
                 params=params,
-                title=f"{name}, {scene_label(scenes, b)}",
+                title=f"{name}, {scene_label(scenes, b, presets)}",
             )
     shown = np.concatenate([records[n].outcome[indices] for n in names])
     head = f"{title}: " if title else ""
     marks = _marks(shown) + _condition_marks(list(records.values()), indices)
-    _finish_panels(fig, graph, f"{head}{len(names)} controllers on the same {len(indices)} scenes", marks)
+    _finish_panels(
+        fig,
+        graph,
+        f"{head}{len(names)} controllers on the same {len(indices)} scenes",
+        marks,
+        params.goal_tolerance,
+    )
     return _save(fig, path, dpi=100)
 
 
