@@ -262,3 +262,9 @@ def test_bench_hands_a_levels_conditions_to_the_engine(tmp_path):
     )
     meta = json.loads((tmp_path / "results.json").read_text())["meta"]
     assert meta["seed"] == get_level("level3").seed and meta["conditions"]["sensing_range"] is None
+
+
+def test_a_shard_without_scenes_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        bench_main(["--scenes", "random:2", "--shard", "2/3", "--out", str(tmp_path)])
+    assert "--shard 2/3: the scene set random:2 has no scene of this shard" in capsys.readouterr().err
