@@ -128,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         shard = parse_shard(args.shard)
-        level = get_level(args.scenes.split(":")[0]) if args.scenes.startswith("level") else None
+        kind, colon, _ = args.scenes.partition(":")
+        level = get_level(kind) if colon and kind.startswith("level") else None
     except ValueError as e:
         _fail(str(e))
     if args.seed is None:  # resolved here, so results.json records the seed used
@@ -167,8 +168,9 @@ def main(argv: list[str] | None = None) -> int:
         if unseen is not None:
             unseen_indices = np.arange(shard[0], len(unseen), shard[1])
             unseen = unseen[unseen_indices]
-        if len(indices) == 0:
-            _fail(f"--shard {args.shard}: the scene set {args.scenes} has no scene of this shard")
+        for spec, idx in ((args.scenes, indices), (args.unseen, unseen_indices)):
+            if idx is not None and len(idx) == 0:
+                _fail(f"--shard {args.shard}: the scene set {spec} has no scene of this shard")
     params = FormationParams()
     out = Path(args.out)
     bundle = None

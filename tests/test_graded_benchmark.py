@@ -255,3 +255,9 @@ def test_bench_hands_a_levels_conditions_to_the_engine(tmp_path, capsys):
     with pytest.raises(SystemExit):  # a level fixes its conditions
         bench_main([*argv, "--scenes", "level3:1", "--env.sensing_range", "2"])
     assert "level3:1 fixes its own conditions" in capsys.readouterr().err
+
+
+def test_a_shard_without_scenes_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        bench_main(["--scenes", "random:2", "--shard", "2/3", "--out", str(tmp_path)])
+    assert "--shard 2/3: the scene set random:2 has no scene of this shard" in capsys.readouterr().err
