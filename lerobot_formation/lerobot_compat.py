@@ -15,6 +15,7 @@ names what changed. The uses:
 - ``train_dataloader_worker_kwargs``: ``lerobot_train._dataloader_worker_kwargs`` (the training
   throughput benchmark builds lerobot-train's DataLoader);
 - ``install_offline_dataset_root_check``: wraps ``DatasetConfig.__post_init__``;
+- ``install_train_output_lock``: wraps ``TrainPipelineConfig.validate`` (``train_lock``);
 - ``patch_dataset_reader``: replaces ``DatasetReader.get_item`` / ``_query_hf_dataset`` with the fast
   low-dimensional reads of ``fast_reads.py``, which read the reader's private state through
   ``reader_meta``, ``reader_relative_rows`` and ``reader_is_low_dim``;
@@ -213,6 +214,36 @@ def install_offline_dataset_root_check() -> None:
 
     post_init._formation_root_check = True  # type: ignore[attr-defined]
     DatasetConfig.__post_init__ = post_init
+
+
+def install_train_output_lock() -> None:
+    """Make ``TrainPipelineConfig.validate`` (the start of ``lerobot-train``) lock an explicitly given
+    ``--output_dir`` for the run (``train_lock.acquire_output_lock``): a second run into the same
+    folder refuses with the first one's pid. The lock is taken before LeRobot's own checks and dropped
+    if they fail. LeRobot has no hook for a plugin here, so ``validate`` is wrapped (idempotent)."""
+    from pathlib import Path
+
+    from lerobot.configs.train import TrainPipelineConfig
+
+    original = TrainPipelineConfig.validate
+    if getattr(original, "_formation_output_lock", False):
+        return
+
+    def validate(self) -> None:
+        from lerobot_formation.train_lock import acquire_output_lock, is_main_process, release_output_lock
+
+        given = Path(self.output_dir) if self.output_dir and is_main_process() else None
+        if given is not None:
+            acquire_output_lock(given)
+        try:
+            original(self)
+        except BaseException:
+            if given is not None:
+                release_output_lock(given)
+            raise
+
+    validate._formation_output_lock = True  # type: ignore[attr-defined]
+    TrainPipelineConfig.validate = validate
 
 
 # -- DatasetReader: fast low-dimensional reads (fast_reads.py) -------------------------------------
