@@ -419,15 +419,17 @@ class FormationDiffusionConfig(DiffusionConfig):
             )
             if theirs is None or tuple(theirs) == tuple(feature.shape):
                 continue
-            hint = ""
-            if key == OBS_ENV_STATE and self.obstacle_encoding is not None:
-                hint = (
-                    f" (this policy's obstacle_encoding is {self.obstacle_encoding!r}): train on a dataset of that "
-                    f"encoding (lerobot-formation-generate --obstacle-encoding {self.obstacle_encoding})"
+            if key != OBS_ENV_STATE:
+                raise config_error(
+                    f"the dataset gives '{key}' shape {tuple(theirs)}, but the policy takes {tuple(feature.shape)}"
                 )
+            dims = dict(zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
+            ours = self.obstacle_encoding or dims.get(feature.shape[0])
+            named = f" ({dims[theirs[0]]!r})" if len(theirs) == 1 and theirs[0] in dims else ""
             raise config_error(
-                f"the dataset gives '{key}' shape {tuple(theirs)}, but the policy takes {tuple(feature.shape)}"
-                + (hint or " (another dataset than the checkpoint's?)")
+                f"the dataset gives '{key}' shape {tuple(theirs)}{named}, but the policy takes "
+                f"{tuple(feature.shape)} ({ours!r}): train on a dataset of the policy's encoding "
+                f"(lerobot-formation-generate --obstacle-encoding {ours})"
             )
 
     def get_optimizer_preset(self) -> AdamWConfig:

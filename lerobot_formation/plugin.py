@@ -17,7 +17,9 @@ And it makes ``lerobot-eval``'s videos of formation envs end on the frame with t
 
 Start-up checks it installs: an uncaught exception caused by a ``ConfigError`` (a bad config value, a
 refused checkpoint or output folder) is printed as one line ``error: <message>`` instead of draccus's
-parser traceback (``one_line_config_errors``); ``lerobot-train`` locks its ``--output_dir``
+parser traceback (``one_line_config_errors``), and the ``error:`` line LeRobot's parser prints for a
+draccus ``DecodingError`` says that message (``lerobot_compat.config_errors_in_draccus_messages``);
+``lerobot-train`` locks its ``--output_dir``
 (``train_lock``, ``lerobot_compat.install_train_output_lock``).
 """
 
@@ -89,9 +91,11 @@ import lerobot_formation.env_config  # noqa: E402, F401
 import lerobot_formation.fast_reads  # noqa: E402, F401  (fast windowed reads for low-dim datasets)
 import lerobot_formation.processor_formation_diffusion  # noqa: E402, F401  (registers the processor step)
 from lerobot_formation.lerobot_compat import (  # noqa: E402
+    config_errors_in_draccus_messages,
     install_train_output_lock,
     keep_final_eval_frame,
 )
 
+config_errors_in_draccus_messages()  # lerobot-train's "error: `policy`: ..." line gives the reason
 install_train_output_lock()  # one lerobot-train run per --output_dir
 keep_final_eval_frame()  # lerobot-eval's videos end on the frame with the outcome (render.EpisodeOverlay)

@@ -663,8 +663,8 @@ def load_scenes(path: str | os.PathLike, config: SceneConfig | None = None) -> S
         size = path.stat().st_size
         if path.is_file() and size > MAX_SCENES_FILE_BYTES:
             raise ValueError(
-                f"scenes file {path} has {size / 2**20:.1f} MiB, more than the {MAX_SCENES_FILE_BYTES / 2**20:g} MiB "
-                f"a scenes file may have (at most {MAX_SCENES_PER_FILE} scenes); split it"
+                f"scenes file {path} has {size:,} bytes, more than the {MAX_SCENES_FILE_BYTES:,} a scenes file "
+                f"may have (at most {MAX_SCENES_PER_FILE} scenes); split it into several files"
             )
         data = json.loads(path.read_text())
     except FileNotFoundError as e:
