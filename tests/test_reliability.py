@@ -718,7 +718,7 @@ def _train_lock_script(tmp_path: Path, then: str) -> list[str]:
 
 
 def test_second_training_run_into_one_output_dir_refuses(tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
     lock = tmp_path / ".run.train-lock"
     first = subprocess.Popen(
         _train_lock_script(tmp_path, "print('locked', flush=True); import time; time.sleep(120)"),
@@ -791,7 +791,7 @@ def test_config_values_are_checked(field, value, message):
 def test_bad_config_value_on_the_command_line_is_one_line(cli, args, message, tmp_path):
     if not CHECKPOINT.is_dir():
         pytest.skip("no pretrained checkpoint")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
     cmd = [str(Path(sys.executable).parent / cli), *args, f"--output_dir={tmp_path / 'out'}"]
     if cli == "lerobot-eval":
         cmd += [f"--policy.path={CHECKPOINT}", "--env.type=formation"]
@@ -882,7 +882,7 @@ def test_register_registers_everything_and_the_package_root_stays_light():
         "EnvConfig.get_choice_class('formation').__name__, "
         "'formation_egocentric_obstacles' in ProcessorStepRegistry.list())\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.split() == ["FormationDiffusionConfig", "FormationEnvConfig", "True"]

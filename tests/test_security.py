@@ -21,8 +21,6 @@ from datasets_scripts import generate_pac_dataset as gen_mod
 from datasets_scripts import lerobot_writer
 from datasets_scripts.hub_folder import push_to_folder
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def last_error_line(err: str) -> str:
     assert "Traceback" not in err, err
@@ -250,8 +248,7 @@ def test_lerobot_eval_refuses_a_processor_class_before_running_it(tiny_checkpoin
     marker = tmp_path / "ran"
     _plant_popen_step(ckpt, marker)
     env = {
-        **os.environ,
-        "PYTHONPATH": str(ROOT),
+        **os.environ,  # PYTHONPATH too: the subprocess runs the code under test
         "HF_HUB_OFFLINE": "1",
         "HF_LEROBOT_HOME": str(tmp_path / "home"),
         "OMP_NUM_THREADS": "1",
