@@ -49,9 +49,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from datasets_scripts.hub_folder import push_to_folder
+from datasets_scripts.hub_folder import hub_destinations, push_to_folder
 from datasets_scripts.lerobot_writer import generate
-from datasets_scripts.safe_destination import exit_on_signals
+from datasets_scripts.safe_destination import check_inside, check_replaceable, check_repo_id, exit_on_signals
 from lerobot_formation.condition_flags import add_condition_arguments, conditions_from_args
 from lerobot_formation.core.obstacle_grid import ENCODINGS
 from lerobot_formation.core.scene import SCENE_PRESETS
@@ -113,7 +113,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace an existing --root (and --push-to copy); without it an existing one is an error",
+        help="replace an existing --root (and --push-to copy) if it is a formation dataset this project "
+        "wrote (anything else is refused, nothing deleted); without it an existing one is an error",
     )
     ap.add_argument(
         "--no-progress",
@@ -134,8 +135,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         ap.error(f"--workers must be >= 0, got {args.workers}")
     if args.batch_size < 1:
         ap.error(f"--batch-size must be >= 1, got {args.batch_size}")
-    if "/" not in args.repo_id or args.repo_id.count("/") != 1:
-        ap.error(f"--repo-id must look like 'owner/name', got {args.repo_id!r}")
+    try:
+        check_repo_id(args.repo_id)
+    except ValueError as e:
+        ap.error(str(e))
     if args.scenes and not Path(args.scenes).is_file():
         ap.error(f"--scenes file {args.scenes} does not exist")
     try:
@@ -154,13 +157,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.root is None:
         from lerobot.utils.constants import HF_LEROBOT_HOME
 
-        args.root = str(Path(HF_LEROBOT_HOME) / args.repo_id)
+        args.root = str(check_inside(Path(HF_LEROBOT_HOME) / args.repo_id, Path(HF_LEROBOT_HOME), "--root"))
     with exit_on_signals():
         return _run(args, argv)
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     try:
+        if args.overwrite:  # refuse before generating, not after
+            check_replaceable(Path(args.root))
+        if args.push_to:
+            hub_destinations(Path(args.push_to), args.repo_id, args.overwrite)
         summary = generate(
             Path(args.root),
             args.repo_id,
@@ -188,7 +195,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             dest = push_to_folder(
                 Path(args.root), Path(args.push_to), args.repo_id, summary, command, args.overwrite
             )
-        except FileExistsError as e:
+        except (FileExistsError, ValueError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
         summary["pushed_to"] = str(dest)

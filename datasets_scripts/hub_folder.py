@@ -10,6 +10,7 @@ import shutil
 from pathlib import Path
 
 from datasets_scripts.dataset_frames import FPS
+from datasets_scripts.safe_destination import check_inside, check_replaceable, check_repo_id
 
 
 def dataset_card(summary: dict, features: dict, command: str) -> str:
@@ -82,12 +83,14 @@ def push_to_folder(
       revision (``blobs/``, ``snapshots/<revision>/``, ``refs/main`` and the LeRobot codebase tag
       ``refs/v3.0``), so ``snapshot_download(..., revision="v3.0", local_files_only=True)`` resolves it.
       The revision is a deterministic hash of the files (only the hub can assign a real commit id).
+
+    Raises:
+        ValueError: ``repo_id`` is not ``owner/name`` in the hub's grammar, or a destination would lie
+            outside ``hub_dir``.
+        FileExistsError: a destination exists and not ``overwrite``, or ``overwrite`` but it is not a
+            folder this project wrote (``safe_destination.check_replaceable``); nothing is deleted.
     """
-    dest = Path(hub_dir) / repo_id
-    owner, name = repo_id.split("/")
-    cache = Path(hub_dir) / "hub" / f"datasets--{owner}--{name}"
-    if (dest.exists() or cache.exists()) and not overwrite:
-        raise FileExistsError(f"hub folder {dest} already exists; pass --overwrite to replace it")
+    dest, cache = hub_destinations(hub_dir, repo_id, overwrite)
     tmp = dest.parent / f".{dest.name}.tmp-{os.getpid()}"
     tmp_cache = cache.parent / f".{cache.name}.tmp-{os.getpid()}"
     for t in (tmp, tmp_cache):
@@ -116,7 +119,31 @@ def push_to_folder(
         shutil.rmtree(tmp_cache, ignore_errors=True)
         raise
     for final, staged in ((dest, tmp), (cache, tmp_cache)):
-        if final.exists():
-            shutil.rmtree(final)
+        old = final.parent / f".{final.name}.old-{os.getpid()}"
+        if os.path.lexists(final):
+            check_replaceable(final, hub_cache=final == cache)  # again, right before replacing
+            os.rename(final, old)
         os.rename(staged, final)
+        if os.path.lexists(old):
+            shutil.rmtree(old)
     return dest
+
+
+def hub_destinations(hub_dir: Path, repo_id: str, overwrite: bool) -> tuple[Path, Path]:
+    """The two folders ``push_to_folder`` writes under ``hub_dir`` (the dataset and its hub cache
+    entry), checked: the repo id's grammar, both inside ``hub_dir``, and each either absent or (with
+    ``overwrite``) replaceable. Raises ValueError or FileExistsError as ``push_to_folder``."""
+    from huggingface_hub.file_download import repo_folder_name
+
+    check_repo_id(repo_id)
+    hub_dir = Path(hub_dir)
+    dest = check_inside(hub_dir / repo_id, hub_dir, "hub folder")
+    cache = check_inside(
+        hub_dir / "hub" / repo_folder_name(repo_id=repo_id, repo_type="dataset"), hub_dir, "hub cache"
+    )
+    for folder, is_cache in ((dest, False), (cache, True)):
+        if os.path.lexists(folder):
+            if not overwrite:
+                raise FileExistsError(f"hub folder {folder} already exists; pass --overwrite to replace it")
+            check_replaceable(folder, hub_cache=is_cache)
+    return dest, cache

@@ -15,6 +15,7 @@ import numpy as np
 from datasets_scripts.dataset_frames import FPS, MAX_OBSTACLES, dataset_features
 from datasets_scripts.pac_episodes import Generator, seed_stream, shard_episodes
 from datasets_scripts.safe_destination import (
+    check_replaceable,
     remove_stale_temporaries,
     rename_noreplace,
     temporary_path,
@@ -58,7 +59,13 @@ def generate(
     conditions: Conditions | None = None,
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: PAC's
-    episodes under realistic conditions (``core.conditions``; None or all off: none)."""
+    episodes under realistic conditions (``core.conditions``; None or all off: none).
+
+    Raises:
+        FileExistsError: ``root`` exists and not ``overwrite``, or ``overwrite`` but ``root`` is not a
+            folder this project wrote (``safe_destination.check_replaceable``; checked at the start and
+            again right before the replacement). Nothing is deleted then.
+    """
     import datasets as hf_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -67,6 +74,8 @@ def generate(
     root = Path(root)
     if root.exists() and not overwrite:
         raise FileExistsError(f"destination {root} already exists; pass --overwrite to replace it")
+    if overwrite:
+        check_replaceable(root)  # before any work: only a dataset this project wrote is replaced
     n = shard_episodes(episodes, num_shards, shard_index)
     root.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(root)  # of killed runs; refuses if a live generation writes root
@@ -175,6 +184,7 @@ def _publish(
             "nothing was replaced: pass --overwrite to replace it"
         )
     if root.exists():  # --overwrite: swap, then delete the old one
+        check_replaceable(root)  # again: it may have changed while this run was generating
         trash = trash_path(root)
         os.rename(root, trash)
         try:

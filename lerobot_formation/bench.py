@@ -34,6 +34,12 @@ under the level's conditions, from the level's first seed unless ``--seed`` is g
 Sharding: ``--shard I/N`` runs the scenes whose index i in the scene set has i % N == I (each keeps
 its seed and index); ``lerobot-formation-bench-merge`` (``python -m lerobot_formation.bench_merge``)
 combines the N shards' folders into the results.json and tables.md of one run.
+
+``results.json`` and
+``tables.md`` are written first (each to a temporary file renamed into place), the figures after
+them: a figure that fails is one ``warning:`` line (and ``meta.figure_errors``), the results stay; a
+results file that cannot be written (a full disk) is one ``error:`` line, exit code 1, with no
+temporary file left behind.
 """
 
 from __future__ import annotations
@@ -44,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.bench_figures import write_success_figure
+from lerobot_formation.bench_figures import draw_bench_figures
 from lerobot_formation.bench_results import write_results
 from lerobot_formation.condition_flags import add_condition_arguments, conditions_from_args
 from lerobot_formation.controllers import controller_names, needs_policy
@@ -123,6 +129,16 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
     return i, n
 
 
+def _write_or_fail(out: Path, results: dict, label: str, args, report, **kw) -> None:
+    """``write_results``; a file that cannot be written (a full disk, no permission) is one line
+    ``error: ...`` and exit code 1."""
+    try:
+        write_results(out, results, label, args, report, **kw)
+    except OSError as e:
+        print(f"error: cannot write the results into {out}: {e}", file=sys.stderr)
+        raise SystemExit(1) from e
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
@@ -190,57 +206,53 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
     results: dict[str, dict] = {label: {}}
+    # each controller's episode records, for the figures drawn after the results are written
+    records: dict[str, dict] | None = None if args.no_figures else {label: {}, "unseen": {}}
     try:
-        run_set(
-            names,
-            scenes,
-            params,
-            args,
-            out,
-            label,
-            bundle,
-            not args.no_figures,
-            into=results[label],
-            conditions=conditions,
-            indices=indices,
-        )
+        kept = None if records is None else records[label]
+        run_set(names, scenes, params, args, label, bundle, results[label], kept, conditions, indices)
         if unseen is not None and diffusion:
             results["unseen"] = {}
+            kept = None if records is None else records["unseen"]
             run_set(
                 diffusion,
                 unseen,
                 params,
                 args,
-                out,
                 "unseen",
                 bundle,
-                not args.no_figures,
                 results["unseen"],
-                conditions=conditions,
-                indices=unseen_indices,
+                kept,
+                conditions,
+                unseen_indices,
             )
     except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
         done = [f"{k}/{c}" for k, v in results.items() for c in v]
         message = str(e) if isinstance(e, BenchInputError) else f"{type(e).__name__}: {e}"
         if done:
-            write_results(out, results, label, args, report, error=message, conditions=conditions.changed())
+            _write_or_fail(out, results, label, args, report, error=message, conditions=conditions.changed())
             print(f"wrote {out / 'results.json'} with the finished controllers {done}", file=sys.stderr)
         if isinstance(e, BenchInputError):
             _fail(message)
         raise
-    if not args.no_figures:
-        figures = sorted({f for res in results.values() for r in res.values() for f in r["figures"]})
-        specs = {label: args.scenes, "unseen": args.unseen or ""}
-        figures.append(write_success_figure(out, results, specs, args.seed))
-        print(f"figures in {out}: {', '.join(figures)}")
     if report.drawn:
         print(
             f"scenes: {report.accepted} valid of {report.drawn} drawn, rejection rate {report.rejection_rate:.1%} "
             f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
             f"no passage {report.rejected_passage})"
         )
-    write_results(out, results, label, args, report, conditions=conditions.changed())
-    print(f"wrote {out / 'results.json'}, {out / 'tables.md'}")
+    _write_or_fail(
+        out, results, label, args, report, conditions=conditions.changed()
+    )  # the results first, the figures after them
+    print(f"wrote {out / 'results.json'}, {out / 'tables.md'}", flush=True)
+    if records is not None:
+        specs = {label: args.scenes, "unseen": args.unseen or ""}
+        scene_sets = {label: scenes, "unseen": unseen}
+        figures, failed = draw_bench_figures(out, results, records, scene_sets, specs, args.seed)
+        _write_or_fail(
+            out, results, label, args, report, conditions=conditions.changed(), figure_errors=failed
+        )  # with the figures' names
+        print(f"figures in {out}: {', '.join(figures)}")
     return 0
 
 

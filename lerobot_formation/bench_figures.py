@@ -1,7 +1,12 @@
-"""The bench's figures: per controller, the controllers side by side, and the success chart."""
+"""The bench's figures: per controller, the controllers side by side, and the success chart.
+
+``draw_bench_figures`` draws them all after ``results.json`` and ``tables.md`` are written; a figure
+that fails is reported as one line and skipped, never losing the results.
+"""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from lerobot_formation.core.rollout import EpisodeRecords
@@ -66,3 +71,53 @@ def write_success_figure(out: Path, results: dict[str, dict], specs: dict[str, s
             c: (round(r["success_rate"] * r["n_episodes"]), r["n_episodes"]) for c, r in res.items()
         }
     return plot_success_rates(counts, out / "success_rates.png").name
+
+
+def draw_bench_figures(
+    out: Path,
+    results: dict[str, dict],
+    records: dict[str, dict[str, EpisodeRecords]],
+    scenes: dict[str, Scenes],
+    specs: dict[str, str],
+    seed: int,
+) -> tuple[list[str], list[str]]:
+    """Every figure of a bench run: per controller and scene set, the controllers side by side (for a
+    set of several), the success chart. Each entry of ``results[set][controller]["figures"]`` gets
+    its files. A figure that raises is reported as one ``warning:`` line on stderr and skipped.
+    Returns (the files drawn, those lines without the prefix)."""
+    from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
+
+    failed: list[str] = []
+
+    def attempt(what: str, draw, *args):
+        try:
+            return draw(*args)
+        except Exception as e:  # noqa: BLE001  (a figure never costs the results; say which failed)
+            failed.append(f"figure {what} not drawn: {type(e).__name__}: {e}")
+            print(f"warning: {failed[-1]}", file=sys.stderr)
+            return None
+
+    for label, set_records in records.items():
+        spec = specs.get(label, "")
+        for name, rec in set_records.items():
+            title = f"{name} on {scene_set_label(spec, seed)}" if spec else ""
+            stem = f"{name}_{label}"
+            files = attempt(f"{stem}_*.png", write_figures, out, stem, rec, scenes[label], title, spec)
+            results[label][name]["figures"] = files or []
+        if len(set_records) > 1:
+            shared = attempt(
+                f"controllers_{label}.png",
+                write_comparison_figure,
+                out,
+                label,
+                set_records,
+                scenes[label],
+                spec,
+                seed,
+            )
+            if shared:
+                for name in set_records:
+                    results[label][name]["figures"].append(shared)
+    success = attempt("success_rates.png", write_success_figure, out, results, specs, seed)
+    drawn = sorted({f for res in results.values() for r in res.values() for f in r["figures"]})
+    return drawn + ([success] if success else []), failed

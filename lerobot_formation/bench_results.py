@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -57,6 +58,24 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dic
     return summary
 
 
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file ``.NAME.tmp-PID`` beside it, flushed to disk,
+    then renamed into place: ``path`` is either the old file or the whole new one, and on any error
+    (a full disk) the temporary file is removed and the error raised."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())  # a full disk often shows only here
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
 def write_results(
     out: Path,
     results: dict,
@@ -65,10 +84,13 @@ def write_results(
     report: SamplingReport,
     error: str | None = None,
     conditions: dict | None = None,
+    figure_errors: list[str] | None = None,
 ):
-    """results.json and tables.md of the controllers in ``results``; ``error`` marks a run that stopped
-    early (``meta.incomplete``, ``meta.error``), with what finished before it. ``conditions``: the
-    realistic conditions that were on (``Conditions.changed()``), kept as ``meta.conditions``."""
+    """results.json and tables.md of the controllers in ``results`` (each written atomically,
+    ``atomic_write_text``); ``error`` marks a run that stopped early (``meta.incomplete``,
+    ``meta.error``), with what finished before it; ``conditions``: the realistic conditions that were
+    on (``Conditions.changed()``), kept as ``meta.conditions``; ``figure_errors`` lists figures that
+    failed."""
     # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
     # other scene sets under "by_scenes".
     payload = dict(results.get(label, {}))
@@ -85,15 +107,14 @@ def write_results(
         "shard": getattr(args, "shard", None),
         "incomplete": error is not None,
         "error": error,
+        "figure_errors": figure_errors or [],
     }
     payload["meta"]["conditions"] = conditions or {}  # the fields not at their default
-    tmp = out / "results.json.tmp"
-    tmp.write_text(json.dumps(payload, indent=1, default=_clean))
-    os.replace(tmp, out / "results.json")
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=1, default=_clean))
     tables = [three_way_table(results.get(label, {}), f"{label} scenes ({args.scenes})")]
     sets = {k: v for k, v in results.items() if any(needs_policy(c) for c in v)}
     if sets:
         tables.append(adaptive_table(sets, {label: args.scenes, "unseen": args.unseen or ""}))
     if error is not None:
         tables.append(f"**Incomplete run**: {error}\n")
-    (out / "tables.md").write_text("\n".join(tables))
+    atomic_write_text(out / "tables.md", "\n".join(tables))

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields
 
 from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
 from lerobot.optim import AdamWConfig
@@ -19,6 +19,7 @@ from lerobot_formation.core.obstacle_grid import (
     get_encoding,
 )
 from lerobot_formation.core.safety import BLOCKED_FALLBACKS
+from lerobot_formation.errors import ConfigError
 
 ACTION_DIM = 2  # [v, omega]
 # observation.environment_state sizes of each encoding at its default slot count.
@@ -29,18 +30,22 @@ TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMSchedu
 _BOUNDS = FormationParams()
 
 
-logger = logging.getLogger(__name__)
+def config_error(message: str) -> ConfigError:
+    """A ``ConfigError`` (a ValueError) for an invalid config value. draccus wraps it in
+    "Couldn't instantiate class ..."; LeRobot's CLIs with the plugin loaded print the message as one
+    line (``lerobot_formation.errors``)."""
+    return ConfigError(message)
 
 
-def config_error(message: str) -> ValueError:
-    """A ValueError for an invalid config value, its message also logged at ERROR level.
-
-    draccus reports a ValueError raised while it builds a config from the command line or a JSON file
-    as "Couldn't instantiate class ... using the given arguments." and drops the message; the log line
-    keeps it visible on the terminal.
-    """
-    logger.error(message)
-    return ValueError(message)
+def _non_finite_fields(config) -> list[str]:
+    """``name=value`` of every float field (or float in a tuple / list field) that is NaN or inf."""
+    bad = []
+    for f in fields(config):
+        value = getattr(config, f.name)
+        values = value if isinstance(value, tuple | list) else (value,)
+        if any(isinstance(v, float) and not math.isfinite(v) for v in values):
+            bad.append(f"{f.name}={value}")
+    return bad
 
 
 def _describe(features: dict[str, PolicyFeature] | None) -> str:
@@ -222,6 +227,20 @@ class FormationDiffusionConfig(DiffusionConfig):
     ema_update_after_step: int = 0
 
     def __post_init__(self):
+        # Every number finite: a NaN passes every comparison below unnoticed.
+        non_finite = _non_finite_fields(self)
+        if non_finite:
+            raise config_error(f"config values must be finite numbers, got {', '.join(non_finite)}")
+        if self.num_train_timesteps < 1:
+            raise config_error(f"num_train_timesteps must be >= 1, got {self.num_train_timesteps}")
+        if (
+            self.num_inference_steps is not None
+            and not 1 <= self.num_inference_steps <= self.num_train_timesteps
+        ):
+            raise config_error(
+                f"num_inference_steps must be null (the training steps) or in [1, num_train_timesteps] = "
+                f"[1, {self.num_train_timesteps}], got {self.num_inference_steps}"
+            )
         # Horizon first, so that this message (not DiffusionConfig's) explains a bad horizon.
         if self.n_obs_steps < 1:
             raise config_error(f"n_obs_steps must be >= 1, got {self.n_obs_steps}")
@@ -388,6 +407,30 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"[v, omega]). Output features found: {_describe(self.output_features)}."
             )
         super().validate_features()
+
+    def set_dataset_feature_metadata(self, dataset_features: dict) -> None:
+        """Refuse a dataset whose observation sizes differ from this policy's (LeRobot's ``make_policy``
+        calls this with the dataset's ``meta.features`` before it builds the policy). Fine-tuning a
+        checkpoint (``--policy.path``) keeps the checkpoint's input features, so a dataset of another
+        obstacle encoding would otherwise fail at the first step with a matrix-shape error."""
+        for key, feature in (self.input_features or {}).items():
+            theirs = (
+                dataset_features.get(key, {}).get("shape") if isinstance(dataset_features, dict) else None
+            )
+            if theirs is None or tuple(theirs) == tuple(feature.shape):
+                continue
+            if key != OBS_ENV_STATE:
+                raise config_error(
+                    f"the dataset gives '{key}' shape {tuple(theirs)}, but the policy takes {tuple(feature.shape)}"
+                )
+            dims = dict(zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
+            ours = self.obstacle_encoding or dims.get(feature.shape[0])
+            named = f" ({dims[theirs[0]]!r})" if len(theirs) == 1 and theirs[0] in dims else ""
+            raise config_error(
+                f"the dataset gives '{key}' shape {tuple(theirs)}{named}, but the policy takes "
+                f"{tuple(feature.shape)} ({ours!r}): train on a dataset of the policy's encoding "
+                f"(lerobot-formation-generate --obstacle-encoding {ours})"
+            )
 
     def get_optimizer_preset(self) -> AdamWConfig:
         """AdamW, as the paper and the original Diffusion Policy train (DiffusionConfig's preset is Adam)."""

@@ -61,7 +61,9 @@ def load_policy(path: str | Path, device: str = "cpu"):
     Raises:
         CheckpointError (a ValueError): the folder is missing or incomplete, ``config.json`` is not
             valid JSON or not a ``formation_diffusion`` config (a stock ``diffusion`` checkpoint has no
-            obstacle encoding and no EMA), or the weights or processors cannot be loaded (truncated).
+            obstacle encoding and no EMA), a processor pipeline names a step that is not registered
+            with LeRobot (``checkpoint_files``; refused before anything is imported), or the weights
+            or processors cannot be loaded (truncated).
     """
     import json
 
@@ -69,6 +71,7 @@ def load_policy(path: str | Path, device: str = "cpu"):
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor step)
+    from lerobot_formation.checkpoint_files import check_processor_configs
 
     path = Path(path)
     if not path.is_dir():
@@ -93,6 +96,10 @@ def load_policy(path: str | Path, device: str = "cpu"):
     except Exception as e:  # draccus raises many types for a bad field; the message names it
         raise CheckpointError(f"{path / 'config.json'} is not a valid formation_diffusion config: {e}") from e
     cfg.device = device
+    try:
+        check_processor_configs(path)  # before anything names a class to import
+    except ValueError as e:
+        raise CheckpointError(str(e)) from e
     try:
         policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
     except (OSError, RuntimeError, ValueError, KeyError) as e:
@@ -253,12 +260,15 @@ class DiffusionController:
     def plan(self, idx: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """New action chunks (len(idx), n_action_steps, 2) for episodes idx at observed midpoint
         ``poses`` (len(idx), 3); the adaptive rule checks them against the latest observed obstacles."""
+        from lerobot_formation.modeling_formation_diffusion import check_finite_chunks, check_observation
+
         n, K = len(idx), self.K
         obs = {
             "observation.state": torch.from_numpy(self.history[idx]),
             "observation.environment_state": torch.from_numpy(self.env_history[idx]),
         }
         batch = self.pre(obs)
+        check_observation(batch, self.policy.config.input_features, batch["observation.state"].dtype)
         cfg = self.policy.config
         warm = None
         if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
@@ -269,6 +279,7 @@ class DiffusionController:
             warm = (guess, torch.from_numpy(self.has_last[idx]))
         # the whole predicted horizon from the current step, K candidates per episode
         chunks = self.policy.sample_action_chunks(batch, K, noise=self._noise(n * K), warm_start=warm)
+        check_finite_chunks(chunks)  # never executed, never a warm start
         cand = self.post(chunks.reshape(n * K, *chunks.shape[2:])).cpu().numpy().astype(np.float64)
         cand = cand.reshape(n, K, *cand.shape[1:])
         cand = blend_replan(cand, self.last_action[idx], self.has_last[idx], cfg.replan_blend_steps)

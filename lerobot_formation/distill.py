@@ -27,7 +27,9 @@ Run (one CPU thread; resumable: rerun the same command to continue from ``OUT/la
         --dataset.root data/formation_wide_route --student-steps 1 --steps 4000 --out outputs/distill_1step
 
 The dataset must hold the teacher's obstacle encoding (its ``input_features``); another is refused at
-start-up. It writes ``OUT/last`` (weights, optimizer and step, every ``--save-every`` steps) and, at the end,
+start-up. It writes ``OUT/last`` (weights, optimizer and step, every ``--save-every`` steps; a rerun resumes
+from it, loading it with ``torch.load(weights_only=True)``: tensors and numbers only, so a planted
+pickle is refused, never run) and, at the end,
 ``OUT/pretrained_model`` (the student checkpoint; written to a temporary folder and renamed into
 place), with ``distill_log.json`` (the loss curve) beside it.
 """
@@ -243,7 +245,14 @@ def main(argv: list[str] | None = None) -> int:
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=args.steps)
     step, losses, wall_before = 0, [], 0.0
     if (out / "last" / "state.pt").is_file():
-        saved = torch.load(out / "last" / "state.pt", weights_only=False)
+        try:  # tensors, numbers, lists and dicts only: a pickled object in the file is refused, never run
+            saved = torch.load(out / "last" / "state.pt", weights_only=True)
+        except Exception as e:  # noqa: BLE001  (UnpicklingError, a truncated file, ...)
+            ap.error(
+                f"{out / 'last' / 'state.pt'} is not a distillation state this program wrote (it holds more than "
+                f"tensors and numbers, or is damaged: {type(e).__name__}); nothing in it was run. Move it away "
+                "to start afresh"
+            )
         student.load_state_dict(saved["policy"])
         optimizer.load_state_dict(saved["optimizer"])
         scheduler.load_state_dict(saved["scheduler"])

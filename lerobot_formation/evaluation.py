@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
-from lerobot_formation.bench_figures import write_comparison_figure, write_figures
 from lerobot_formation.bench_results import controller_results, safety_rates
 from lerobot_formation.controllers import make_controller
 from lerobot_formation.core.conditions import Conditions
@@ -59,18 +57,19 @@ def run_set(
     scenes,
     params,
     args,
-    out: Path,
     label: str,
     bundle,
-    figures: bool,
     into: dict | None = None,
+    records: dict | None = None,
     conditions: Conditions | None = None,
     indices=None,
 ) -> dict:
     """Run the controllers ``names`` on ``scenes`` under ``conditions``; each finished controller's
     entry is put into ``into`` (default: a new dict, returned) at once, so a later failure keeps it.
-    ``indices``: each scene's index in its whole scene set (a shard's), default 0..len-1."""
-    results, records = (into if into is not None else {}), {}
+    ``records``: a dict that also receives each controller's ``EpisodeRecords`` (for the figures, drawn
+    after the results are written: ``bench_figures.draw_bench_figures``). ``indices``: each scene's
+    index in its whole scene set (a shard's), default 0..len-1."""
+    results = into if into is not None else {}
     spec = (args.unseen if label == "unseen" else args.scenes) or ""
     for name in names:
         t0 = time.perf_counter()
@@ -88,11 +87,8 @@ def run_set(
         if getattr(ctrl, "stats", None):  # the safety layer's interventions
             entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
         entry["scenes"] = label
-        if figures:
-            from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
-
-            title = f"{name} on {scene_set_label(spec, args.seed)}" if spec else ""
-            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title, spec)
+        entry["figures"] = []
+        if records is not None:
             records[name] = rec
         results[name] = entry
         lo, hi = entry["success_ci95"]
@@ -101,8 +97,4 @@ def run_set(
             f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
             flush=True,
         )
-    if figures and len(records) > 1:
-        shared = write_comparison_figure(out, label, records, scenes, spec, args.seed)
-        for entry in results.values():
-            entry["figures"].append(shared)
     return results

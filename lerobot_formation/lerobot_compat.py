@@ -15,6 +15,9 @@ names what changed. The uses:
 - ``train_dataloader_worker_kwargs``: ``lerobot_train._dataloader_worker_kwargs`` (the training
   throughput benchmark builds lerobot-train's DataLoader);
 - ``install_offline_dataset_root_check``: wraps ``DatasetConfig.__post_init__``;
+- ``install_train_output_lock``: wraps ``TrainPipelineConfig.validate`` (``train_lock``);
+- ``config_errors_in_draccus_messages``: wraps draccus's ``DecodingError.__str__``, the message that
+  LeRobot's parser prints as ``error: ...``;
 - ``patch_dataset_reader``: replaces ``DatasetReader.get_item`` / ``_query_hf_dataset`` with the fast
   low-dimensional reads of ``fast_reads.py``, which read the reader's private state through
   ``reader_meta``, ``reader_relative_rows`` and ``reader_is_low_dim``;
@@ -246,6 +249,62 @@ def install_offline_dataset_root_check() -> None:
 
     post_init._formation_root_check = True  # type: ignore[attr-defined]
     DatasetConfig.__post_init__ = post_init
+
+
+def install_train_output_lock() -> None:
+    """Make ``TrainPipelineConfig.validate`` (the start of ``lerobot-train``) lock an explicitly given
+    ``--output_dir`` for the run (``train_lock.acquire_output_lock``): a second run into the same
+    folder refuses with the first one's pid. The lock is taken before LeRobot's own checks and dropped
+    if they fail. LeRobot has no hook for a plugin here, so ``validate`` is wrapped (idempotent)."""
+    from pathlib import Path
+
+    from lerobot.configs.train import TrainPipelineConfig
+
+    original = TrainPipelineConfig.validate
+    if getattr(original, "_formation_output_lock", False):
+        return
+
+    def validate(self) -> None:
+        from lerobot_formation.train_lock import acquire_output_lock, is_main_process, release_output_lock
+
+        given = Path(self.output_dir) if self.output_dir and is_main_process() else None
+        if given is not None:
+            acquire_output_lock(given)
+        try:
+            original(self)
+        except BaseException:
+            if given is not None:
+                release_output_lock(given)
+            raise
+
+    validate._formation_output_lock = True  # type: ignore[attr-defined]
+    TrainPipelineConfig.validate = validate
+
+
+def config_errors_in_draccus_messages() -> None:
+    """Make a draccus ``DecodingError`` caused by a ``ConfigError`` read as that error's message.
+
+    ``lerobot-train --policy.type=...`` decodes the policy as an optional field (a union): draccus
+    turns the error of a bad value into ``DecodingError("`policy`: Could not decode the value into any
+    of the given types: ... Couldn't instantiate class FormationDiffusionConfig using the given
+    arguments.")``, which LeRobot's parser prints as ``error: ...`` and exits: the reason is lost.
+    With this (idempotent) wrap of ``DecodingError.__str__`` that line is ``error: <the reason>``; a
+    DecodingError of any other cause reads as before.
+    """
+    from draccus.utils import DecodingError
+
+    from lerobot_formation.errors import config_error_in_chain
+
+    original = DecodingError.__str__
+    if getattr(original, "_formation_config_error", False):
+        return
+
+    def message(self) -> str:
+        error = config_error_in_chain(self.__cause__)
+        return str(error) if error is not None else original(self)
+
+    message._formation_config_error = True  # type: ignore[attr-defined]
+    DecodingError.__str__ = message
 
 
 # -- DatasetReader: fast low-dimensional reads (fast_reads.py) -------------------------------------

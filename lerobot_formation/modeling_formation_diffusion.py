@@ -49,6 +49,7 @@ from __future__ import annotations
 import functools
 import logging
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -98,6 +99,43 @@ def warm_start_guess(previous: Tensor, executed: Tensor, n_obs_steps: int, horiz
         0, previous.shape[1] - 1
     )
     return torch.gather(previous, 1, idx[..., None].expand(-1, -1, previous.shape[-1]))
+
+
+def check_observation(batch: dict[str, Tensor], input_features: dict, dtype: torch.dtype) -> None:
+    """Refuse an observation the policy cannot use: each input feature in ``batch`` must be a tensor of
+    the model's floating dtype ``dtype`` holding finite numbers. One NaN would make every action NaN
+    (and, with warm starts, every later plan of the episode). The error names the key, the problem and
+    where. Called at the top of ``select_action`` and by the engine before each replan."""
+    for key in input_features:
+        value = batch.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, Tensor):
+            raise TypeError(f"observation '{key}' must be a torch.Tensor, got {type(value).__name__}")
+        if value.dtype != dtype:
+            raise TypeError(
+                f"observation '{key}' has dtype {value.dtype}, but the policy computes in {dtype}: pass it "
+                f"through the policy's preprocessor, or convert it (tensor.to({dtype}))"
+            )
+        finite = torch.isfinite(value)
+        if not bool(finite.all()):
+            where = torch.nonzero(~finite)[0].tolist()
+            raise ValueError(
+                f"observation '{key}' holds a non-finite value ({value[tuple(where)].item()} at index {where}); "
+                "the policy refuses NaN and inf observations (a broken sensor or env?)"
+            )
+
+
+def check_finite_chunks(chunks: Tensor) -> None:
+    """Refuse sampled action chunks with a NaN or inf before they are executed or kept as the warm
+    start of the next replan (where a NaN would poison every later plan of the episode)."""
+    finite = torch.isfinite(chunks)
+    if not bool(finite.all()):
+        rows = sorted({int(r) for r in torch.nonzero(~finite)[:, 0]})
+        raise FloatingPointError(
+            f"the policy sampled a non-finite action chunk (batch rows {rows[:8]}); it is neither executed nor "
+            "kept for warm starts. Non-finite weights or noise?"
+        )
 
 
 class _DDIMSteps:
@@ -490,6 +528,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         as the batched engine does; with ``warm_start_step`` a replan starts from the rest of the
         episode's last chunk (``warm_start_guess``). Counts go to ``self.safety_stats``.
         """
+        check_observation(batch, self.config.input_features, self._model_dtype())
         if not self.config.plans_per_episode:
             return super().select_action(batch, noise=noise)
         batch = {k: v for k, v in batch.items() if k != ACTION}
@@ -529,6 +568,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             else:
                 chosen = chunks[:, 0]
             self.safety_stats["replans"] += len(need)
+            check_finite_chunks(chosen)  # never executed, never a warm start
             self._plan[need] = chosen.to(self._plan.dtype)
             self._plan_pos[need] = 0
             self._executed[need] = 0
@@ -544,6 +584,27 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         self._last_action = action.detach().to(self._last_action.dtype).clone()
         self._has_last[:] = True
         return action
+
+    def _model_dtype(self) -> torch.dtype:
+        return next(self.diffusion.parameters()).dtype
+
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, **kwargs):
+        """``PreTrainedPolicy.from_pretrained``, after checking the checkpoint's processor pipelines
+        (``checkpoint_files.check_processor_configs``): ``lerobot-eval`` and ``lerobot-train`` load the
+        policy first and its processors next, so a pipeline naming an unregistered class is refused
+        before LeRobot would import and call it. A hub id is checked on the files it downloads (when
+        they cannot be fetched, LeRobot's own download of them fails later too)."""
+        from lerobot_formation.checkpoint_files import PROCESSOR_CONFIGS, check_processor_config
+
+        folder = Path(pretrained_name_or_path)
+        if folder.is_dir():
+            files = [folder / name for name in PROCESSOR_CONFIGS if (folder / name).is_file()]
+        else:
+            files = _hub_processor_configs(str(pretrained_name_or_path), kwargs)
+        for f in files:
+            check_processor_config(f)
+        return super().from_pretrained(pretrained_name_or_path, **kwargs)
 
     def get_optim_params(self) -> dict:
         """The live diffusion model's parameters only (never the EMA copy)."""
@@ -606,6 +667,22 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                     f"'{key}' has {batch[key].shape[-1]} values per step, but this policy was trained on "
                     f"{feature.shape[0]}.{hint}"
                 )
+
+
+def _hub_processor_configs(repo_id: str, kwargs: dict) -> list[Path]:
+    """The processor pipeline files of a hub checkpoint, downloaded as ``from_pretrained`` would."""
+    from huggingface_hub import hf_hub_download
+
+    from lerobot_formation.checkpoint_files import PROCESSOR_CONFIGS
+
+    options = {k: kwargs[k] for k in ("revision", "cache_dir", "token", "local_files_only") if k in kwargs}
+    files = []
+    for name in PROCESSOR_CONFIGS:
+        try:
+            files.append(Path(hf_hub_download(repo_id=repo_id, filename=name, **options)))
+        except Exception as e:  # noqa: BLE001  (offline, missing file: LeRobot's load fails the same way)
+            logger.debug("processor config %s of %s not checked: %s", name, repo_id, e)
+    return files
 
 
 def _ema_from_live_if_missing(model: FormationDiffusionPolicy, model_file: str) -> FormationDiffusionPolicy:

@@ -264,7 +264,7 @@ def test_bench_writes_the_success_chart_and_lists_the_figures(tmp_path, capsys):
 
 
 def test_success_chart_names_each_scene_set_by_what_it_is(captured, tmp_path):
-    from lerobot_formation.bench import write_success_figure
+    from lerobot_formation.bench_figures import write_success_figure
     from lerobot_formation.core.scene import UNSEEN_SEED_START
 
     entry = {"success_rate": 0.5, "n_episodes": 4}

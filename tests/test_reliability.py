@@ -558,3 +558,331 @@ def test_jsonl_lines_carry_run_id_and_episode_index(tmp_path):
         mine = [(ln["env_index"], ln["episode_index"]) for ln in lines if ln["run_id"] == run]
         assert sorted(mine) == [(0, 0), (0, 1), (1, 0), (1, 1)]
     assert all(ln["min_clearance"] is None for ln in lines)  # no obstacle: null
+
+
+# == issue 26: no bad number goes unnoticed ===========================================================
+def _tiny_policy(**overrides):
+    """A tiny untrained grid (51 values) formation_diffusion policy in eval mode."""
+    import torch
+
+    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+
+    torch.manual_seed(0)
+    kwargs = {
+        **_tiny_diffusion_kwargs(51),
+        "noise_scheduler_type": "DDIM",
+        "num_inference_steps": 4,
+        **overrides,
+    }
+    return FormationDiffusionPolicy(FormationDiffusionConfig(**kwargs)).eval()
+
+
+def _observation(seed: int = 0, dtype=None):
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    obs = {
+        "observation.state": torch.randn(1, 7, generator=g),
+        "observation.environment_state": torch.rand(1, 51, generator=g),
+    }
+    return {k: v.to(dtype) for k, v in obs.items()} if dtype is not None else obs
+
+
+# -- item 4: one bad observation never poisons the episode ---------------------------------------------
+@pytest.mark.parametrize("warm_start_step", [0, 1])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_observation_is_refused(warm_start_step, bad):
+    policy = _tiny_policy(warm_start_step=warm_start_step)
+    policy.reset()
+    policy.select_action(_observation(0))
+    obs = _observation(1)
+    obs["observation.environment_state"][0, 12] = bad
+    with pytest.raises(
+        ValueError,
+        match=rf"observation 'observation.environment_state' holds a non-finite value \({bad} at index \[0, 12\]\)",
+    ):
+        policy.select_action(obs)
+    for seed in range(2, 12):  # the episode goes on with finite actions
+        import torch
+
+        assert torch.isfinite(policy.select_action(_observation(seed))).all()
+
+
+@pytest.mark.parametrize(("dtype", "name"), [("int64", "torch.int64"), ("float64", "torch.float64")])
+def test_wrongly_typed_observation_is_refused(dtype, name):
+    import torch
+
+    policy = _tiny_policy()
+    policy.reset()
+    with pytest.raises(
+        TypeError,
+        match=rf"observation 'observation.state' has dtype {name}, but the policy computes in torch.float32",
+    ):
+        policy.select_action(_observation(0, getattr(torch, dtype)))
+
+
+def test_non_finite_chunk_never_enters_the_warm_start():
+    import torch
+
+    policy = _tiny_policy(warm_start_step=1)
+    policy.reset()
+    nan_noise = torch.full((1, 16, 2), float("nan"))
+    with pytest.raises(FloatingPointError, match="non-finite action chunk"):
+        policy.select_action(_observation(0), noise=nan_noise)
+    actions = torch.stack([policy.select_action(_observation(seed)) for seed in range(1, 25)])  # 3 replans
+    assert torch.isfinite(actions).all()
+
+
+# -- item 5: a finished evaluation is never lost ------------------------------------------------------
+def test_perfect_controller_on_100_scenes_draws_and_writes(tmp_path):
+    from lerobot_formation.core.metrics import wilson_interval
+
+    assert wilson_interval(100, 100) == (pytest.approx(0.963, abs=1e-3), 1.0)
+    assert wilson_interval(500, 500)[1] == 1.0 and wilson_interval(0, 500)[0] == 0.0
+    f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL] * 100)
+    out = tmp_path / "out"
+    assert bench_main(["--controllers", "pac", "--scenes", str(f), "--out", str(out), "--no-progress"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["pac"]["success_rate"] == 1.0 and res["pac"]["success_ci95"][1] == 1.0
+    assert (out / "success_rates.png").stat().st_size > 1000
+    assert res["meta"]["figure_errors"] == []
+
+
+def test_failing_figure_is_one_line_and_keeps_the_results(tmp_path, capsys, monkeypatch):
+    import lerobot_formation.plots as plots
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no renderer")
+
+    monkeypatch.setattr(plots, "plot_trajectories", broken)
+    f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL] * 2)
+    out = tmp_path / "out"
+    assert bench_main(["--controllers", "pac", "--scenes", str(f), "--out", str(out), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert (
+        "warning: figure pac_s_*.png not drawn: RuntimeError: no renderer" in err and "Traceback" not in err
+    )
+    res = json.loads((out / "results.json").read_text())
+    assert res["pac"]["n_episodes"] == 2 and not res["meta"]["incomplete"]
+    assert res["meta"]["figure_errors"] == ["figure pac_s_*.png not drawn: RuntimeError: no renderer"]
+    assert "| Success Rate (%) |" in (out / "tables.md").read_text()
+    assert (out / "success_rates.png").is_file()  # the other figures are still drawn
+
+
+def test_full_disk_leaves_no_partial_file(tmp_path, capsys, monkeypatch):
+    import errno
+
+    f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL] * 2)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").write_text('{"earlier": "run"}')
+
+    def no_space(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", no_space)
+    with pytest.raises(SystemExit) as e:
+        bench_main(["--controllers", "pac", "--scenes", str(f), "--out", str(out), "--no-progress"])
+    assert e.value.code == 1
+    line = last_error_line(capsys.readouterr().err)
+    assert line == f"error: cannot write the results into {out}: [Errno 28] No space left on device"
+    assert sorted(p.name for p in out.iterdir()) == ["results.json"]  # no temporary file, no figure
+    assert (out / "results.json").read_text() == '{"earlier": "run"}'  # the earlier file is intact
+
+
+# -- item 6: one lerobot-train run per output folder ---------------------------------------------------
+_TRAIN_CONFIG = """
+import sys
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.configs.default import DatasetConfig
+from lerobot.configs.train import TrainPipelineConfig
+import lerobot_formation.plugin
+from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+
+def train_config(data, out):
+    policy = FormationDiffusionConfig(
+        device="cpu", push_to_hub=False, horizon=16, n_action_steps=8, down_dims=(16, 32), kernel_size=3,
+        n_groups=4, diffusion_step_embed_dim=16,
+        input_features={"observation.state": PolicyFeature(type=FeatureType.STATE, shape=(7,))},
+    )
+    return TrainPipelineConfig(dataset=DatasetConfig(repo_id="local/x", root=data), policy=policy, output_dir=out)
+"""
+
+
+def _train_lock_script(tmp_path: Path, then: str) -> list[str]:
+    data, out = tmp_path / "data", tmp_path / "run"
+    data.mkdir(exist_ok=True)
+    code = _TRAIN_CONFIG + f"\ntrain_config({str(data)!r}, {str(out)!r}).validate()\n" + then
+    return [sys.executable, "-c", code]
+
+
+def test_second_training_run_into_one_output_dir_refuses(tmp_path):
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    lock = tmp_path / ".run.train-lock"
+    first = subprocess.Popen(
+        _train_lock_script(tmp_path, "print('locked', flush=True); import time; time.sleep(120)"),
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert first.stdout.readline().strip() == "locked", first.stderr.read()
+        second = subprocess.run(
+            _train_lock_script(tmp_path, ""), env=env, capture_output=True, text=True, timeout=300
+        )
+        assert second.returncode == 1
+        assert last_error_line(second.stderr) == (
+            f"error: --output_dir {tmp_path / 'run'} is in use by another lerobot-train run (pid {first.pid}); "
+            f"wait for it to finish or choose another --output_dir (lock file {lock})"
+        )
+    finally:
+        first.kill()  # SIGKILL: no cleanup runs, the lock file stays with a dead pid
+        first.wait()
+    assert lock.read_text().strip() == str(first.pid)
+    third = subprocess.run(
+        _train_lock_script(tmp_path, "print('ok')"), env=env, capture_output=True, text=True, timeout=300
+    )
+    assert third.returncode == 0, third.stderr[-2000:]  # a dead run's lock blocks nothing
+    assert not lock.exists()  # released and removed at exit
+
+
+# -- item 7: every config value checked at start-up, one line ------------------------------------------
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        (
+            "num_inference_steps",
+            0,
+            r"num_inference_steps must be null \(the training steps\) or in \[1, num_train_timesteps\] = \[1, 100\], got 0",
+        ),
+        ("num_inference_steps", -1, r"num_inference_steps must be null .* got -1"),
+        ("num_inference_steps", 101, r"num_inference_steps must be null .* got 101"),
+        ("safety_margin", float("nan"), r"config values must be finite numbers, got safety_margin=nan"),
+        ("cbf_rate", float("inf"), r"config values must be finite numbers, got cbf_rate=inf"),
+        ("ema_power", float("nan"), r"got ema_power=nan"),
+        ("optimizer_lr", float("nan"), r"got optimizer_lr=nan"),
+        ("action_high", (0.6, float("nan")), r"got action_high=\(0.6, nan\)"),
+    ],
+)
+def test_config_values_are_checked(field, value, message):
+    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+
+    with pytest.raises(ValueError, match=message):
+        FormationDiffusionConfig(**{**_tiny_diffusion_kwargs(51), field: value})
+
+
+@pytest.mark.parametrize(
+    ("cli", "args", "message"),
+    [
+        ("lerobot-eval", ["--policy.num_candidates=0"], "num_candidates must be >= 1, got 0"),
+        (
+            "lerobot-train",
+            [
+                "--policy.type=formation_diffusion",
+                "--policy.push_to_hub=false",
+                "--policy.num_inference_steps=0",
+            ],
+            "num_inference_steps must be null (the training steps) or in [1, num_train_timesteps] = [1, 100], got 0",
+        ),
+    ],
+)
+def test_bad_config_value_on_the_command_line_is_one_line(cli, args, message, tmp_path):
+    if not CHECKPOINT.is_dir():
+        pytest.skip("no pretrained checkpoint")
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    cmd = [str(Path(sys.executable).parent / cli), *args, f"--output_dir={tmp_path / 'out'}"]
+    if cli == "lerobot-eval":
+        cmd += [f"--policy.path={CHECKPOINT}", "--env.type=formation"]
+    else:
+        cmd += ["--dataset.repo_id=local/x", f"--dataset.root={tmp_path}"]
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr and "Couldn't instantiate" not in proc.stderr, proc.stderr[-3000:]
+    assert [ln for ln in proc.stderr.splitlines() if message.split(" ")[0] in ln] == [f"error: {message}"]
+
+
+# -- item 8: fine-tuning on a dataset of another encoding ----------------------------------------------
+def test_fine_tuning_on_another_encoding_fails_at_start_up(tmp_path):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+
+    import lerobot_formation.plugin  # noqa: F401
+
+    if not CHECKPOINT.is_dir():
+        pytest.skip("no pretrained checkpoint")
+    data = tmp_path / "grid"  # 51 values; the checkpoint takes grid+list (66)
+    lerobot_writer.generate(data, "local/grid", 2, workers=0, progress=False)
+    cfg = PreTrainedConfig.from_pretrained(CHECKPOINT)  # as lerobot-train --policy.path does
+    cfg.pretrained_path = CHECKPOINT
+    with pytest.raises(ValueError) as e:
+        make_policy(cfg, ds_meta=LeRobotDatasetMetadata("local/grid", root=data))
+    assert str(e.value) == (
+        "the dataset gives 'observation.environment_state' shape (51,) ('grid'), but the policy takes (66,) "
+        "('grid+list'): train on a dataset of the policy's encoding (lerobot-formation-generate "
+        "--obstacle-encoding grid+list)"
+    )
+
+
+# -- item 9: scenes files: size, count, keys, repeated obstacles ---------------------------------------
+def test_scenes_file_limits_and_top_level_keys(tmp_path, monkeypatch):
+    from lerobot_formation.core import scene as scene_mod
+
+    g = tmp_path / "typo.json"
+    g.write_text(json.dumps({"scenes": [EMPTY_NEAR_GOAL], "sceens": [EMPTY_NEAR_GOAL]}))
+    with pytest.raises(
+        ValueError, match=rf"scenes file {g}: unknown top-level key 'sceens'; allowed keys: 'scenes'"
+    ):
+        load_scenes(g)
+    f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL] * 11)
+    monkeypatch.setattr(scene_mod, "MAX_SCENES_PER_FILE", 10)
+    t0 = time.perf_counter()
+    with pytest.raises(
+        ValueError, match=rf"scenes file {f} holds 11 scenes, more than the 10 a scenes file may hold"
+    ):
+        load_scenes(f)
+    assert time.perf_counter() - t0 < 1.0  # refused before any scene is checked
+    size = f.stat().st_size
+    monkeypatch.setattr(scene_mod, "MAX_SCENES_FILE_BYTES", 100)
+    with pytest.raises(
+        ValueError, match=rf"scenes file {f} has {size:,} bytes, more than the 100 a scenes file may have"
+    ):
+        load_scenes(f)
+
+
+def test_repeated_obstacles_are_warned_about(tmp_path, caplog):
+    import logging
+
+    scenes = [
+        {"obstacles": [[3.0, 3.0, 0.5]] * 50, "goal": [5.0, 5.0]},
+        {"obstacles": [[3.0, 3.0, 0.5]], "goal": [5.0, 5.0]},
+    ]
+    f = write_scenes(tmp_path / "s.json", scenes)
+    with caplog.at_level(logging.WARNING, logger="lerobot_formation.core.scene"):
+        assert len(load_scenes(f)) == 2
+    assert [r.getMessage() for r in caplog.records] == [
+        f"scenes file {f}: scene 0 lists obstacle 0 [3.0, 3.0, 0.5] 50 times (49 repeated obstacles in the file)"
+    ]
+
+
+# -- item 10: registration is explicit, the package root stays light -----------------------------------
+def test_register_registers_everything_and_the_package_root_stays_light():
+    code = (
+        "import sys, lerobot_formation\n"
+        "assert 'torch' not in sys.modules and 'lerobot' not in sys.modules, 'the package root imported torch'\n"
+        "from lerobot_formation.core.scene import sample_scenes\n"
+        "assert 'torch' not in sys.modules\n"
+        "lerobot_formation.register()\n"
+        "from lerobot.configs.policies import PreTrainedConfig\n"
+        "from lerobot.envs.configs import EnvConfig\n"
+        "from lerobot.processor import ProcessorStepRegistry\n"
+        "print(PreTrainedConfig.get_choice_class('formation_diffusion').__name__, "
+        "EnvConfig.get_choice_class('formation').__name__, "
+        "'formation_egocentric_obstacles' in ProcessorStepRegistry.list())\n"
+    )
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["FormationDiffusionConfig", "FormationEnvConfig", "True"]

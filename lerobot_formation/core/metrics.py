@@ -80,7 +80,10 @@ METRIC_KEYS = SUCCESS_ONLY_KEYS + ALL_EPISODES_KEYS
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (95 % for z = 1.96); (0.0, 1.0) if n = 0."""
+    """Wilson score interval of a binomial proportion (95 % for z = 1.96); (0.0, 1.0) if n = 0.
+
+    The bounds are clamped to [0, 1] and to contain successes / n, which the exact interval does
+    (without the clamp, floating point gives 0.9999999999999999 as the upper bound of 100 of 100)."""
     if n < 0 or not 0 <= successes <= n:
         raise ValueError(f"need 0 <= successes <= n, got successes={successes}, n={n}")
     if n == 0:
@@ -90,7 +93,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     denom = 1.0 + z2 / n
     centre = (p + z2 / (2 * n)) / denom
     half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
 def two_proportion_z(x1: int, n1: int, x2: int, n2: int) -> float:

@@ -511,8 +511,8 @@ def plot_success_rates(
             rate = succ / n if n else 0.0
             xs.append(i + (k - (len(sets) - 1) / 2) * width)
             rates.append(100 * rate)
-            lows.append(100 * (rate - lo))
-            highs.append(100 * (hi - rate))
+            lows.append(100 * max(rate - lo, 0.0))  # matplotlib refuses a negative error bar
+            highs.append(100 * max(hi - rate, 0.0))
             texts.append(f"{100 * rate:.0f} %\n{succ}/{n}")
         n_set = {counts[s][c][1] for c in counts[s]}
         label = f"{s} ({n_set.pop()} episodes)" if len(n_set) == 1 else s

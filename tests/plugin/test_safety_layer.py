@@ -163,9 +163,10 @@ def test_engine_and_select_action_run_the_same_safety_layer(
 
 
 def test_a_negative_or_nan_escape_advantage_is_refused_with_its_value():
-    for bad in (-0.1, float("nan")):
-        with pytest.raises(ValueError, match=rf"escape_advantage must be null or >= 0 \[m\], got {bad}"):
-            nearest_config(escape_advantage=bad)
+    with pytest.raises(ValueError, match=r"escape_advantage must be null or >= 0 \[m\], got -0.1"):
+        nearest_config(escape_advantage=-0.1)
+    with pytest.raises(ValueError, match=r"config values must be finite numbers, got escape_advantage=nan"):
+        nearest_config(escape_advantage=float("nan"))
     assert nearest_config(escape_advantage=None).escape_advantage is None
 
 
