@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     engine_s = time.perf_counter() - t0
     engine_success = float(np.mean(rec.outcome == SUCCESS))
     print(
-        f"engine: {engine_s:.1f} s for {len(scenes)} episodes ({ctrl.replans} batched replans), policy load "
+        f"engine: {engine_s:.1f} s for {len(scenes)} episodes ({ctrl.stats['replans']} episode replans), policy load "
         f"{load_s:.1f} s; success {engine_success:.0%}",
         flush=True,
     )

@@ -6,7 +6,7 @@ tables with its own numbers beside ours) and PNG figures.
 
 Example::
 
-    lerobot-formation-bench --controllers pac,mppi,diffusion,diffusion-adaptive \\
+    lerobot-formation-bench --controllers pac,mppi,diffusion,diffusion-bestof \\
         --policy.path pretrained/formation_diffusion_cpu --scenes dataset:100 --unseen random:100 \\
         --seed 1000000 --out outputs/bench
 
@@ -28,16 +28,69 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
-from lerobot_formation.bench_figures import write_success_figure
-from lerobot_formation.bench_results import write_results
-from lerobot_formation.controllers import controller_names, needs_policy
+from lerobot_formation.bench_figures import write_comparison_figure, write_figures, write_success_figure
+from lerobot_formation.bench_results import BenchSettings, controller_results, safety_rates, write_results
+from lerobot_formation.controllers import ControllerOptions, controller_names, make_controller, needs_policy
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
-from lerobot_formation.evaluation import BenchInputError, run_set
+from lerobot_formation.evaluation import evaluate
 from lerobot_formation.scene_sets import parse_scenes
 from lerobot_formation.threads import add_threads_argument, apply_threads
+
+
+class BenchInputError(ValueError):
+    """A bad input found while running (a controller that this checkpoint cannot serve, ...): reported
+    as one ``error:`` line, exit code 2, after writing the results of the controllers that finished."""
+
+
+def run_set(
+    names,
+    scenes,
+    params,
+    settings: BenchSettings,
+    out: Path,
+    label: str,
+    bundle,
+    figures: bool,
+    into: dict | None = None,
+) -> dict:
+    """Run the controllers ``names`` on ``scenes``; each finished controller's entry is put into
+    ``into`` (default: a new dict, returned) at once, so a later failure keeps it."""
+    results, records = (into if into is not None else {}), {}
+    spec = (settings.unseen if label == "unseen" else settings.scenes) or ""
+    for name in names:
+        t0 = time.perf_counter()
+        try:
+            ctrl = make_controller(name, params, settings.options, bundle)
+        except ValueError as e:
+            raise BenchInputError(f"controller {name}: {e}") from e
+        rec = evaluate(ctrl, scenes, params, progress=settings.progress, desc=f"{name} ({label})")
+        entry = controller_results(rec, scenes)
+        entry["wall_time_s"] = time.perf_counter() - t0
+        if getattr(ctrl, "stats", None):  # the safety layer's interventions
+            entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
+        entry["scenes"] = label
+        if figures:
+            from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
+
+            title = f"{name} on {scene_set_label(spec, settings.seed)}" if spec else ""
+            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
+            records[name] = rec
+        results[name] = entry
+        lo, hi = entry["success_ci95"]
+        print(
+            f"[{label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
+            f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
+            flush=True,
+        )
+    if figures and len(records) > 1:
+        shared = write_comparison_figure(out, label, records, scenes, spec, settings.seed)
+        for entry in results.values():
+            entry["figures"].append(shared)
+    return results
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,7 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START, help="first seed for random:N")
     ap.add_argument("--policy.path", dest="policy_path", default=None, help="LeRobot checkpoint folder")
     ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="dataset for dataset:N")
-    ap.add_argument("--candidates", type=int, default=10, help="K of the adaptive policy")
+    ap.add_argument(
+        "--candidates", type=int, default=10, help="K of diffusion-bestof and diffusion-safe (best-of-K)"
+    )
     ap.add_argument(
         "--num-inference-steps", type=int, default=None, help="DDIM steps (default: checkpoint's)"
     )
@@ -117,18 +172,39 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
     results: dict[str, dict] = {label: {}}
+    settings = BenchSettings(
+        scenes=args.scenes,
+        unseen=args.unseen,
+        seed=args.seed,
+        options=ControllerOptions(
+            policy_path=args.policy_path,
+            candidates=args.candidates,
+            num_inference_steps=args.num_inference_steps,
+            seed_policy=args.seed_policy,
+        ),
+        # progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them
+        progress=not args.no_progress and sys.stderr.isatty(),
+    )
     try:
-        run_set(names, scenes, params, args, out, label, bundle, not args.no_figures, into=results[label])
+        run_set(names, scenes, params, settings, out, label, bundle, not args.no_figures, into=results[label])
         if unseen is not None and diffusion:
             results["unseen"] = {}
             run_set(
-                diffusion, unseen, params, args, out, "unseen", bundle, not args.no_figures, results["unseen"]
+                diffusion,
+                unseen,
+                params,
+                settings,
+                out,
+                "unseen",
+                bundle,
+                not args.no_figures,
+                results["unseen"],
             )
     except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
         done = [f"{k}/{c}" for k, v in results.items() for c in v]
         message = str(e) if isinstance(e, BenchInputError) else f"{type(e).__name__}: {e}"
         if done:
-            write_results(out, results, label, args, report, error=message)
+            write_results(out, results, label, settings, report, error=message)
             print(f"wrote {out / 'results.json'} with the finished controllers {done}", file=sys.stderr)
         if isinstance(e, BenchInputError):
             _fail(message)
@@ -144,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
             f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
             f"no passage {report.rejected_passage})"
         )
-    write_results(out, results, label, args, report)
+    write_results(out, results, label, settings, report)
     print(f"wrote {out / 'results.json'}, {out / 'tables.md'}")
     return 0
 

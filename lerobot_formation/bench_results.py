@@ -5,15 +5,35 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.controllers import needs_policy
+from lerobot_formation.controllers import ControllerOptions, needs_policy
 from lerobot_formation.core.metrics import episode_metrics, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
 from lerobot_formation.core.scene import SamplingReport, Scenes
 from lerobot_formation.paper_tables import adaptive_table, three_way_table
+
+
+@dataclass(frozen=True)
+class BenchSettings:
+    """One bench run's inputs (``lerobot-formation-bench``'s options as a value).
+
+    Args:
+        scenes: the main scene set's spec (``random:N``, ``dataset:N``, a file, ...).
+        unseen: the unseen scene set's spec, or None.
+        seed: first seed of ``random:N``.
+        options: what the controllers are made with.
+        progress: progress bars (only on a terminal).
+    """
+
+    scenes: str
+    unseen: str | None = None
+    seed: int = 0
+    options: ControllerOptions = field(default_factory=ControllerOptions)
+    progress: bool = False
 
 
 def _clean(x):
@@ -50,7 +70,12 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes) -> dict:
 
 
 def write_results(
-    out: Path, results: dict, label: str, args, report: SamplingReport, error: str | None = None
+    out: Path,
+    results: dict,
+    label: str,
+    settings: BenchSettings,
+    report: SamplingReport,
+    error: str | None = None,
 ):
     """results.json and tables.md of the controllers in ``results``; ``error`` marks a run that stopped
     early (``meta.incomplete``, ``meta.error``), with what finished before it."""
@@ -59,12 +84,12 @@ def write_results(
     payload = dict(results.get(label, {}))
     payload["by_scenes"] = {k: v for k, v in results.items()}
     payload["meta"] = {
-        "scenes": args.scenes,
-        "unseen": args.unseen,
-        "seed": args.seed,
-        "policy_path": args.policy_path,
-        "candidates": args.candidates,
-        "num_inference_steps": args.num_inference_steps,
+        "scenes": settings.scenes,
+        "unseen": settings.unseen,
+        "seed": settings.seed,
+        "policy_path": settings.options.policy_path,
+        "candidates": settings.options.candidates,
+        "num_inference_steps": settings.options.num_inference_steps,
         "date": time.strftime("%Y-%m-%d"),
         "scene_sampling": report.as_dict() if report.drawn else None,
         "incomplete": error is not None,
@@ -73,10 +98,10 @@ def write_results(
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, default=_clean))
     os.replace(tmp, out / "results.json")
-    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({args.scenes})")]
+    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({settings.scenes})")]
     sets = {k: v for k, v in results.items() if any(needs_policy(c) for c in v)}
     if sets:
-        tables.append(adaptive_table(sets, {label: args.scenes, "unseen": args.unseen or ""}))
+        tables.append(adaptive_table(sets, {label: settings.scenes, "unseen": settings.unseen or ""}))
     if error is not None:
         tables.append(f"**Incomplete run**: {error}\n")
     (out / "tables.md").write_text("\n".join(tables))

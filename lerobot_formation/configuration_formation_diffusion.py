@@ -18,11 +18,8 @@ from lerobot_formation.core.obstacle_grid import (
     environment_state_dim,
     get_encoding,
 )
-from lerobot_formation.core.safety import BLOCKED_FALLBACKS
 
 ACTION_DIM = 2  # [v, omega]
-# observation.environment_state sizes of each encoding at its default slot count.
-ENV_STATE_DIMS = tuple(environment_state_dim(e) for e in ENCODINGS)
 SAFETY_FILTERS = ("none", "cbf")
 INFERENCE_BACKENDS = ("eager", "lean", "trace")
 TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
@@ -41,6 +38,10 @@ def config_error(message: str) -> ValueError:
     """
     logger.error(message)
     return ValueError(message)
+
+
+def _encoding_sizes() -> str:
+    return ", ".join(f"{e} {environment_state_dim(e)} values" for e in ENCODINGS)
 
 
 def _describe(features: dict[str, PolicyFeature] | None) -> str:
@@ -78,14 +79,10 @@ class FormationDiffusionConfig(DiffusionConfig):
         egocentric_obstacles: give the network the goal and the obstacle list in the midpoint's frame,
             nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
             (the paper feeds world coordinates).
-        egocentric_state: give the network ``observation.state`` in the midpoint's own frame (its
-            velocity and turn rate; position and heading become constants), a preprocessor step. Needs
-            an egocentric obstacle view ("nearest", or "grid+list" with egocentric_obstacles). Off by
-            default (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
-            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid", "grid+list", "nearest", "nearest+route").
-            None: found
-            from the feature's size (checkpoints made before the field existed) and stored.
+            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid" (default, the paper's), "grid+list",
+            "nearest", "nearest+route"); it must match the env's ``--env.obstacle_encoding``. Stored in
+            every checkpoint, never guessed from the feature's size.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
             "grid+list", 12 for "nearest" and "nearest+route").
         fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
@@ -100,27 +97,11 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
             obstacle (followers lag their square slots by up to ~0.1 m).
         cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
-        escape_advantage: best-of-K only. None: the escape manoeuvres (``core.safety.ESCAPE_PRIMITIVES``)
-            are used only when no sampled chunk is safe. A number [m]: a safe manoeuvre is also kept
-            when its cost-to-go progress beats every safe sampled chunk's by that much (the policy
-            stalled against an obstacle).
-        blocked_fallback: best-of-K only, when neither a sampled chunk nor an escape manoeuvre is safe.
-            "widest" (default): the sampled chunk with the largest predicted clearance (a CBF filter, if
-            on, then brakes). "stop": the chunk or manoeuvre with the largest predicted clearance if it
-            predicts no contact, else the team stops for the chunk and draws again at the next replan
-            (``core.safety.select_chunk``): predicted collisions become stops.
-        replan_blend_steps: m >= 0. At every replan, the new chunk's first m actions are blended from
-            the last executed action into the chunk (``core.replan_blend``), before best-of-K scores the
-            candidates; removes the step in [v, omega] that a replan makes (the main source of motion
-            jerk). 0 (default): no blending, LeRobot's plain chunk execution.
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
             j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
             ``modeling_formation_diffusion``): the plan keeps its way round an obstacle from one replan
             to the next, and costs j fewer denoiser calls. Must be below ``num_inference_steps``.
-        warm_start_all_candidates: with best-of-K and ``warm_start_step``, warm-start every candidate
-            (each with its own noise) instead of the first only: the K candidates cost j fewer denoiser
-            calls, at some loss of diversity among them. Default False.
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -170,8 +151,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
     # Goal and obstacle list in the midpoint's frame, nearest first (processor_formation_diffusion.py).
     egocentric_obstacles: bool = False
-    egocentric_state: bool = False
-    obstacle_encoding: str | None = None
+    obstacle_encoding: str = "grid"
     max_obstacles: int | None = None
     fixed_action_bounds: bool = False
     action_low: tuple[float, float] = (0.0, -_BOUNDS.omega_max)
@@ -182,12 +162,8 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_filter: str = "none"
     safety_margin: float = 0.1
     cbf_rate: float = 2.0
-    escape_advantage: float | None = None
-    blocked_fallback: str = "widest"
     replan_on_intervention: bool = True
-    replan_blend_steps: int = 0
     warm_start_step: int = 0
-    warm_start_all_candidates: bool = False
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"
@@ -262,18 +238,13 @@ class FormationDiffusionConfig(DiffusionConfig):
             )
         if self.ema_update_after_step < 0:
             raise config_error(f"ema_update_after_step must be >= 0, got {self.ema_update_after_step}")
-        if self.obstacle_encoding is not None and self.obstacle_encoding not in ENCODINGS:
+        if self.obstacle_encoding not in ENCODINGS:
             raise config_error(
-                f"obstacle_encoding must be one of {ENCODINGS} (or null), got {self.obstacle_encoding!r}"
+                f"obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
             )
         if self.inference_backend not in INFERENCE_BACKENDS:
             raise config_error(
                 f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
-            )
-        if not 0 <= self.replan_blend_steps <= self.horizon - self.n_obs_steps + 1:
-            raise config_error(
-                f"replan_blend_steps must be in [0, {self.horizon - self.n_obs_steps + 1}] (the chunk's length), "
-                f"got {self.replan_blend_steps}"
             )
         steps = self.num_inference_steps or self.num_train_timesteps
         if not 0 <= self.warm_start_step < steps:
@@ -288,15 +259,18 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
         if self.safety_filter not in SAFETY_FILTERS:
             raise config_error(f"safety_filter must be one of {SAFETY_FILTERS}, got {self.safety_filter!r}")
-        if self.blocked_fallback not in BLOCKED_FALLBACKS:
-            raise config_error(
-                f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {self.blocked_fallback!r}"
-            )
-        if self.escape_advantage is not None and not self.escape_advantage >= 0:
-            raise config_error(f"escape_advantage must be null or >= 0 [m], got {self.escape_advantage}")
         if self.safety_margin < 0 or self.cbf_rate <= 0:
             raise config_error(
                 f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
+            )
+        if self.safety_layer and not (
+            get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
+        ):  # the layer reads body-frame obstacles and scores physical actions
+            raise config_error(
+                f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
+                f"needs an egocentric obstacle encoding ({' or '.join(map(repr, egocentric_encodings()))}) and "
+                "fixed_action_bounds=true; this policy "
+                f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
             )
         if not all(lo < hi for lo, hi in zip(self.action_low, self.action_high, strict=True)):
             raise config_error(f"need action_low < action_high, got {self.action_low} and {self.action_high}")
@@ -308,9 +282,9 @@ class FormationDiffusionConfig(DiffusionConfig):
 
     @property
     def plans_per_episode(self) -> bool:
-        """Whether ``select_action`` keeps its own per-episode chunks (safety layer or replan blending)
-        instead of LeRobot's action queue."""
-        return self.safety_layer or self.replan_blend_steps > 0 or self.warm_start_step > 0
+        """Whether ``select_action`` runs the ``Replanner`` (safety layer or warm starts) instead of
+        LeRobot's action queue."""
+        return self.safety_layer or self.warm_start_step > 0
 
     def validate_features(self) -> None:
         """Check the formation features; the error names the feature, its shape and what was found."""
@@ -331,44 +305,21 @@ class FormationDiffusionConfig(DiffusionConfig):
         if env_state is None or env_state.type is not FeatureType.ENV:
             raise ValueError(
                 f"formation_diffusion needs the input feature '{OBS_ENV_STATE}' (ENV, shape "
-                f"{' or '.join(f'({d},)' for d in ENV_STATE_DIMS)}: obstacle grid + goal). {found}"
+                f"({environment_state_dim(self.obstacle_encoding, self.max_obstacles)},): obstacle_encoding "
+                f"{self.obstacle_encoding!r}). {found}"
             )
-        if self.obstacle_encoding is None:  # a checkpoint from before the field: find it once, store it
-            if tuple(env_state.shape) not in [(d,) for d in ENV_STATE_DIMS]:
-                raise ValueError(
-                    f"'{OBS_ENV_STATE}' must have shape "
-                    + " or ".join(f"({d},) ({e!r})" for d, e in zip(ENV_STATE_DIMS, ENCODINGS, strict=True))
-                    + f", got {tuple(env_state.shape)}; or set --policy.obstacle_encoding"
-                )
-            self.obstacle_encoding = ENCODINGS[ENV_STATE_DIMS.index(env_state.shape[0])]
         expected = environment_state_dim(self.obstacle_encoding, self.max_obstacles)
         if tuple(env_state.shape) != (expected,):
             raise ValueError(
                 f"'{OBS_ENV_STATE}' has shape {tuple(env_state.shape)}, but obstacle_encoding="
-                f"{self.obstacle_encoding!r} with max_obstacles={self.max_obstacles} has ({expected},); "
-                f"the dataset or env must use --env.obstacle_encoding={self.obstacle_encoding}"
-            )
-        if self.safety_layer and not (
-            get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
-        ):
-            raise ValueError(
-                f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
-                f"needs an egocentric obstacle encoding ({' or '.join(map(repr, egocentric_encodings()))}) and "
-                "fixed_action_bounds=true; this policy "
-                f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
+                f"{self.obstacle_encoding!r} with max_obstacles={self.max_obstacles} has ({expected},): set "
+                f"--policy.obstacle_encoding to the dataset's encoding ({_encoding_sizes()}), or use a "
+                f"dataset and env of --env.obstacle_encoding={self.obstacle_encoding}"
             )
         if self.egocentric_obstacles and get_encoding(self.obstacle_encoding).egocentric:
             raise ValueError(
                 f"egocentric_obstacles=true rewrites a world-frame list; '{self.obstacle_encoding}' is already "
                 "egocentric: set --policy.egocentric_obstacles=false"
-            )
-        if self.egocentric_state and not (
-            get_encoding(self.obstacle_encoding).egocentric or self.egocentric_obstacles
-        ):
-            raise ValueError(
-                f"egocentric_state=true drops the world pose, but obstacle_encoding={self.obstacle_encoding!r} "
-                "observes obstacles in world coordinates: use --env.obstacle_encoding=nearest (or grid+list "
-                "with --policy.egocentric_obstacles=true), or set --policy.egocentric_state=false"
             )
         grid_list_dim = environment_state_dim("grid+list", self.max_obstacles)
         if self.egocentric_obstacles and tuple(env_state.shape) != (grid_list_dim,):

@@ -1,66 +1,92 @@
 """The controllers the bench, the ablation script and the sweeps run, by name.
 
-``CONTROLLER_FACTORIES`` maps a name to a factory ``(name, params, args, policy bundle) ->
+``CONTROLLER_FACTORIES`` maps a name to a factory ``(name, params, options, policy bundle) ->
 controller``, or to the ``"module:function"`` path of one (imported when the controller is first
 made, so a new controller is one new file and one line here). A controller needs only
-``reset(scenes)`` and ``act(state, idx) -> (len(idx), 2)`` (``core.rollout.Controller``); ``args``
-holds the bench's options (``policy_path``, ``candidates``, ``num_inference_steps``, ``seed_policy``).
-Controllers whose name starts with ``diffusion`` run a checkpoint: the bench asks for
-``--policy.path`` and loads it once into ``bundle``.
+``reset(scenes)`` and ``act(state, idx) -> (len(idx), 2)`` (``core.rollout.Controller``);
+``options`` is a ``ControllerOptions``. Controllers whose name starts with ``diffusion`` run a
+checkpoint: the bench asks for ``--policy.path`` and loads it once into ``bundle``. Each of them is
+the policy's ``Replanner`` with the checkpoint's config and, for K and the filter, an override
+(``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored.
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import PACController
 
 
-def _diffusion(candidates: bool, safety_filter: str | None, adaptive: bool = False):
-    """A factory of a diffusion controller: ``candidates`` True takes --candidates, else K = 1;
-    ``safety_filter`` None is the world-frame adaptive rule (or standard), "none"/"cbf" the policy's
-    own safety layer (core.safety)."""
+@dataclass(frozen=True)
+class ControllerOptions:
+    """What a controller factory may read.
 
-    def factory(name: str, params: FormationParams, args: argparse.Namespace, bundle=None):
+    Args:
+        policy_path: checkpoint folder of the diffusion controllers.
+        candidates: K of the best-of-K controllers ("diffusion-bestof", "diffusion-safe").
+        num_inference_steps: DDIM steps (None: the checkpoint's sampler).
+        seed_policy: seed of the controllers' noise (diffusion, MPPI).
+        overrides: policy config fields every diffusion controller runs with, after its own.
+        experiment: a ``policy.replanner.ReplanExperiment`` (ablation settings), or None.
+    """
+
+    policy_path: str | None = None
+    candidates: int = 10
+    num_inference_steps: int | None = None
+    seed_policy: int = 0
+    overrides: dict = field(default_factory=dict)
+    experiment: object | None = None
+
+
+def _diffusion(safety_filter: str | None, best_of_k: bool | None):
+    """A factory of a diffusion controller with the filter ``safety_filter`` and K = --candidates
+    (``best_of_k``) or 1; None for both: the checkpoint's own settings."""
+
+    def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
         from lerobot_formation.diffusion_controller import DiffusionController
 
+        overrides = {}
+        if safety_filter is not None:
+            overrides = {
+                "num_candidates": options.candidates if best_of_k else 1,
+                "safety_filter": safety_filter,
+            }
         return DiffusionController(
-            args.policy_path,
-            candidates=args.candidates if candidates else 1,
-            adaptive=adaptive,
-            num_inference_steps=args.num_inference_steps,
-            seed=args.seed_policy,
+            options.policy_path,
+            num_inference_steps=options.num_inference_steps,
+            seed=options.seed_policy,
             params=params,
             policy_bundle=bundle,
-            safety_filter=safety_filter,
+            overrides={**overrides, **options.overrides},
+            experiment=options.experiment,
             name=name,
         )
 
     return factory
 
 
-def _pac(name, params, args, bundle=None):
+def _pac(name, params, options, bundle=None):
     return PACController(params=params)
 
 
-def _mppi(name, params, args, bundle=None):
+def _mppi(name, params, options, bundle=None):
     from lerobot_formation.core.mppi import MPPIConfig, MPPIController
 
-    return MPPIController(MPPIConfig(seed=args.seed_policy), params)
+    return MPPIController(MPPIConfig(seed=options.seed_policy), params)
 
 
 # Controllers by name (see the module docstring): a factory, or the "module:function" path of one.
 CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "pac": _pac,
     "mppi": _mppi,
-    "diffusion": _diffusion(False, None),  # standard: one sample per replan
-    "diffusion-adaptive": _diffusion(True, None, adaptive=True),  # best-of-K, world-frame cost-to-go rule
-    "diffusion-bestof": _diffusion(True, "none"),  # the policy's best-of-K (footprint, then progress)
-    "diffusion-cbf": _diffusion(False, "cbf"),  # one sample, CBF filter on every action
-    "diffusion-safe": _diffusion(True, "cbf"),  # best-of-K and the CBF filter
+    "diffusion": _diffusion("none", best_of_k=False),  # standard: one sample per replan
+    "diffusion-bestof": _diffusion("none", best_of_k=True),  # best-of-K (footprint, then progress)
+    "diffusion-cbf": _diffusion("cbf", best_of_k=False),  # one sample, CBF filter on every action
+    "diffusion-safe": _diffusion("cbf", best_of_k=True),  # best-of-K and the CBF filter
+    "diffusion-policy": _diffusion(None, None),  # the checkpoint's config as stored
 }
 CONTROLLERS = tuple(CONTROLLER_FACTORIES)
 
@@ -75,11 +101,11 @@ def needs_policy(name: str) -> bool:
     return name.startswith("diffusion")
 
 
-def make_controller(name: str, params: FormationParams, args: argparse.Namespace, bundle=None):
+def make_controller(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
     if name not in CONTROLLER_FACTORIES:
         raise ValueError(f"unknown controller {name!r}; choose from {controller_names()}")
     factory = CONTROLLER_FACTORIES[name]
     if isinstance(factory, str):  # "module:function", imported now
         module, _, attr = factory.partition(":")
         factory = getattr(importlib.import_module(module), attr)
-    return factory(name, params, args, bundle)
+    return factory(name, params, options, bundle)

@@ -1,38 +1,28 @@
 """A LeRobot diffusion checkpoint behind the evaluation engine's controller interface.
 
-One batched policy call per replan serves every live episode that needs a new chunk: the episodes'
-observation histories (n_obs_steps), normalised by the checkpoint's own preprocessor, go through the
-EMA denoiser in one ``generate_actions`` call; the postprocessor unnormalises the chunk, of which
-the first ``n_action_steps`` actions are executed open loop, as ``DiffusionPolicy.select_action``
-does one episode at a time.
-
-Adaptive sampling draws K candidate chunks per replan in the same batched call and keeps the
-safest (``core.footprint.select_safest``: no predicted collision of the whole formation first, then
-progress toward the goal). With K = 1 and the same noise it is the standard policy.
-
-The policy's own safety layer (``safety="policy"``: the ``formation_diffusion`` config fields
-``num_candidates`` and ``safety_filter``, egocentric "nearest" checkpoints) runs here through the same
-functions as in ``select_action`` (``core.safety.select_chunk`` at every replan, ``core.safety.cbf_filter``
-on every executed action), on the same observation, so the engine and ``lerobot-eval`` evaluate the
-same controller. Replan blending and warm-started replans (``replan_blend_steps``, ``warm_start_step``)
-follow ``select_action`` too: each episode keeps its last whole chunk and the actions run since.
+The engine keeps every episode's observation history (n_obs_steps, as LeRobot's queues do) and, at
+each step, asks the policy's ``Replanner`` (``policy/replanner.py``, the one ``select_action`` runs)
+for the next action of the live episodes: one batched policy call per replan serves every episode
+that needs a new chunk, through the checkpoint's own preprocessor; the postprocessor unnormalises the
+action. K candidates, the filter and warm starts are the policy config's; a bench controller's K and
+filter are an override made with ``dataclasses.replace`` (the config's checks run).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
 import torch
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.core.dynamics import FormationParams, FormationState
-from lerobot_formation.core.footprint import select_safest
-from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.observation import STATE_DIM, observe
-from lerobot_formation.core.obstacle_grid import egocentric_encodings, environment_state, get_encoding
-from lerobot_formation.core.replan_blend import blend_replan
+from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.scene import Scenes
+from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
 
 logger = logging.getLogger(__name__)
 
@@ -112,7 +102,8 @@ def load_policy(path: str | Path, device: str = "cpu"):
 def set_inference_steps(policy, steps: int | None) -> None:
     """Use DDIM with ``steps`` denoising steps (same training betas), or keep the checkpoint's sampler.
     A warm start at or past the last of them (``warm_start_step`` >= steps) is turned off, with a
-    warning: it would skip the whole sampler."""
+    warning (the policy gets a config copy with ``warm_start_step`` 0): it would skip the whole
+    sampler."""
     if steps is None:
         return
     from diffusers.schedulers.scheduling_ddim import DDIMScheduler
@@ -120,13 +111,13 @@ def set_inference_steps(policy, steps: int | None) -> None:
     cfg = policy.config
     if not 1 <= steps <= cfg.num_train_timesteps:
         raise ValueError(f"inference steps must be in [1, {cfg.num_train_timesteps}], got {steps}")
-    if getattr(cfg, "warm_start_step", 0) >= steps:
+    if cfg.warm_start_step >= steps:
         logger.warning(
             "warm_start_step %d needs more than %d inference steps: warm-started replans are off",
             cfg.warm_start_step,
             steps,
         )
-        cfg.warm_start_step = 0
+        policy.reconfigure(warm_start_step=0)
     for model in (policy.diffusion, getattr(policy, "ema_diffusion", None)):
         if model is None:
             continue
@@ -148,71 +139,48 @@ class DiffusionController:
 
     Args:
         path: checkpoint folder.
-        candidates: K candidate chunks per replan.
-        adaptive: choose among the candidates with ``select_safest`` (default: K > 1). With K = 1
-            and the same noise, the adaptive policy equals the standard one.
         num_inference_steps: DDIM steps (None: the checkpoint's own sampler and step count).
         seed: seeds the torch generator of the initial noise, so runs are repeatable.
-        margin: clearance [m] the adaptive rule demands of the rigid-template footprint; followers
-            lag their slots by up to ~0.1 m (99th percentile under PAC), which it covers.
+        params: the formation's parameters (the observation the policy sees).
+        device: torch device of the policy.
+        policy_bundle: (policy, preprocessor, postprocessor) already loaded from ``path``.
+        overrides: policy config fields this controller runs with (e.g. ``num_candidates``,
+            ``safety_filter``), applied with ``dataclasses.replace`` to a copy: the loaded policy's
+            config is unchanged, so controllers can share one bundle.
+        experiment: ablation settings of the replanner (``ReplanExperiment``).
+        name: the controller's name in results (default "diffusion").
     """
 
     def __init__(
         self,
         path: str | Path,
-        candidates: int = 1,
-        adaptive: bool | None = None,
         num_inference_steps: int | None = None,
         seed: int = 0,
         params: FormationParams | None = None,
         device: str = "cpu",
-        margin: float = 0.1,
         policy_bundle=None,
-        safety_filter: str | None = None,
-        name: str | None = None,
+        overrides: dict | None = None,
+        experiment: ReplanExperiment | None = None,
+        name: str = "diffusion",
     ):
-        if candidates < 1:
-            raise ValueError(f"candidates must be >= 1, got {candidates}")
         self.policy, self.pre, self.post = policy_bundle or load_policy(path, device)
         set_inference_steps(self.policy, num_inference_steps)
-        # safety_filter None: the legacy world-frame adaptive rule (or standard); "none"/"cbf": the
-        # policy's own safety layer (best-of-K with core.safety.select_chunk, optional CBF filter).
-        self.policy_safety = safety_filter is not None
-        if self.policy_safety:
-            cfg = self.policy.config
-            if not (get_encoding(cfg.obstacle_encoding).egocentric and cfg.fixed_action_bounds):
-                raise ValueError(
-                    "the policy's safety layer needs a checkpoint with obstacle_encoding "
-                    f"{' or '.join(map(repr, egocentric_encodings()))} and "
-                    f"fixed_action_bounds; {path} has {cfg.obstacle_encoding!r}, {cfg.fixed_action_bounds}"
-                )
-            self.filter = safety_filter
-            self.adaptive = False
-        else:
-            self.filter = "none"
-            self.adaptive = candidates > 1 if adaptive is None else adaptive
-            if not self.adaptive and candidates != 1:
-                raise ValueError(f"the standard policy draws one candidate, got candidates={candidates}")
-        self.name = name or ("diffusion-adaptive" if self.adaptive else "diffusion")
-        self.K = candidates
+        self.config = dataclasses.replace(self.policy.config, **(overrides or {}))
+        self.replanner = Replanner(self.policy, self.config, experiment)
+        self.name = name
         self.seed = seed
         self.params = params or FormationParams()
-        self.margin = margin
         self.device = device
-        cfg = self.policy.config
-        self.n_obs, self.n_act, self.horizon = cfg.n_obs_steps, cfg.n_action_steps, cfg.horizon
-        self.encoding = cfg.obstacle_encoding  # stored in (or found once by) the policy config
+        cfg = self.config
+        self.n_obs, self.horizon = cfg.n_obs_steps, cfg.horizon
+        self.encoding = cfg.obstacle_encoding
         self.max_obstacles = cfg.max_obstacles
         self.egocentric = get_encoding(self.encoding).egocentric
-        self.template = np.asarray(self.params.graph.template)
-        self.stats = {
-            "replans": 0,
-            "replans_none_safe": 0,
-            "escapes": 0,
-            "stops": 0,
-            "steps": 0,
-            "filter_interventions": 0,
-        }
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """The replanner's counts since ``reset`` (``policy.replanner.STAT_KEYS``)."""
+        return self.replanner.stats
 
     def reset(self, scenes: Scenes) -> None:
         B = len(scenes)
@@ -226,76 +194,20 @@ class DiffusionController:
         self.env_history = np.zeros((B, self.n_obs, self.env_state.shape[1]), np.float32)
         self.history = np.zeros((B, self.n_obs, STATE_DIM), np.float32)
         self.started = np.zeros(B, dtype=bool)
-        self.queue = np.zeros((B, self.n_act, 2))
-        self.queue_pos = np.full(B, self.n_act)
-        self.last_action = np.zeros((B, 2))  # the action executed last (replan blending)
-        self.has_last = np.zeros(B, dtype=bool)
-        # warm-started replans: each episode's last chunk (normalised, whole) and the actions run since
-        self.plans = torch.zeros(B, self.horizon - self.n_obs + 1, 2)
-        self.executed = torch.zeros(B, dtype=torch.long)
         self.generator = torch.Generator().manual_seed(self.seed)
-        # MPPI's tuned field: walls x3 within 0.9 m (x30 leaves one-cell valleys the square cannot use).
-        self.ctg = (
-            cost_to_go(scenes.obstacles, scenes.goal, inflate=0.9, wall_cost=3.0) if self.adaptive else None
-        )
-        self.replans = 0
+        self.replanner.reset(B)
 
     def _noise(self, n: int) -> torch.Tensor:
         return torch.randn((n, self.horizon, 2), generator=self.generator)
 
-    @torch.no_grad()
-    def plan(self, idx: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """New action chunks (len(idx), n_action_steps, 2) for episodes idx."""
-        n, K = len(idx), self.K
+    def _history(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Normalised observation histories (len(rows), n_obs_steps, ...) of episodes ``rows``."""
+        idx = rows.numpy()
         obs = {
-            "observation.state": torch.from_numpy(self.history[idx]),
-            "observation.environment_state": torch.from_numpy(self.env_history[idx]),
+            OBS_STATE: torch.from_numpy(self.history[idx]),
+            OBS_ENV_STATE: torch.from_numpy(self.env_history[idx]),
         }
-        batch = self.pre(obs)
-        cfg = self.policy.config
-        warm = None
-        if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
-            from lerobot_formation.modeling_formation_diffusion import warm_start_guess
-
-            rows = torch.from_numpy(idx)
-            guess = warm_start_guess(self.plans[rows], self.executed[rows], self.n_obs, self.horizon)
-            warm = (guess, torch.from_numpy(self.has_last[idx]))
-        # the whole predicted horizon from the current step, K candidates per episode
-        chunks = self.policy.sample_action_chunks(batch, K, noise=self._noise(n * K), warm_start=warm)
-        cand = self.post(chunks.reshape(n * K, *chunks.shape[2:])).cpu().numpy().astype(np.float64)
-        cand = cand.reshape(n, K, *cand.shape[1:])
-        cand = blend_replan(cand, self.last_action[idx], self.has_last[idx], cfg.replan_blend_steps)
-        self.replans += 1
-        self.stats["replans"] += n
-        if self.policy_safety and K > 1:
-            chosen, info = self.policy.choose_chunk_raw(
-                self.env_history[idx, -1], cand, self.last_action[idx], self.has_last[idx]
-            )
-            self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
-            self.stats["escapes"] += int(info["escaped"].sum())
-            self.stats["stops"] += int(info["stopped"].sum())
-            return self._keep(idx, chosen)
-        if self.policy_safety or not self.adaptive:
-            return self._keep(idx, cand[:, 0])
-        choice, _ = select_safest(
-            poses,
-            cand,
-            self.scenes.obstacles[idx],
-            self.ctg[idx],
-            self.template,
-            self.params.dt,
-            self.params.agent_radius,
-            self.margin,
-        )
-        return cand[np.arange(n), choice, : self.n_act]
-
-    def _keep(self, idx: np.ndarray, chosen: np.ndarray) -> np.ndarray:
-        """Remember the kept chunks (len(idx), T, 2) [m/s, rad/s] for warm starts; their first
-        n_action_steps actions are what runs."""
-        rows = torch.from_numpy(idx)
-        self.plans[rows] = self.policy.normalize_action(torch.from_numpy(chosen)).to(self.plans.dtype)
-        self.executed[rows] = 0
-        return chosen[:, : self.n_act]
+        return self.pre(obs)
 
     def act(self, state: FormationState, idx: np.ndarray) -> np.ndarray:
         s = self.scenes
@@ -318,20 +230,7 @@ class DiffusionController:
         old = idx[~new]
         self.history[old] = np.concatenate([self.history[old, 1:], obs[~new][:, None]], axis=1)
         self.env_history[old] = np.concatenate([self.env_history[old, 1:], env[~new][:, None]], axis=1)
-        need = self.queue_pos[idx] >= self.n_act
-        if need.any():
-            rows = idx[need]
-            self.queue[rows] = self.plan(rows, state.pose[need])
-            self.queue_pos[rows] = 0
-        a = self.queue[idx, self.queue_pos[idx]]
-        self.queue_pos[idx] += 1
-        self.executed[torch.from_numpy(idx)] += 1
-        self.stats["steps"] += len(idx)
-        if self.filter == "cbf":
-            a, changed = self.policy.filter_action_raw(env, a)
-            self.stats["filter_interventions"] += int(changed.sum())
-            if self.policy.config.replan_on_intervention:  # as select_action: replan at the next step
-                self.queue_pos[idx[changed]] = self.n_act
-        self.last_action[idx] = a
-        self.has_last[idx] = True
-        return a
+        action = self.replanner.act(
+            torch.from_numpy(np.ascontiguousarray(env)), self._history, torch.from_numpy(idx), self._noise
+        )
+        return self.post(action).cpu().numpy().astype(np.float64)

@@ -35,6 +35,7 @@ place), with ``distill_log.json`` (the loss curve) beside it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -54,19 +55,17 @@ CARRIED_FILES = ("dataset_scenes.json",)  # files of the teacher's folder the st
 
 
 def student_config(teacher_cfg, student_steps: int):
-    """The teacher's config for an x_0-predicting student of ``student_steps`` trailing DDIM steps.
-    The student samples from pure noise, as it was trained: a teacher's warm start is dropped."""
-    import copy
-
-    cfg = copy.deepcopy(teacher_cfg)
-    cfg.noise_scheduler_type = "DDIM"
-    cfg.prediction_type = "sample"
-    cfg.num_inference_steps = int(student_steps)
-    cfg.timestep_spacing = "trailing"
-    if hasattr(cfg, "warm_start_step"):
-        cfg.warm_start_step = 0
-        cfg.warm_start_all_candidates = False
-    return cfg
+    """The teacher's config for an x_0-predicting student of ``student_steps`` trailing DDIM steps
+    (``dataclasses.replace``: the config's checks run). The student samples from pure noise, as it was
+    trained: a teacher's warm start is dropped."""
+    return dataclasses.replace(
+        teacher_cfg,
+        noise_scheduler_type="DDIM",
+        prediction_type="sample",
+        num_inference_steps=int(student_steps),
+        timestep_spacing="trailing",
+        warm_start_step=0,
+    )
 
 
 def student_sample(model, cond, noise, steps: int):

@@ -52,9 +52,8 @@ def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
     if theirs == (ours,):
         return
     wanted = getattr(policy_cfg, "obstacle_encoding", None)
-    if wanted is None:
-        wanted = next((e for e in ENCODINGS if (environment_state_dim(e),) == theirs), None)
-    hint = f"pass --env.obstacle_encoding={wanted}" if wanted else "no obstacle encoding of this env fits"
+    sizes = ", ".join(f"{e} {environment_state_dim(e)}" for e in ENCODINGS)
+    hint = f"pass --env.obstacle_encoding={wanted}" if wanted else f"the encodings' sizes: {sizes}"
     size = theirs[0] if len(theirs) == 1 else theirs
     raise config_error(
         f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' {ours} values, but the "

@@ -2,19 +2,11 @@
 
 ``evaluate(controller, scenes)`` steps all live episodes with one ``dynamics.step`` call and one
 controller call per control step, then computes the per-episode records. It is the engine behind
-``lerobot-formation-bench`` and the dataset generator; ``run_set`` is the bench's evaluation run (the
-named controllers on one scene set, with their metrics and figures).
+``lerobot-formation-bench``, the ablation and sweep scripts and the dataset generator.
 """
 
 from __future__ import annotations
 
-import sys
-import time
-from pathlib import Path
-
-from lerobot_formation.bench_figures import write_comparison_figure, write_figures
-from lerobot_formation.bench_results import controller_results, safety_rates
-from lerobot_formation.controllers import make_controller
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import Controller, EpisodeRecords, rollout
 from lerobot_formation.core.scene import Scenes
@@ -38,49 +30,3 @@ def evaluate(
     finally:
         if bar is not None:
             bar.close()
-
-
-class BenchInputError(ValueError):
-    """A bad input found while running (a controller that this checkpoint cannot serve, ...): reported
-    as one ``error:`` line, exit code 2, after writing the results of the controllers that finished."""
-
-
-def run_set(
-    names, scenes, params, args, out: Path, label: str, bundle, figures: bool, into: dict | None = None
-) -> dict:
-    """Run the controllers ``names`` on ``scenes``; each finished controller's entry is put into
-    ``into`` (default: a new dict, returned) at once, so a later failure keeps it."""
-    results, records = (into if into is not None else {}), {}
-    spec = (args.unseen if label == "unseen" else args.scenes) or ""
-    for name in names:
-        t0 = time.perf_counter()
-        try:
-            ctrl = make_controller(name, params, args, bundle)
-        except ValueError as e:
-            raise BenchInputError(f"controller {name}: {e}") from e
-        # Progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them.
-        progress = not args.no_progress and sys.stderr.isatty()
-        rec = evaluate(ctrl, scenes, params, progress=progress, desc=f"{name} ({label})")
-        entry = controller_results(rec, scenes)
-        entry["wall_time_s"] = time.perf_counter() - t0
-        if getattr(ctrl, "stats", None):  # the safety layer's interventions
-            entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
-        entry["scenes"] = label
-        if figures:
-            from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
-
-            title = f"{name} on {scene_set_label(spec, args.seed)}" if spec else ""
-            entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
-            records[name] = rec
-        results[name] = entry
-        lo, hi = entry["success_ci95"]
-        print(
-            f"[{label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
-            f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
-            flush=True,
-        )
-    if figures and len(records) > 1:
-        shared = write_comparison_figure(out, label, records, scenes, spec, args.seed)
-        for entry in results.values():
-            entry["figures"].append(shared)
-    return results

@@ -1,6 +1,9 @@
-"""``formation_diffusion``: LeRobot's ``DiffusionPolicy`` plus an EMA of its weights used for inference.
+"""``formation_diffusion``: LeRobot's ``DiffusionPolicy`` plus an EMA of its weights used for inference,
+batched candidate sampling with a lean inference path and warm starts, and (with the safety layer or
+warm starts on) the per-episode ``Replanner`` (``policy/replanner.py``) behind ``select_action``.
 
-Only the EMA is added; the U-Net, noise scheduler, loss and action queue are LeRobot's.
+The U-Net, noise scheduler, loss and training forward are LeRobot's; with the default config
+(K = 1, no filter, no warm start) ``select_action`` is LeRobot's, action queue included.
 
 EMA (as diffusers' ``EMAModel`` and the original Diffusion Policy define it):
 
@@ -33,8 +36,8 @@ not executed, shifted to the new time and padded with its last action (``warm_st
 noised to the sampler's j-th timestep t_j, x = sqrt(abar_t_j) guess + sqrt(1 - abar_t_j) noise (the
 forward process, DDPM eq. 4), and denoised from there (SDEdit): the new plan keeps the way round an
 obstacle the last one chose unless the observation says otherwise, and the replan costs j fewer
-denoiser calls. An episode's first replan starts from pure noise. Same in ``select_action`` and the
-engine (``diffusion_controller``).
+denoiser calls. An episode's first replan starts from pure noise. The ``Replanner`` builds the guess
+(``warm_start_guess``); ``select_action`` and the engine's controller both run it.
 
 Multi-GPU (``accelerate launch --multi_gpu --num_processes=N $(which lerobot-train) ...``): DDP
 averages the gradients, so after each optimizer step the live weights are identical on every process;
@@ -46,11 +49,10 @@ gradients, so DDP neither reduces nor waits for them.
 
 from __future__ import annotations
 
-import functools
+import dataclasses
 import logging
 import warnings
 
-import numpy as np
 import torch
 from diffusers.schedulers.scheduling_ddim import DDIMScheduler
 from diffusers.training_utils import EMAModel
@@ -59,11 +61,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from safetensors import safe_open
 from torch import Tensor
 
-from lerobot_formation.configuration_formation_diffusion import ENV_STATE_DIMS, FormationDiffusionConfig
-from lerobot_formation.core import safety
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
-from lerobot_formation.core.replan_blend import blend_replan
+from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.lerobot_compat import (
     add_weights_loaded_hook,
     denoiser_parts,
@@ -71,33 +69,12 @@ from lerobot_formation.lerobot_compat import (
     push_observation,
     queued_history,
 )
+from lerobot_formation.policy.replanner import Replanner
 
 EMA_PREFIX = "ema_diffusion."
 
 
-@functools.cache
-def _safety_geometry() -> tuple[np.ndarray, float, float]:
-    """The formation template (N, 2), dt and agent radius the safety layer assumes: the env's defaults
-    (built once: ``FormationParams`` checks the graph's rigidity, ~0.7 ms, at every construction)."""
-    params = FormationParams()
-    template = np.asarray(params.graph.template)
-    template.flags.writeable = False
-    return template, params.dt, params.agent_radius
-
-
 logger = logging.getLogger(__name__)
-
-
-def warm_start_guess(previous: Tensor, executed: Tensor, n_obs_steps: int, horizon: int) -> Tensor:
-    """The warm start of a replan (B, horizon, A): the previous chunk ``previous`` (B, T, A), its
-    actions from the previous replan's step on, after ``executed`` (B,) of them ran, shifted to the new
-    sample's window (which starts ``n_obs_steps - 1`` steps before the current one) and padded with its
-    last action."""
-    offset = executed.to(torch.long) - (n_obs_steps - 1)  # index in ``previous`` of the window's start
-    idx = (offset[:, None] + torch.arange(horizon, device=previous.device)[None]).clamp(
-        0, previous.shape[1] - 1
-    )
-    return torch.gather(previous, 1, idx[..., None].expand(-1, -1, previous.shape[-1]))
 
 
 class _DDIMSteps:
@@ -289,6 +266,8 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         num_candidates: int = 1,
         noise: Tensor | None = None,
         warm_start: tuple[Tensor, Tensor] | None = None,
+        warm_start_step: int | None = None,
+        warm_all: bool = False,
     ) -> Tensor:
         """K candidate chunks per observation in one batched denoiser call.
 
@@ -297,9 +276,9 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         current step on (the first ``n_action_steps`` are what ``select_action`` executes). ``noise``
         (B * K, horizon, 2), if given, is the initial noise, candidates of one observation adjacent.
         ``warm_start`` = (guess (B, horizon, 2) normalised, use (B,) bool): with ``warm_start_step``
-        j > 0 the rows of ``use`` start at the sampler's j-th timestep from their guess (see the module
-        docstring): the first candidate of a row, or with ``warm_start_all_candidates`` all K, each
-        from the same guess with its own noise.
+        j > 0 (default: the config's) the rows of ``use`` start at the sampler's j-th timestep from
+        their guess (see the module docstring): the first candidate of a row, or with ``warm_all`` all
+        K, each from the same guess with its own noise.
         """
         model = self.inference_model
         cond = global_conditioning(model, batch)  # (B, cond)
@@ -308,10 +287,10 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             cond = cond.repeat_interleave(K, dim=0)
         if warm_start is not None and K > 1:  # the first candidate of each row continues its last plan
             guess, use = (x.repeat_interleave(K, dim=0) for x in warm_start)
-            if not self.config.warm_start_all_candidates:
+            if not warm_all:
                 use = use & ((torch.arange(B * K, device=use.device) % K) == 0)
             warm_start = (guess, use)
-        full = self._sample(model, cond, noise, warm_start)
+        full = self._sample(model, cond, noise, warm_start, warm_start_step)
         return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
 
     def _sample(
@@ -320,6 +299,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         cond: Tensor,
         noise: Tensor | None = None,
         warm_start: tuple[Tensor, Tensor] | None = None,
+        warm_start_step: int | None = None,
     ) -> Tensor:
         """(len(cond), horizon, action_dim) denoised samples of ``model`` for the conditioning vectors
         ``cond``, from ``noise`` (else fresh ``torch.randn``, as ``conditional_sample`` draws it), on
@@ -327,7 +307,9 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         ``sample_action_chunks``, per row of ``cond``."""
         backend = self.config.inference_backend
         self._sync_timestep_spacing(model)
-        j = self.config.warm_start_step if warm_start is not None and bool(warm_start[1].any()) else 0
+        if warm_start_step is None:
+            warm_start_step = self.config.warm_start_step
+        j = warm_start_step if warm_start is not None and bool(warm_start[1].any()) else 0
         parts = None if backend == "eager" and j == 0 else denoiser_parts(model)
         if parts is None:
             return model.conditional_sample(len(cond), global_cond=cond, noise=noise)
@@ -394,156 +376,52 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         low, high = self._action_scale()
         return (action.float() - low) / (high - low) * 2 - 1
 
-    def _safety_geometry(self):
-        return _safety_geometry()
-
-    def _observed_obstacles(self, env_state) -> tuple[np.ndarray, np.ndarray]:
-        """Goal (B, 2) and obstacles (B, M, 3) in the body frame from a raw ``nearest`` observation."""
-        encoding = get_encoding(self.config.obstacle_encoding)
-        slots = encoding.slots(self.config.max_obstacles)
-        env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
-        if encoding.trailing:  # e.g. "nearest+route": the nearest part, then a route hint
-            env = env[:, : env.shape[1] - encoding.trailing]
-        goal, obstacles, _ = safety.decode_nearest(env, slots)
-        return goal, obstacles
-
-    def choose_chunk_raw(
-        self, env_state, chunks: np.ndarray, last_action: np.ndarray | None = None, has_last=None
-    ) -> tuple[np.ndarray, dict]:
-        """Best-of-K (``core.safety.select_chunk``) with this policy's settings: env_state (B, D) raw
-        ``nearest`` observation, chunks (B, K, T, 2) in m/s and rad/s -> kept chunks (B, T, 2), info.
-        With ``replan_blend_steps`` and the last executed actions (B, 2) [m/s, rad/s] and ``has_last``
-        (B,), the escape manoeuvres are blended into them as the sampled chunks were."""
-        goal, obstacles = self._observed_obstacles(env_state)
-        template, dt, agent_radius = self._safety_geometry()
-        m = self.config.replan_blend_steps
-        blend = None if last_action is None or m == 0 else (np.asarray(last_action), np.asarray(has_last), m)
-        return safety.select_chunk(
-            chunks,
-            obstacles,
-            goal,
-            template,
-            dt,
-            agent_radius,
-            self.config.safety_margin,
-            escape_advantage=self.config.escape_advantage,
-            blend=blend,
-            blocked_fallback=self.config.blocked_fallback,
-        )
-
-    def filter_action_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """CBF filter (``core.safety.cbf_filter``) with this policy's settings on [v, omega] (B, 2)
-        -> (filtered, changed)."""
-        _, obstacles = self._observed_obstacles(env_state)
-        template, _, agent_radius = self._safety_geometry()
-        return safety.cbf_filter(
-            action,
-            obstacles,
-            template,
-            agent_radius,
-            self.config.safety_margin,
-            self.config.cbf_rate,
-            np.asarray(self.config.action_low),
-            np.asarray(self.config.action_high),
-        )
-
-    def choose_chunk(
-        self, env_state: Tensor, chunks: Tensor, last_action: Tensor | None = None, has_last=None
-    ) -> tuple[Tensor, dict]:
-        """``choose_chunk_raw`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept
-        chunks (B, T, 2) normalised."""
-        raw = self.unnormalize_action(chunks).numpy().astype(np.float64)
-        if last_action is not None:
-            last_action = self.unnormalize_action(last_action).numpy().astype(np.float64)
-            has_last = has_last.cpu().numpy()
-        chosen, info = self.choose_chunk_raw(env_state, raw, last_action, has_last)
-        return self.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
-
-    def filter_action(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
-        """``filter_action_raw`` on normalised actions (B, 2) -> (filtered normalised, changed)."""
-        out, changed = self.filter_action_raw(
-            env_state, self.unnormalize_action(action).numpy().astype(np.float64)
-        )
-        filtered = self.normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
-        return filtered, changed
-
     def reset(self):
+        """LeRobot's reset (observation queues), and a fresh start of ``self.replanner`` (a new one, with
+        the same experiment settings, if the config was replaced)."""
         super().reset()
-        self.safety_stats = {
-            "replans": 0,
-            "replans_none_safe": 0,
-            "escapes": 0,
-            "stops": 0,
-            "steps": 0,
-            "filter_interventions": 0,
-        }
-        self._plan: Tensor | None = None  # (B, T, 2) normalised chunk of each episode, T = its horizon
-        self._plan_pos: Tensor | None = None  # (B,) next action of each episode's chunk
-        self._executed: Tensor | None = None  # (B,) actions run since the episode's last replan
+        replanner = getattr(self, "replanner", None)
+        if replanner is None or replanner.config is not self.config:
+            self.replanner = Replanner(self, experiment=replanner.experiment if replanner else None)
+        else:
+            replanner.reset()
+
+    @property
+    def safety_stats(self) -> dict[str, int]:
+        """Counts of ``select_action``'s replanner since the last ``reset`` (``policy.replanner.STAT_KEYS``)."""
+        return self.replanner.stats
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
-        """``DiffusionPolicy.select_action`` (same observation history), plus the safety layer when
-        ``num_candidates > 1`` or ``safety_filter != "none"``: best-of-K at every replan, the CBF filter
-        on every executed action, and (``replan_on_intervention``) a fresh plan for an episode whose
-        action the filter changed. Each episode of the batch keeps its own chunk and replans on its own,
-        as the batched engine does; with ``warm_start_step`` a replan starts from the rest of the
-        episode's last chunk (``warm_start_guess``). Counts go to ``self.safety_stats``.
+        """``DiffusionPolicy.select_action`` (same observation history). With the safety layer
+        (``num_candidates > 1`` or ``safety_filter != "none"``) or warm-started replans, the policy's
+        ``Replanner`` runs instead of LeRobot's action queue: each episode of the batch keeps its own
+        chunk and replans on its own (best-of-K, the CBF filter, replan on intervention, warm starts),
+        as the engine does. Counts go to ``self.safety_stats``.
         """
         if not self.config.plans_per_episode:
             return super().select_action(batch, noise=noise)
         batch = {k: v for k, v in batch.items() if k != ACTION}
         env_now = batch[OBS_ENV_STATE]
         push_observation(self, batch)
-        cfg = self.config
-        B, n_act = len(env_now), cfg.n_action_steps
-        if self._plan is None or len(self._plan) != B:
-            T = cfg.horizon - cfg.n_obs_steps + 1
-            self._plan = torch.zeros(B, T, cfg.action_feature.shape[0], device=env_now.device)
-            self._plan_pos = torch.full((B,), n_act, dtype=torch.long)
-            self._executed = torch.zeros(B, dtype=torch.long)
-            self._last_action = torch.zeros(B, self._plan.shape[-1], device=env_now.device)
-            self._has_last = torch.zeros(B, dtype=torch.bool)
-        need = torch.nonzero(self._plan_pos >= n_act).flatten()
-        if len(need):
-            stacked = {k: v[need] for k, v in queued_history(self, batch).items()}
+        if self.replanner.plan is None or len(self.replanner.plan) != len(env_now):
+            self.replanner.start(len(env_now), env_now.device)
+
+        def history(rows: Tensor) -> dict[str, Tensor]:
+            stacked = {k: v[rows] for k, v in queued_history(self, batch).items()}
             self._check_observation_sizes(stacked)
-            warm = None
-            if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
-                guess = warm_start_guess(self._plan[need], self._executed[need], cfg.n_obs_steps, cfg.horizon)
-                warm = (guess, self._has_last[need])
-            chunks = self.sample_action_chunks(stacked, cfg.num_candidates, noise=noise, warm_start=warm)
-            chunks = blend_replan(
-                chunks,
-                self._last_action[need].to(chunks.dtype),
-                self._has_last[need],
-                self.config.replan_blend_steps,
-            )
-            if self.config.num_candidates > 1:
-                chosen, info = self.choose_chunk(
-                    env_now[need], chunks, self._last_action[need], self._has_last[need]
-                )
-                self.safety_stats["replans_none_safe"] += int((~info["any_safe"]).sum())
-                self.safety_stats["escapes"] += int(info["escaped"].sum())
-                self.safety_stats["stops"] += int(info["stopped"].sum())
-            else:
-                chosen = chunks[:, 0]
-            self.safety_stats["replans"] += len(need)
-            self._plan[need] = chosen.to(self._plan.dtype)
-            self._plan_pos[need] = 0
-            self._executed[need] = 0
-        action = self._plan[torch.arange(B), self._plan_pos]
-        self._plan_pos += 1
-        self._executed += 1
-        self.safety_stats["steps"] += B
-        if self.config.safety_filter == "cbf":
-            action, changed = self.filter_action(env_now, action)
-            self.safety_stats["filter_interventions"] += int(changed.sum())
-            if self.config.replan_on_intervention:  # the plan met a barrier: replan at the next step
-                self._plan_pos[torch.from_numpy(changed)] = n_act
-        self._last_action = action.detach().to(self._last_action.dtype).clone()
-        self._has_last[:] = True
-        return action
+            return stacked
+
+        return self.replanner.act(env_now, history, noise=noise)
+
+    def reconfigure(self, **changes) -> None:
+        """Run with a copy of the config with ``changes`` (``dataclasses.replace``, so its checks run);
+        the diffusion models share the new config."""
+        self.config = dataclasses.replace(self.config, **changes)
+        for model in (self.diffusion, self.ema_diffusion):
+            if model is not None:
+                model.config = self.config
+        self.reset()
 
     def get_optim_params(self) -> dict:
         """The live diffusion model's parameters only (never the EMA copy)."""
@@ -599,9 +477,8 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         for key, feature in self.config.input_features.items():
             if key in batch and batch[key].shape[-1] != feature.shape[0]:
                 hint = ""
-                if key == OBS_ENV_STATE and feature.shape[0] in ENV_STATE_DIMS:
-                    encoding = ENCODINGS[ENV_STATE_DIMS.index(feature.shape[0])]
-                    hint = f" Evaluate with --env.obstacle_encoding={encoding}."
+                if key == OBS_ENV_STATE and self.config.obstacle_encoding is not None:
+                    hint = f" Evaluate with --env.obstacle_encoding={self.config.obstacle_encoding}."
                 raise ValueError(
                     f"'{key}' has {batch[key].shape[-1]} values per step, but this policy was trained on "
                     f"{feature.shape[0]}.{hint}"

@@ -9,7 +9,7 @@ from lerobot_formation.controllers import controller_names, needs_policy
 PAPER_THREE_WAY = {
     "success_rate": (
         "Success Rate (%)",
-        {"mppi": 65.0, "diffusion": 62.0, "pac": 100.0, "diffusion-adaptive": 70.0},  # adaptive: Table 2
+        {"mppi": 65.0, "diffusion": 62.0, "pac": 100.0, "diffusion-bestof": 70.0},  # adaptive: Table 2
     ),
     "path_length": (
         "Path Length (m)",
@@ -66,10 +66,10 @@ EXTRA_ROWS = {
 }
 PAPER_ADAPTIVE = {
     ("unseen", "diffusion"): 25.0,
-    ("unseen", "diffusion-adaptive"): 26.0,
+    ("unseen", "diffusion-bestof"): 26.0,
     ("dataset", "diffusion"): 62.0,
 }
-PAPER_ADAPTIVE[("dataset", "diffusion-adaptive")] = 70.0
+PAPER_ADAPTIVE[("dataset", "diffusion-bestof")] = 70.0
 SET_TITLES = {
     "unseen": "Random seeds (unseen)",
     "random": "Random seeds (unseen)",

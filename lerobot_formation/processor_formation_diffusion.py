@@ -11,13 +11,6 @@ the env and the U-Net's conditioning are unchanged; only what the numbers mean i
 must react to obstacles *relative to itself*; in world coordinates a small network has to learn the
 subtraction and the rotation by the heading before it can learn to avoid anything.
 
-The optional ``EgocentricStateProcessorStep`` (``--policy.egocentric_state=true``, needs an egocentric
-obstacle view: "nearest", or "grid+list" with egocentric obstacles) does the same for
-``observation.state``: [x, y, cos phi, sin phi, x', y', omega] becomes [0, 0, 0, 1, v_right,
-v_forward, omega], the midpoint at the origin of its own frame facing +y, its velocity in that frame.
-Why: once goal and obstacles are relative to the team, its world position and heading carry no
-information about what to do, only a chance to fit spurious correlations (the paper's scenes always
-start at the origin heading the same way; the wide scenes do not).
 """
 
 from __future__ import annotations
@@ -100,40 +93,6 @@ class EgocentricObstaclesProcessorStep(ObservationProcessorStep):
         return features  # same keys, same shapes
 
 
-def egocentric_state(state: torch.Tensor) -> torch.Tensor:
-    """[x, y, cos phi, sin phi, x', y', omega] (..., 7) -> [0, 0, 0, 1, v_right, v_forward, omega] in the
-    midpoint's body frame (x right, y along the heading: ``core.obstacle_grid.world_to_body``)."""
-    if state.shape[-1] != 7:
-        raise ValueError(
-            f"egocentric state needs {STATE} [x, y, cos, sin, x', y', omega] (7,), got {tuple(state.shape)}"
-        )
-    c, s, vx, vy = state[..., 2:3], state[..., 3:4], state[..., 4:5], state[..., 5:6]
-    zero = torch.zeros_like(c)
-    # R(phi - pi/2)^T: cos(phi - pi/2) = sin phi, sin(phi - pi/2) = -cos phi
-    right, forward = vx * s - vy * c, vx * c + vy * s
-    return torch.cat([zero, zero, zero, torch.ones_like(c), right, forward, state[..., 6:7]], -1)
-
-
-@dataclass
-@ProcessorStepRegistry.register(name="formation_egocentric_state")
-class EgocentricStateProcessorStep(ObservationProcessorStep):
-    """``observation.state`` in the midpoint's own frame (see the module docstring)."""
-
-    def observation(self, observation: dict) -> dict:
-        if STATE not in observation:
-            raise ValueError(f"egocentric state needs {STATE}; the observation has {sorted(observation)}")
-        observation[STATE] = egocentric_state(observation[STATE])
-        return observation
-
-    def get_config(self) -> dict[str, Any]:
-        return {}
-
-    def transform_features(
-        self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
-    ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
-        return features  # same keys, same shapes
-
-
 def make_formation_diffusion_pre_post_processors(
     config: FormationDiffusionConfig,
     dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None,
@@ -151,21 +110,16 @@ def make_formation_diffusion_pre_post_processors(
     Returns:
         (preprocessor, postprocessor).
     """
-    if getattr(config, "fixed_action_bounds", False) and dataset_stats is not None:
+    if config.fixed_action_bounds and dataset_stats is not None:
         # the env's fixed bounds, so that the policy can unnormalise its own chunks (safety layer)
         action_stats = dict(dataset_stats.get(ACTION, {}))
         action_stats["min"] = torch.tensor(config.action_low, dtype=torch.float32)
         action_stats["max"] = torch.tensor(config.action_high, dtype=torch.float32)
         dataset_stats = {**dataset_stats, ACTION: action_stats}
     pre, post = make_diffusion_pre_post_processors(config, dataset_stats)
-    if getattr(config, "egocentric_obstacles", False):
+    if config.egocentric_obstacles:
         steps = list(pre.steps)
         at = next(i for i, st in enumerate(steps) if isinstance(st, NormalizerProcessorStep))
         steps.insert(at, EgocentricObstaclesProcessorStep(max_obstacles=config.max_obstacles or 5))
-        pre.steps = steps
-    if getattr(config, "egocentric_state", False):  # after the obstacle step, which needs the world pose
-        steps = list(pre.steps)
-        at = next(i for i, st in enumerate(steps) if isinstance(st, NormalizerProcessorStep))
-        steps.insert(at, EgocentricStateProcessorStep())
         pre.steps = steps
     return pre, post

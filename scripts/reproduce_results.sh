@@ -32,7 +32,8 @@ $PY benchmarks/bench_train_throughput.py --dataset.root data/formation_pac_list 
   --num-workers 1 --fast-reads | tee $OUT/bench_train_throughput.log
 
 # The paper's experiments (issue 5)
-$BIN/lerobot-formation-bench --controllers pac,mppi,diffusion,diffusion-adaptive --policy.path $MODEL \
+# (the world-frame "diffusion-adaptive" rule is retired: best-of-K needs an egocentric checkpoint)
+$BIN/lerobot-formation-bench --controllers pac,mppi,diffusion --policy.path $MODEL \
   --scenes dataset:100 --unseen random:100 --out $OUT/bench --no-progress | tee $OUT/bench.log
 for k in 2 5 10 25 100; do
   $BIN/lerobot-formation-bench --controllers diffusion --policy.path $MODEL --scenes dataset:100 \

@@ -29,7 +29,7 @@ def _policy(**overrides) -> FormationDiffusionPolicy:
 
 
 def _chunks(policy, backend, batch, k, noise):
-    policy.config.inference_backend = backend
+    policy.reconfigure(inference_backend=backend)
     return policy.sample_action_chunks(batch, k, noise=noise)
 
 
@@ -97,7 +97,7 @@ def test_unseeded_noise_is_drawn_as_lerobot_draws_it():
     batch = history_batch(2)
     chunks = {}
     for backend in ("eager", "trace"):
-        policy.config.inference_backend = backend
+        policy.reconfigure(inference_backend=backend)
         torch.manual_seed(5)
         chunks[backend] = policy.sample_action_chunks(batch, 2)
     torch.testing.assert_close(chunks["trace"], chunks["eager"], **TOL)
@@ -260,7 +260,7 @@ def test_timestep_spacing_field_is_checked_and_applied(tmp_path):
     scheduler = policy.ema_diffusion.noise_scheduler
     assert scheduler.config.timestep_spacing == "trailing"
     assert list(scheduler.timesteps) == [scheduler.config.num_train_timesteps - 1]  # leading: [0]
-    policy.config.timestep_spacing = "leading"  # a changed config takes effect at the next call
+    policy.reconfigure(timestep_spacing="leading")  # a changed config takes effect at the next call
     policy.sample_action_chunks(history_batch(1), 1, noise=sampling_noise(1))
     assert list(policy.ema_diffusion.noise_scheduler.timesteps) == [0]
 

@@ -67,6 +67,7 @@ def trained(workdir, dataset_root, run_cli) -> Path:
         f"--dataset.repo_id={REPO_ID}",
         f"--dataset.root={dataset_root}",
         "--env.obstacle_encoding=grid+list",
+        "--policy.obstacle_encoding=grid+list",  # stored in the checkpoint, never guessed from the size
         "--policy.egocentric_obstacles=true",  # the CPU config's custom preprocessor step
         f"--output_dir={out}",
         cwd=workdir,
