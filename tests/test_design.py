@@ -34,7 +34,7 @@ def make_controller(name, params, args, bundle=None):
 GOAL_ONLY = """
 import numpy as np
 
-from lerobot_formation.core.obstacle_grid import ObstacleEncoding, world_to_body
+from lerobot_formation.core.encoding import ObstacleEncoding, world_to_body
 
 
 def encode(obstacles, mask, goal, pose, slots):
