@@ -32,7 +32,7 @@ Run (full size)::
 
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts c --threads 1
 
-(d) The distilled few-step sampler (``--student PATH``, ``python -m lerobot_formation.distill``): one
+(d) The distilled few-step sampler (``--student PATH``, ``python -m lerobot_formation.policy.distill``): one
     replan at B=1 through LeRobot's ``select_action`` with the checkpoint's processors (``reset()``
     first), teacher (``--policy.path``) with its own sampler against the student with its own, for K in
     ``--lean-candidates`` (K > 1: the safety layer's best-of-K), both traced. ``--parts d`` runs only
@@ -88,9 +88,9 @@ def paper_policy(config_path: Path):
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
     from lerobot_formation.core.obstacle_grid import environment_state_dim
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
     raw = json.loads(config_path.read_text())
     fields = {k: v for k, v in raw["policy"].items() if k != "type"}
@@ -158,7 +158,7 @@ LEAN_VARIANTS = ("eager", "+inference_mode", "+DDIM precomputed", "+traced U-Net
 def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
     """Median ms of one B=1 replan with K=candidates for each of LEAN_VARIANTS (timed in turn, after two
     warm-up calls each), and the largest chunk difference from eager ("max diff")."""
-    from lerobot_formation.lerobot_compat import global_conditioning
+    from lerobot_formation.compat.lerobot_compat import global_conditioning
 
     cfg = policy.config
     env_dim = cfg.input_features["observation.environment_state"].shape[0]
@@ -206,7 +206,7 @@ def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
 def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
     """Median ms of one U-Net call at B=1 (inference_mode): eager, traced + frozen; and the ms the
     trace took to build (trace, freeze, check)."""
-    from lerobot_formation.lerobot_compat import global_conditioning
+    from lerobot_formation.compat.lerobot_compat import global_conditioning
 
     cfg = policy.config
     model = policy.inference_model
@@ -233,7 +233,7 @@ def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
 
 def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) -> str:
     """Print part (c); return its headline (K=1 at steps[0], trace against eager)."""
-    from lerobot_formation.diffusion_controller import load_policy, set_inference_steps
+    from lerobot_formation.bench.diffusion_controller import load_policy, set_inference_steps
 
     policy = load_policy(path)[0]
     cfg = policy.config
@@ -271,7 +271,7 @@ def student_part(teacher_path: str, student_path: str, candidates: list[int], re
     checkpoint's pre- and postprocessors, ``reset()`` first so the chunk is sampled), the teacher with its
     own sampler against the distilled student with its own, for K in ``candidates`` (K > 1: the
     safety layer's best-of-K, ``num_candidates``), both with inference_backend "trace"."""
-    from lerobot_formation.diffusion_controller import load_policy
+    from lerobot_formation.bench.diffusion_controller import load_policy
 
     rows = {}
     for name, path in (("teacher", teacher_path), ("student", student_path)):
@@ -311,7 +311,7 @@ def episode_replans_ms(policy, pre, post, encoding: str, seeds, scorer=None) -> 
     from lerobot.envs.utils import preprocess_observation
 
     from lerobot_formation.core import safety
-    from lerobot_formation.env import FormationEnv
+    from lerobot_formation.envs.env import FormationEnv
 
     env = FormationEnv(obstacle_encoding=encoding)
     shipped = safety.cost_to_go_at
@@ -348,9 +348,9 @@ def safety_part(path: str, k: int, scenes: int) -> str:
     progress, escape manoeuvres). The scorer's cost-to-go stops once the cells it reads are exact
     (``navigation.cost_to_go_at``); the baseline, in the same run, computes the whole field to
     convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions)."""
+    from lerobot_formation.bench.diffusion_controller import load_policy
     from lerobot_formation.core import navigation
     from lerobot_formation.core.scene import UNSEEN_SEED_START
-    from lerobot_formation.diffusion_controller import load_policy
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
 
     policy, pre, post = load_policy(path)
@@ -413,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--student",
         default=None,
-        help="a distilled few-step checkpoint (python -m lerobot_formation.distill): part (d) times it "
+        help="a distilled few-step checkpoint (python -m lerobot_formation.policy.distill): part (d) times it "
         "against --policy.path (default pretrained/formation_diffusion_safe) through select_action",
     )
     ap.add_argument("--safety-scenes", type=int, default=10, help="unseen scenes of part (e)")
@@ -423,7 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     apply_threads(args.threads)
     threads = torch.get_num_threads()
 
-    from lerobot_formation.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.bench.diffusion_controller import DiffusionController, load_policy
 
     print(
         f"torch threads {threads}, {os.cpu_count()} CPUs; median of {args.repeats} after a warm-up",
@@ -468,7 +468,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def paper_part(args) -> None:
     """Part (a): the paper-size network."""
-    from lerobot_formation.diffusion_controller import DiffusionController
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
 
     policy, pre, post = paper_policy(Path(args.paper_config))
     cfg = policy.config

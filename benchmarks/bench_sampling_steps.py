@@ -26,7 +26,7 @@ lowest time per replan is marked and is the headline, with its time per replan a
 Samplers: every step count of ``--steps`` runs with every timestep spacing of ``--spacings`` (default:
 the checkpoint's; "trailing" starts the first DDIM step at the last training timestep, which 1-3 step
 sampling needs), and every ``--student PATH`` (a distilled few-step checkpoint,
-``python -m lerobot_formation.distill``) runs with its own step count and spacing, all in one run.
+``python -m lerobot_formation.policy.distill``) runs with its own step count and spacing, all in one run.
 
 Options: ``--n-action-steps N`` executes N actions per replan instead of the checkpoint's;
 ``--inference-backend eager|lean|trace`` sets the loaded policy config's ``inference_backend``
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         "--student",
         action="append",
         default=[],
-        help="a distilled few-step checkpoint (python -m lerobot_formation.distill), run with its own "
+        help="a distilled few-step checkpoint (python -m lerobot_formation.policy.distill), run with its own "
         "num_inference_steps and timestep_spacing beside the teacher's settings; repeatable",
     )
     ap.add_argument("--out", default=None, help="write every number to this JSON file")
@@ -202,12 +202,12 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
-    from lerobot_formation.bench_results import controller_results
-    from lerobot_formation.controllers import CONTROLLERS, ControllerOptions, make_controller
+    from lerobot_formation.bench.controllers import CONTROLLERS, ControllerOptions, make_controller
+    from lerobot_formation.bench.diffusion_controller import load_policy
+    from lerobot_formation.bench.evaluation import evaluate
+    from lerobot_formation.bench.results import controller_results
+    from lerobot_formation.bench.scene_sets import parse_scenes
     from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.diffusion_controller import load_policy
-    from lerobot_formation.evaluation import evaluate
-    from lerobot_formation.scene_sets import parse_scenes
 
     if args.controller not in CONTROLLERS:
         ap.error(f"unknown controller {args.controller!r}; choose from {CONTROLLERS}")

@@ -45,11 +45,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from datasets_scripts.hub_folder import push_to_folder
-from datasets_scripts.lerobot_writer import generate
-from datasets_scripts.safe_destination import exit_on_signals
 from lerobot_formation.core.obstacle_grid import ENCODINGS
 from lerobot_formation.core.scene import SCENE_PRESETS
+from lerobot_formation.data.hub_folder import push_to_folder
+from lerobot_formation.data.lerobot_writer import generate
+from lerobot_formation.data.safe_destination import exit_on_signals
 from lerobot_formation.threads import add_threads_argument, apply_threads
 
 PAPER_EPISODES = 1878

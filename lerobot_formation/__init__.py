@@ -11,8 +11,8 @@ ENV_ID = "gym_formation/FormationNav-v0"
 if ENV_ID not in registry:
     register(
         id=ENV_ID,
-        entry_point="lerobot_formation.env:FormationEnv",
-        vector_entry_point="lerobot_formation.vector_env:FormationVectorEnv",
+        entry_point="lerobot_formation.envs.env:FormationEnv",
+        vector_entry_point="lerobot_formation.envs.vector_env:FormationVectorEnv",
         max_episode_steps=600,
     )
 

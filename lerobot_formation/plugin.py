@@ -4,7 +4,7 @@ Imported by the discovery shim ``lerobot_env_formation`` (plugin_shim/), which L
 auto-import. Importing registers the env config ``formation``, the policy config
 ``formation_diffusion`` (draccus choice registries) and the custom processor step
 ``formation_egocentric_obstacles`` (LeRobot's ``ProcessorStepRegistry``, needed to load a checkpoint's
-preprocessor), and turns on the fast windowed reads of ``lerobot_formation.fast_reads``. The policy
+preprocessor), and turns on the fast windowed reads of ``lerobot_formation.compat.fast_reads``. The policy
 class and its processor factory are found by LeRobot's naming convention
 (``configuration_`` -> ``modeling_`` / ``processor_``).
 
@@ -52,10 +52,10 @@ def quiet_torchcodec_warning() -> None:
 
 quiet_torchcodec_warning()  # before the imports below, which load LeRobot's configs
 
-import lerobot_formation.configuration_formation_diffusion  # noqa: E402, F401
-import lerobot_formation.env_config  # noqa: E402, F401
-import lerobot_formation.fast_reads  # noqa: E402, F401  (fast windowed reads for low-dim datasets)
-import lerobot_formation.processor_formation_diffusion  # noqa: E402, F401  (registers the processor step)
-from lerobot_formation.lerobot_compat import keep_final_eval_frame  # noqa: E402
+import lerobot_formation.compat.fast_reads  # noqa: E402, F401  (fast windowed reads for low-dim datasets)
+import lerobot_formation.envs.env_config  # noqa: E402, F401
+import lerobot_formation.policy.configuration_formation_diffusion  # noqa: E402, F401
+import lerobot_formation.policy.processor_formation_diffusion  # noqa: E402, F401  (registers the processor step)
+from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame  # noqa: E402
 
 keep_final_eval_frame()  # lerobot-eval's videos end on the frame with the outcome (render.EpisodeOverlay)

@@ -21,7 +21,7 @@ executed one, ``core.replan_blend``; the other rows run without it); "+ warm sta
 ``warm_start_step`` = ``--warm-start-step`` (a replan starts from the last chunk's unexecuted rest,
 noised; the other rows sample from pure noise; with ``--blend-steps 0`` these rows are named without
 "+ blending"); "+ stop": ``ReplanExperiment.blocked_fallback`` "stop"; with ``--student CKPT`` a
-distilled few-step checkpoint (``python -m lerobot_formation.distill``) standard and with its best
+distilled few-step checkpoint (``python -m lerobot_formation.policy.distill``) standard and with its best
 safety layer. The blending, escape, stop and all-candidates settings are the replanner's experiment
 settings (``policy.replanner.ReplanExperiment``), not policy config fields.
 """
@@ -34,13 +34,13 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-from lerobot_formation.bench_results import controller_results, safety_rates
-from lerobot_formation.controllers import ControllerOptions, make_controller
+from lerobot_formation.bench.controllers import ControllerOptions, make_controller
+from lerobot_formation.bench.evaluation import evaluate
+from lerobot_formation.bench.results import controller_results, safety_rates
+from lerobot_formation.bench.scene_sets import parse_scenes
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START
-from lerobot_formation.evaluation import evaluate
 from lerobot_formation.policy.replanner import ReplanExperiment
-from lerobot_formation.scene_sets import parse_scenes
 
 EXPERIMENT_FIELDS = {f.name for f in fields(ReplanExperiment)}
 
@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     params = FormationParams()
     sets = [s for s in args.sets.split(",") if s]
     scenes = {s: parse_scenes(s, args.seed) for s in sets}
-    from lerobot_formation.diffusion_controller import load_policy
+    from lerobot_formation.bench.diffusion_controller import load_policy
 
     bundles: dict[str, tuple] = {}
     results: dict[str, dict] = {}

@@ -46,7 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot.processor import NormalizerProcessorStep
 
     import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor steps)
-    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+    from lerobot_formation.policy.processor_formation_diffusion import (
+        make_formation_diffusion_pre_post_processors,
+    )
 
     src = args.checkpoint
     if not (src / "model.safetensors").is_file() or not (src / "config.json").is_file():

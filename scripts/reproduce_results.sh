@@ -92,7 +92,7 @@ $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger 
 # Few-step sampling (issue 10): DDIM steps and spacings, and a distilled one-step student
 $PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 1,2,3,4,5,10 --spacings leading,trailing \
   --out $OUT/sampling_steps_spacing.json | tee $OUT/sampling_steps_spacing.log
-$PY -m lerobot_formation.distill --teacher $SAFE --dataset.root data/formation_wide_dagger --student-steps 1 \
+$PY -m lerobot_formation.policy.distill --teacher $SAFE --dataset.root data/formation_wide_dagger --student-steps 1 \
   --steps 2000 --lr 3e-4 --batch-size 256 --save-every 200 --out outputs/distill_1step --threads 1
 $PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 2,3,4,10 \
   --student outputs/distill_1step/pretrained_model --out $OUT/sampling_steps_student.json | tee $OUT/sampling_steps_student.log

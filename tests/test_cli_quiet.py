@@ -9,8 +9,8 @@ import pytest
 from draccus.wrappers.docstring import get_attribute_docstring, get_preferred_help_text
 
 import datasets_scripts.generate_pac_dataset as gen
-from lerobot_formation import bench
-from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.bench import cli as bench
+from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.plugin import TORCHCODEC_NOTE, _TorchcodecLoadWarning, quiet_torchcodec_warning
 
 BAR = ("ep/s", "s/ep", "it/s", "%|")  # pieces of a tqdm line

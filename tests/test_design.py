@@ -6,7 +6,7 @@ import textwrap
 
 import numpy as np
 
-from lerobot_formation.controllers import CONTROLLER_FACTORIES
+from lerobot_formation.bench.controllers import CONTROLLER_FACTORIES
 from lerobot_formation.core.obstacle_grid import ENCODING_REGISTRY, environment_state_dim, get_encoding
 
 STRAIGHT = '''
@@ -46,7 +46,7 @@ ENCODING = ObstacleEncoding("goal-only", 0, 0, 2, True, encode, lambda slots: ["
 
 
 def test_a_controller_is_one_file_and_one_registry_line(tmp_path, monkeypatch):
-    from lerobot_formation.bench import main
+    from lerobot_formation.bench.cli import main
 
     (tmp_path / "straight_controller.py").write_text(textwrap.dedent(STRAIGHT))
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -61,10 +61,10 @@ def test_a_controller_is_one_file_and_one_registry_line(tmp_path, monkeypatch):
 
 
 def test_an_obstacle_encoding_is_one_file_and_one_registry_line(tmp_path, monkeypatch):
-    from datasets_scripts.dataset_frames import dataset_features, episode_frames
     from lerobot_formation.core.rollout import PACController, rollout
     from lerobot_formation.core.scene import sample_scenes
-    from lerobot_formation.env import FormationEnv
+    from lerobot_formation.data.dataset_frames import dataset_features, episode_frames
+    from lerobot_formation.envs.env import FormationEnv
 
     (tmp_path / "goal_only_encoding.py").write_text(textwrap.dedent(GOAL_ONLY))
     monkeypatch.syspath_prepend(str(tmp_path))

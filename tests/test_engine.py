@@ -36,6 +36,8 @@ import numpy as np
 import pytest
 import torch
 
+from lerobot_formation.bench.diffusion_controller import DiffusionController, load_policy, set_inference_steps
+from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.core.dynamics import FormationParams, initial_state
 from lerobot_formation.core.rollout import COLLISION, SUCCESS
 from lerobot_formation.core.scene import (
@@ -45,8 +47,6 @@ from lerobot_formation.core.scene import (
     save_scenes,
     scenes_from_list,
 )
-from lerobot_formation.diffusion_controller import DiffusionController, load_policy, set_inference_steps
-from lerobot_formation.evaluation import evaluate
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -115,7 +115,7 @@ def test_engine_actions_equal_lerobot_rollout(checkpoint, bundle, workdir):
     from lerobot.scripts.lerobot_eval import rollout
 
     from lerobot_formation.core.dynamics import clip_action
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     B, T, seed = 8, 24, 7  # three replans of n_action_steps = 8; far goals, so all stay alive
     scenes_file = workdir / "parity_scenes.json"

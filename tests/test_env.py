@@ -8,8 +8,8 @@ from gymnasium.utils.env_checker import check_env
 import lerobot_formation
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import sample_scenes, save_scenes
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 
 def test_check_env_passes():

@@ -57,7 +57,7 @@ CONSOLE_SCRIPTS = {  # console script -> draccus-wrapped function of its module 
 # configs and checkpoints are all of these types).
 DRACCUS_DEFAULT_TYPES = {"policy": "formation_diffusion", "env": "formation"}
 # scripts/run.sh subcommand -> the program it runs with the extra arguments (see scripts/run.sh).
-RUN_SH = {"demo": "python -m lerobot_formation.demo", "test": None, "setup": None}
+RUN_SH = {"demo": "python -m lerobot_formation.bench.demo", "test": None, "setup": None}
 SHELL_WORDS = {"wait", "source", "time"}  # not programs of the project: nothing to check
 
 # Paths a command writes and reads (flags; ``env:VAR`` is a VAR=value prefix).
@@ -94,7 +94,7 @@ SCALE = {
         "--unseen": {"random:100": "random:1"},
     },
     "python -m datasets_scripts.dagger_scenes": {"--rollouts": "4"},
-    "python -m lerobot_formation.distill": {"--steps": "2", "--batch-size": "8"},
+    "python -m lerobot_formation.policy.distill": {"--steps": "2", "--batch-size": "8"},
     "python benchmarks/bench_sampling_steps.py": {"--steps": "1"},
 }
 # Size flags a README command leaves at a large default: added after the program name.
@@ -393,8 +393,8 @@ def check_command(cmd: Command) -> list[str]:
         except SystemExit:
             problems.append(f"{program} rejects {args}: {err.getvalue().strip().splitlines()[-1]}")
     controllers = cmd.value("--controllers")
-    if controllers and program in ("lerobot-formation-bench", "python -m lerobot_formation.demo"):
-        from lerobot_formation.controllers import CONTROLLERS
+    if controllers and program in ("lerobot-formation-bench", "python -m lerobot_formation.bench.demo"):
+        from lerobot_formation.bench.controllers import CONTROLLERS
 
         problems += [f"unknown controller {c!r}" for c in controllers.split(",") if c not in CONTROLLERS]
     return problems
@@ -575,7 +575,7 @@ def test_the_substitution_table_fits_the_readme_and_keeps_every_run_small():
             if cmd.program == "lerobot-formation-bench":
                 counts = re.findall(r":(\d+)", f"{cmd.value('--scenes')} {cmd.value('--unseen') or ''}")
                 assert all(int(n) <= 4 for n in counts), cmd.line
-            if cmd.program == "python -m lerobot_formation.distill":
+            if cmd.program == "python -m lerobot_formation.policy.distill":
                 assert int(cmd.value("--steps")) <= 4, cmd.line
             if cmd.program == "python benchmarks/bench_sampling_steps.py":
                 assert cmd.value("--scenes") == "random:2" and cmd.value("--steps") == "1", cmd.line

@@ -21,14 +21,14 @@ import numpy as np
 import pytest
 
 from datasets_scripts import generate_pac_dataset as gen_mod
-from datasets_scripts import lerobot_writer
-from datasets_scripts.safe_destination import remove_stale_temporaries, rename_noreplace
-from lerobot_formation.bench import main as bench_main
+from lerobot_formation.bench.cli import main as bench_main
+from lerobot_formation.bench.scene_sets import parse_scenes
 from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.scene import SceneConfig, load_scenes, sample_scenes, scenes_from_list
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.scene_sets import parse_scenes
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.data import lerobot_writer
+from lerobot_formation.data.safe_destination import remove_stale_temporaries, rename_noreplace
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "pretrained" / "formation_diffusion_cpu"
@@ -457,7 +457,7 @@ def test_step_after_the_episode_ended_raises():
 
 def test_lerobot_wrapper_stack_replays_after_the_end(tmp_path):
     """LeRobot's FreezeAfterEpisodeEnd keeps stepping finished sub-envs: it must not reach the env."""
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL])
     env = FormationEnvConfig(scenes_file=str(f), episode_length=20).make_env_factory()()
@@ -498,8 +498,8 @@ def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up():
     """lerobot-train calls make_env_pre_post_processors(env_cfg, policy_cfg) before its first step."""
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66))  # a grid+list dataset
     make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid+list"), policy_cfg)
@@ -515,7 +515,7 @@ def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
     from huggingface_hub import constants
     from lerobot.configs.default import DatasetConfig
 
-    import lerobot_formation.env_config  # noqa: F401  (installs the check, as the plugin import does)
+    import lerobot_formation.envs.env_config  # noqa: F401  (installs the check, as the plugin import does)
 
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
     missing = tmp_path / "no_dataset"
@@ -530,7 +530,7 @@ def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
 
 
 def test_env_scenes_file_is_checked_at_start_up(tmp_path):
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     with pytest.raises(ValueError, match="env.scenes_file: scenes file .* does not exist"):
         FormationEnvConfig(scenes_file=str(tmp_path / "nope.json"))
@@ -538,7 +538,7 @@ def test_env_scenes_file_is_checked_at_start_up(tmp_path):
 
 # -- the formation-metrics JSONL ---------------------------------------------------------------------
 def test_jsonl_lines_carry_run_id_and_episode_index(tmp_path):
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL, EMPTY_NEAR_GOAL])
     log = tmp_path / "m.jsonl"

@@ -5,7 +5,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from datasets_scripts.dataset_frames import episode_frames
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.footprint import sequence_clearance
 from lerobot_formation.core.formation_graph import FormationGraph
@@ -14,8 +13,9 @@ from lerobot_formation.core.navigation import _SHIFTS, cost_to_go, cost_to_go_at
 from lerobot_formation.core.pac import PathAwareController
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import SCENE_PRESETS, sample_scenes, scenes_from_list
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.data.dataset_frames import episode_frames
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 TEMPLATE = np.asarray(FormationGraph().template)
 

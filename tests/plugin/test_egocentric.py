@@ -9,8 +9,8 @@ from plugin_helpers import formation_features, tiny_config
 
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.scene import sample_scenes
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-from lerobot_formation.processor_formation_diffusion import (
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.processor_formation_diffusion import (
     EgocentricObstaclesProcessorStep,
     egocentric_environment_state,
     make_formation_diffusion_pre_post_processors,

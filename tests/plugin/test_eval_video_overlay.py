@@ -7,10 +7,10 @@ import pytest
 import torch
 from plugin_helpers import tiny_config
 
-from lerobot_formation.env_config import FormationEnvConfig
-from lerobot_formation.lerobot_compat import keep_final_eval_frame
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-from lerobot_formation.render import FINAL_FRAME_KEY, OUTCOME_COLORS, annotate
+from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.envs.render import FINAL_FRAME_KEY, OUTCOME_COLORS, annotate
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 STRAIGHT = np.array([0.6, 0.0], np.float32)  # full speed ahead; the team starts at (0, 0) facing +y
 SCENES = {
@@ -124,7 +124,7 @@ def test_a_gym_made_env_gets_the_same_overlay_outside_its_time_limit():
     import gymnasium as gym
 
     import lerobot_formation
-    from lerobot_formation.render import EpisodeOverlay
+    from lerobot_formation.envs.render import EpisodeOverlay
 
     env = EpisodeOverlay(gym.make(lerobot_formation.ENV_ID, render_mode="rgb_array", max_episode_steps=8))
     env.reset(options={"scene": SCENES["timeout"]})

@@ -11,10 +11,10 @@ import torch
 from plugin_helpers import N_ACT, N_OBS, history_batch, obs_batch, sampling_noise, tiny_config
 from safetensors import safe_open
 
-from lerobot_formation import lerobot_compat
-from lerobot_formation import modeling_formation_diffusion as modeling
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.compat import lerobot_compat
+from lerobot_formation.policy import modeling_formation_diffusion as modeling
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 TOL = dict(rtol=1e-5, atol=1e-5)
 
@@ -179,7 +179,7 @@ def test_train_mode_uses_the_live_model_without_a_trace():
 def test_precomputed_ddim_steps_equal_diffusers_and_follow_the_scheduler():
     """Bit-identical to diffusers' DDIMScheduler.step; set_inference_steps (a new scheduler, another
     step count) is picked up."""
-    from lerobot_formation.diffusion_controller import set_inference_steps
+    from lerobot_formation.bench.diffusion_controller import set_inference_steps
 
     policy = _policy()
     batch, noise = history_batch(3), sampling_noise(3)

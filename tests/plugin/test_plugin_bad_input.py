@@ -9,7 +9,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from plugin_helpers import formation_features, tiny_config
 
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 
 def dataset_features(state=(7,), env=(51,), action=(2,)) -> dict:

@@ -9,8 +9,8 @@ from lerobot.configs.train import TrainPipelineConfig
 from lerobot.optim import AdamWConfig, DiffuserSchedulerConfig
 from plugin_helpers import tiny_config
 
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 NAMES = ["formation_diffusion_paper", "formation_diffusion_cpu", "formation_diffusion_tiny"]

@@ -8,8 +8,8 @@ import pytest
 import torch
 from plugin_helpers import HORIZON, N_OBS, history_batch, sampling_noise, tiny_config
 
-from lerobot_formation.lerobot_compat import global_conditioning
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.compat.lerobot_compat import global_conditioning
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 from lerobot_formation.policy.replanner import warm_start_guess
 
 TOL = dict(rtol=1e-5, atol=1e-5)
@@ -121,7 +121,7 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
     cfg = tiny_config(warm_start_step=1)
     assert cfg.plans_per_episode and not cfg.safety_layer
     # the engine's step override turns a warm start it leaves no room for off, and says so
-    from lerobot_formation.diffusion_controller import set_inference_steps
+    from lerobot_formation.bench.diffusion_controller import set_inference_steps
 
     policy = _policy(warm_start_step=3)
     with caplog.at_level(logging.WARNING):
@@ -136,8 +136,8 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
 
 
 def test_a_distilled_student_of_a_warm_starting_teacher_samples_from_noise(tmp_path):
-    from lerobot_formation import distill
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy import distill
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     teacher = tiny_config(warm_start_step=2)
     student = distill.student_config(teacher, 1)

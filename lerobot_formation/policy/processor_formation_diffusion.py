@@ -32,8 +32,8 @@ from lerobot.utils.constants import ACTION
 from lerobot.utils.constants import OBS_ENV_STATE as ENV
 from lerobot.utils.constants import OBS_STATE as STATE
 
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.core.obstacle_grid import GRID_SIZE, environment_state_dim
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 
 def egocentric_environment_state(state: torch.Tensor, env: torch.Tensor, max_obstacles: int) -> torch.Tensor:

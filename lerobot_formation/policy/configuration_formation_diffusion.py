@@ -117,7 +117,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             LeRobot's): 0, T/S, 2T/S, ...; with S = 1 the only step is t = 0, which cannot denoise.
             "trailing": T-1, T-1-T/S, ...; the first step starts from pure noise, as few-step samplers
             need (Lin et al. 2024, "Common diffusion noise schedules and sample steps are flawed",
-            Table 2). A distilled student (``lerobot_formation.distill``) is trained for "trailing".
+            Table 2). A distilled student (``lerobot_formation.policy.distill``) is trained for "trailing".
         drop_n_last_frames: frames at each episode's end the training sampler never starts a window
             at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
             Policy's rule, 53 for the paper). None (default): derived from that formula; a set value

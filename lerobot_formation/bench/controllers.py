@@ -46,7 +46,7 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None):
     (``best_of_k``) or 1; None for both: the checkpoint's own settings."""
 
     def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
-        from lerobot_formation.diffusion_controller import DiffusionController
+        from lerobot_formation.bench.diffusion_controller import DiffusionController
 
         overrides = {}
         if safety_filter is not None:

@@ -18,7 +18,7 @@ from gymnasium.vector.utils import batch_space
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.rollout import Teams
 from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes
-from lerobot_formation.env import TASK, action_space, observation_spaces, scene_index
+from lerobot_formation.envs.env import TASK, action_space, observation_spaces, scene_index
 
 
 class FormationVectorEnv(VectorEnv):

@@ -1,6 +1,6 @@
 """Figures in the spirit of the paper's Fig. 3 and 4 (matplotlib, imported only when plotting)."""
 
-from lerobot_formation.plots.figures import (
+from lerobot_formation.bench.plots.figures import (
     collision_point,
     comparison_scenes,
     plot_controller_comparison,

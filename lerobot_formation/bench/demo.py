@@ -10,8 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from lerobot_formation.bench import build_parser
-from lerobot_formation.bench import main as bench_main
+from lerobot_formation.bench.cli import build_parser
+from lerobot_formation.bench.cli import main as bench_main
 
 PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "formation_diffusion_safe"
 

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.controllers import ControllerOptions, needs_policy
+from lerobot_formation.bench.controllers import ControllerOptions, needs_policy
+from lerobot_formation.bench.paper_tables import adaptive_table, three_way_table
 from lerobot_formation.core.metrics import episode_metrics, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
 from lerobot_formation.core.scene import SamplingReport, Scenes
-from lerobot_formation.paper_tables import adaptive_table, three_way_table
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ teacher's processors), so ``lerobot-eval --policy.path``, ``lerobot-formation-be
 
 Run (one CPU thread; resumable: rerun the same command to continue from ``OUT/last``)::
 
-    python -m lerobot_formation.distill --teacher pretrained/formation_diffusion_safe \\
+    python -m lerobot_formation.policy.distill --teacher pretrained/formation_diffusion_safe \\
         --dataset.root data/formation_wide_route --student-steps 1 --steps 4000 --out outputs/distill_1step
 
 The dataset must hold the teacher's obstacle encoding (its ``input_features``); another is refused at
@@ -108,7 +108,7 @@ def export_student(policy, teacher_path: Path, dest: Path, log: dict) -> None:
     (tmp / "README.md").write_text(
         f"# {dest.name}: a {cfg.num_inference_steps}-step distilled formation_diffusion student\n\n"
         f"Teacher: `{log['teacher']}` ({log['teacher_sampler']}). Direct distillation "
-        "(`python -m lerobot_formation.distill`, module docstring): the student predicts x_0 "
+        "(`python -m lerobot_formation.policy.distill`, module docstring): the student predicts x_0 "
         f"(`prediction_type: sample`) with {cfg.num_inference_steps} DDIM step(s) spaced `trailing`, trained "
         f"{log['steps']} steps of batch {log['batch_size']} on observation histories of `{log['dataset_root']}` "
         f"to match the teacher's sample from the same noise. Final loss (mean of the last 100 steps): "
@@ -151,7 +151,7 @@ def _save_last(out: Path, policy, optimizer, scheduler, step, losses: list[float
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m lerobot_formation.distill", description=__doc__.split("\n")[0]
+        prog="python -m lerobot_formation.policy.distill", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--teacher", required=True, help="formation_diffusion checkpoint folder (the teacher)")
     ap.add_argument(
@@ -183,9 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
-    from lerobot_formation.diffusion_controller import CheckpointError, load_policy
-    from lerobot_formation.lerobot_compat import global_conditioning
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.bench.diffusion_controller import CheckpointError, load_policy
+    from lerobot_formation.compat.lerobot_compat import global_conditioning
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
     threads = apply_threads(args.threads)
     teacher_path = Path(args.teacher)
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     student = FormationDiffusionPolicy(scfg)
     student.load_state_dict(teacher.state_dict())
     # the student's own schedulers (x_0 prediction, trailing) on the teacher's betas
-    from lerobot_formation.diffusion_controller import set_inference_steps
+    from lerobot_formation.bench.diffusion_controller import set_inference_steps
 
     set_inference_steps(student, args.student_steps)
     if student.ema_diffusion is not None:
@@ -310,7 +310,8 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": wall,
         "final_loss": sum(losses[-100:]) / max(len(losses[-100:]), 1),
         "losses_every_50": losses[::50],
-        "command": "python -m lerobot_formation.distill " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python -m lerobot_formation.policy.distill "
+        + " ".join(sys.argv[1:] if argv is None else argv),
         "date": time.strftime("%Y-%m-%d"),
     }
     student.eval()

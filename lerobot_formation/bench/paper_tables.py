@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from lerobot_formation.controllers import controller_names, needs_policy
+from lerobot_formation.bench.controllers import controller_names, needs_policy
 
 # The paper's Table "Three-way controller comparison on dataset" (100 episodes) and Table "Standard
 # vs adaptive"; mean and std as printed.

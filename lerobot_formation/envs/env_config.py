@@ -10,7 +10,7 @@ with ``forkserver`` need nothing but the import that unpickling the factory does
 registers the gym id and this config). ``FreezeAfterEpisodeEnd`` is LeRobot's: a sub-env that has
 finished stops simulating while the rest of the batch runs on. ``EpisodeOverlay`` (``render.py``) writes the
 time and, at the end, the outcome on the rendered frames (the eval videos). ``FormationEpisodeMetrics`` adds the
-formation metrics (see ``lerobot_formation.episode_metrics``: ``info["final_info"]
+formation metrics (see ``lerobot_formation.envs.episode_metrics``: ``info["final_info"]
 ["formation_metrics"]`` and, with ``episode_metrics_path``, one JSON line per episode).
 """
 
@@ -27,14 +27,14 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import FreezeAfterEpisodeEnd
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.configuration_formation_diffusion import config_error
+from lerobot_formation.compat.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.episode_metrics import FormationEpisodeMetrics, new_run_id
-from lerobot_formation.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
-from lerobot_formation.render import EpisodeOverlay
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.episode_metrics import FormationEpisodeMetrics, new_run_id
+from lerobot_formation.envs.render import EpisodeOverlay
+from lerobot_formation.policy.configuration_formation_diffusion import config_error
 
 ACTION_DIM = 2  # [v, omega]
 # A --dataset.root that does not exist, offline: one clear error at start-up, not a hub traceback.
@@ -111,7 +111,7 @@ class FormationEnvConfig(EnvConfig):
             episodes as the file holds). None: the scene of seed s is sampled (``sample_scenes``).
         render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
         episode_metrics_path: if set, every finished episode appends its formation metrics (one
-            JSON line) to this file; see ``lerobot_formation.episode_metrics``.
+            JSON line) to this file; see ``lerobot_formation.envs.episode_metrics``.
         features: env observation/action features, keyed by the env's own keys; the
             ``environment_state`` shape follows ``obstacle_encoding``.
         features_map: env keys to LeRobot keys (``agent_pos`` -> ``observation.state``,

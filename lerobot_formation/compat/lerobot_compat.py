@@ -204,7 +204,7 @@ def install_offline_dataset_root_check() -> None:
         from huggingface_hub import constants
 
         if constants.HF_HUB_OFFLINE:
-            from lerobot_formation.configuration_formation_diffusion import config_error
+            from lerobot_formation.policy.configuration_formation_diffusion import config_error
 
             raise config_error(
                 f"--dataset.root {root} does not exist, and HF_HUB_OFFLINE is set, so LeRobot cannot download "
@@ -283,7 +283,7 @@ def unpatch_dataset_reader() -> None:
         del DatasetReader.__getstate__
 
 
-# -- dataset writer (datasets_scripts/lerobot_writer.py) ---------------------------------------------
+# -- dataset writer (lerobot_formation/data/lerobot_writer.py) ---------------------------------------------
 @contextlib.contextmanager
 def skip_noop_image_embedding(features: dict):
     """LeRobot's writer runs ``embed_images`` (a row-by-row ``datasets.map``, ~1 ms per frame) on every
@@ -347,7 +347,7 @@ def keep_final_eval_frame() -> bool:
     original = module.rollout
     if getattr(original, "_formation_final_frame", False):
         return True
-    from lerobot_formation.render import FINAL_FRAME_KEY
+    from lerobot_formation.envs.render import FINAL_FRAME_KEY
 
     @functools.wraps(original)
     def rollout(*args, **kwargs):

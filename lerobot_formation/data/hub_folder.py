@@ -9,7 +9,7 @@ import os
 import shutil
 from pathlib import Path
 
-from datasets_scripts.dataset_frames import FPS
+from lerobot_formation.data.dataset_frames import FPS
 
 
 def dataset_card(summary: dict, features: dict, command: str) -> str:

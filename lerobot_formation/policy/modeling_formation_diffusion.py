@@ -61,14 +61,14 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from safetensors import safe_open
 from torch import Tensor
 
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.lerobot_compat import (
+from lerobot_formation.compat.lerobot_compat import (
     add_weights_loaded_hook,
     denoiser_parts,
     global_conditioning,
     push_observation,
     queued_history,
 )
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.replanner import Replanner
 
 EMA_PREFIX = "ema_diffusion."

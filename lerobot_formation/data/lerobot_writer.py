@@ -12,19 +12,19 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets_scripts.dataset_frames import FPS, MAX_OBSTACLES, dataset_features
-from datasets_scripts.pac_episodes import Generator, seed_stream, shard_episodes
-from datasets_scripts.safe_destination import (
+from lerobot_formation.compat.lerobot_compat import save_episode_buffer, skip_noop_image_embedding
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.scene import load_scenes
+from lerobot_formation.core.scene import scene_preset as scene_preset_config
+from lerobot_formation.data.dataset_frames import FPS, MAX_OBSTACLES, dataset_features
+from lerobot_formation.data.pac_episodes import Generator, seed_stream, shard_episodes
+from lerobot_formation.data.safe_destination import (
     remove_stale_temporaries,
     rename_noreplace,
     temporary_path,
     trash_path,
 )
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import load_scenes
-from lerobot_formation.core.scene import scene_preset as scene_preset_config
-from lerobot_formation.env import TASK
-from lerobot_formation.lerobot_compat import save_episode_buffer, skip_noop_image_embedding
+from lerobot_formation.envs.env import TASK
 
 
 def write_episode(ds, frames: dict[str, np.ndarray], fast: bool = True) -> None:

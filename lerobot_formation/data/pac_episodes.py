@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 
-from datasets_scripts.dataset_frames import MAX_OBSTACLES, episode_frames
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import SUCCESS, PACController, rollout
 from lerobot_formation.core.scene import SceneConfig, Scenes, sample_scenes
+from lerobot_formation.data.dataset_frames import MAX_OBSTACLES, episode_frames
 
 
 def simulate_batch(

@@ -31,13 +31,18 @@ import sys
 import time
 from pathlib import Path
 
-from lerobot_formation.bench_figures import write_comparison_figure, write_figures, write_success_figure
-from lerobot_formation.bench_results import BenchSettings, controller_results, safety_rates, write_results
-from lerobot_formation.controllers import ControllerOptions, controller_names, make_controller, needs_policy
+from lerobot_formation.bench.controllers import (
+    ControllerOptions,
+    controller_names,
+    make_controller,
+    needs_policy,
+)
+from lerobot_formation.bench.evaluation import evaluate
+from lerobot_formation.bench.figures import write_comparison_figure, write_figures, write_success_figure
+from lerobot_formation.bench.results import BenchSettings, controller_results, safety_rates, write_results
+from lerobot_formation.bench.scene_sets import parse_scenes
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
-from lerobot_formation.evaluation import evaluate
-from lerobot_formation.scene_sets import parse_scenes
 from lerobot_formation.threads import add_threads_argument, apply_threads
 
 
@@ -74,7 +79,7 @@ def run_set(
             entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
         entry["scenes"] = label
         if figures:
-            from lerobot_formation.plots import scene_set_label  # matplotlib only when drawing
+            from lerobot_formation.bench.plots import scene_set_label  # matplotlib only when drawing
 
             title = f"{name} on {scene_set_label(spec, settings.seed)}" if spec else ""
             entry["figures"] = write_figures(out, f"{name}_{label}", rec, scenes, title)
@@ -157,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     bundle = None
     if diffusion:
-        from lerobot_formation.diffusion_controller import load_policy
+        from lerobot_formation.bench.diffusion_controller import load_policy
 
         # torch's thread count is --threads (apply_threads set OMP_NUM_THREADS before torch loads).
         try:

@@ -10,7 +10,7 @@ from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes
 
 def write_figures(out: Path, name: str, rec: EpisodeRecords, scenes: Scenes, title: str = "") -> list[str]:
     """The per-controller figures, files named ``name``_*.png, titled ``title`` (default ``name``)."""
-    from lerobot_formation.plots import (
+    from lerobot_formation.bench.plots import (
         plot_failures,
         plot_final_error_histogram,
         plot_formation_errors,
@@ -37,7 +37,7 @@ def write_comparison_figure(
     spec: str = "",
     seed: int = UNSEEN_SEED_START,
 ) -> str:
-    from lerobot_formation.plots import comparison_scenes, plot_controller_comparison, scene_set_label
+    from lerobot_formation.bench.plots import comparison_scenes, plot_controller_comparison, scene_set_label
 
     path = out / f"controllers_{label}.png"
     title = scene_set_label(spec, seed) if spec else label
@@ -45,7 +45,7 @@ def write_comparison_figure(
 
 
 def write_success_figure(out: Path, results: dict[str, dict], specs: dict[str, str], seed: int) -> str:
-    from lerobot_formation.plots import plot_success_rates, scene_set_label
+    from lerobot_formation.bench.plots import plot_success_rates, scene_set_label
 
     # Each set named by what it is (the demo's two sets are both unseen; the second is the hard suite).
     counts = {}

@@ -38,7 +38,7 @@ import os
 import numpy as np
 import torch
 
-from lerobot_formation import lerobot_compat
+from lerobot_formation.compat import lerobot_compat
 
 _ENABLED = os.environ.get("LEROBOT_FORMATION_FAST_READS", "1") != "0"
 

@@ -69,7 +69,7 @@ from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import environment_state_dim
 from lerobot_formation.core.rollout import SUCCESS, Teams
 from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes, scenes_from_list
-from lerobot_formation.render import Renderer
+from lerobot_formation.envs.render import Renderer
 
 TASK = "Navigate the four-robot formation to the goal without collisions."
 
