@@ -233,7 +233,7 @@ def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
 
 def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) -> str:
     """Print part (c); return its headline (K=1 at steps[0], trace against eager)."""
-    from lerobot_formation.bench.diffusion_controller import load_policy, set_inference_steps
+    from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
     policy = load_policy(path)[0]
     cfg = policy.config
@@ -271,7 +271,7 @@ def student_part(teacher_path: str, student_path: str, candidates: list[int], re
     checkpoint's pre- and postprocessors, ``reset()`` first so the chunk is sampled), the teacher with its
     own sampler against the distilled student with its own, for K in ``candidates`` (K > 1: the
     safety layer's best-of-K, ``num_candidates``), both with inference_backend "trace"."""
-    from lerobot_formation.bench.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     rows = {}
     for name, path in (("teacher", teacher_path), ("student", student_path)):
@@ -348,9 +348,9 @@ def safety_part(path: str, k: int, scenes: int) -> str:
     progress, escape manoeuvres). The scorer's cost-to-go stops once the cells it reads are exact
     (``navigation.cost_to_go_at``); the baseline, in the same run, computes the whole field to
     convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions)."""
-    from lerobot_formation.bench.diffusion_controller import load_policy
     from lerobot_formation.core import navigation
     from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.policy.checkpoint import load_policy
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
 
     policy, pre, post = load_policy(path)
@@ -423,7 +423,8 @@ def main(argv: list[str] | None = None) -> int:
     apply_threads(args.threads)
     threads = torch.get_num_threads()
 
-    from lerobot_formation.bench.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
+    from lerobot_formation.policy.checkpoint import load_policy
 
     print(
         f"torch threads {threads}, {os.cpu_count()} CPUs; median of {args.repeats} after a warm-up",

@@ -202,12 +202,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
-    from lerobot_formation.bench.controllers import CONTROLLERS, ControllerOptions, make_controller
-    from lerobot_formation.bench.diffusion_controller import load_policy
+    from lerobot_formation.bench.controllers import CONTROLLERS, make_controller
     from lerobot_formation.bench.evaluation import evaluate
     from lerobot_formation.bench.results import controller_results
     from lerobot_formation.bench.scene_sets import parse_scenes
+    from lerobot_formation.bench.settings import ControllerOptions
     from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.policy.checkpoint import load_policy
 
     if args.controller not in CONTROLLERS:
         ap.error(f"unknown controller {args.controller!r}; choose from {CONTROLLERS}")

@@ -4,16 +4,18 @@ Imported by the discovery shim ``lerobot_env_formation`` (plugin_shim/), which L
 auto-import. Importing registers the env config ``formation``, the policy config
 ``formation_diffusion`` (draccus choice registries) and the custom processor step
 ``formation_egocentric_obstacles`` (LeRobot's ``ProcessorStepRegistry``, needed to load a checkpoint's
-preprocessor), and turns on the fast windowed reads of ``lerobot_formation.compat.fast_reads``. The policy
-class and its processor factory are found by LeRobot's naming convention
-(``configuration_`` -> ``modeling_`` / ``processor_``).
+preprocessor), and nothing else: no LeRobot function is replaced and no environment variable is
+set. The policy class and its processor factory are found by LeRobot's naming convention
+(``configuration_`` -> ``modeling_`` / ``processor_``). The fast dataset reads switch on when a
+formation policy's processors are made, for formation datasets only (``compat/fast_reads.py``);
+``lerobot-eval``'s videos end on the outcome frame when a formation env is made
+(``FormationEnvConfig.create_envs``).
 
 It also shortens one LeRobot warning (``quiet_torchcodec_warning``): on a machine without FFmpeg's
 shared libraries, every ``DatasetConfig`` / ``LeRobotDataset`` LeRobot makes tries ``import
 torchcodec`` and logs the whole ~35-line loading traceback, twice per ``lerobot-train`` run. This
-project's datasets have no videos, so the decoder never matters; the warning becomes one line.
-And it makes ``lerobot-eval``'s videos of formation envs end on the frame with the outcome
-(``lerobot_compat.keep_final_eval_frame``).
+project's datasets have no videos, so the decoder never matters; the warning becomes one line (a
+logging filter; what LeRobot does is unchanged).
 """
 
 import logging
@@ -52,10 +54,6 @@ def quiet_torchcodec_warning() -> None:
 
 quiet_torchcodec_warning()  # before the imports below, which load LeRobot's configs
 
-import lerobot_formation.compat.fast_reads  # noqa: E402, F401  (fast windowed reads for low-dim datasets)
 import lerobot_formation.envs.env_config  # noqa: E402, F401
 import lerobot_formation.policy.configuration_formation_diffusion  # noqa: E402, F401
 import lerobot_formation.policy.processor_formation_diffusion  # noqa: E402, F401  (registers the processor step)
-from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame  # noqa: E402
-
-keep_final_eval_frame()  # lerobot-eval's videos end on the frame with the outcome (render.EpisodeOverlay)

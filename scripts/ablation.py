@@ -34,10 +34,11 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-from lerobot_formation.bench.controllers import ControllerOptions, make_controller
+from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.results import controller_results, safety_rates
 from lerobot_formation.bench.scene_sets import parse_scenes
+from lerobot_formation.bench.settings import ControllerOptions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START
 from lerobot_formation.policy.replanner import ReplanExperiment
@@ -194,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     params = FormationParams()
     sets = [s for s in args.sets.split(",") if s]
     scenes = {s: parse_scenes(s, args.seed) for s in sets}
-    from lerobot_formation.bench.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     bundles: dict[str, tuple] = {}
     results: dict[str, dict] = {}

@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_formation.bench.diffusion_controller import DiffusionController, load_policy, set_inference_steps
+from lerobot_formation.bench.diffusion_controller import DiffusionController
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.core.dynamics import FormationParams, initial_state
 from lerobot_formation.core.rollout import COLLISION, SUCCESS
@@ -47,6 +47,7 @@ from lerobot_formation.core.scene import (
     save_scenes,
     scenes_from_list,
 )
+from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

@@ -32,15 +32,15 @@ import time
 from pathlib import Path
 
 from lerobot_formation.bench.controllers import (
-    ControllerOptions,
     controller_names,
     make_controller,
     needs_policy,
 )
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import write_comparison_figure, write_figures, write_success_figure
-from lerobot_formation.bench.results import BenchSettings, controller_results, safety_rates, write_results
+from lerobot_formation.bench.results import controller_results, safety_rates, write_results
 from lerobot_formation.bench.scene_sets import parse_scenes
+from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
 from lerobot_formation.threads import add_threads_argument, apply_threads
@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     bundle = None
     if diffusion:
-        from lerobot_formation.bench.diffusion_controller import load_policy
+        from lerobot_formation.policy.checkpoint import load_policy
 
         # torch's thread count is --threads (apply_threads set OMP_NUM_THREADS before torch loads).
         try:
@@ -189,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
         ),
         # progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them
         progress=not args.no_progress and sys.stderr.isatty(),
+        order=controller_names(),
+        policy_controllers=tuple(n for n in controller_names() if needs_policy(n)),
     )
     try:
         run_set(names, scenes, params, settings, out, label, bundle, not args.no_figures, into=results[label])

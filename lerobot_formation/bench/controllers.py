@@ -14,31 +14,10 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
+from lerobot_formation.bench.settings import ControllerOptions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import PACController
-
-
-@dataclass(frozen=True)
-class ControllerOptions:
-    """What a controller factory may read.
-
-    Args:
-        policy_path: checkpoint folder of the diffusion controllers.
-        candidates: K of the best-of-K controllers ("diffusion-bestof", "diffusion-safe").
-        num_inference_steps: DDIM steps (None: the checkpoint's sampler).
-        seed_policy: seed of the controllers' noise (diffusion, MPPI).
-        overrides: policy config fields every diffusion controller runs with, after its own.
-        experiment: a ``policy.replanner.ReplanExperiment`` (ablation settings), or None.
-    """
-
-    policy_path: str | None = None
-    candidates: int = 10
-    num_inference_steps: int | None = None
-    seed_policy: int = 0
-    overrides: dict = field(default_factory=dict)
-    experiment: object | None = None
 
 
 def _diffusion(safety_filter: str | None, best_of_k: bool | None):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from lerobot_formation.bench.controllers import controller_names, needs_policy
-
 # The paper's Table "Three-way controller comparison on dataset" (100 episodes) and Table "Standard
 # vs adaptive"; mean and std as printed.
 PAPER_THREE_WAY = {
@@ -89,9 +87,11 @@ def _fmt(mean, std, digits=3):
     return f"{mean:.{digits}g} ± {std:.{digits}g}" if std is not None else f"{mean:.{digits}g}"
 
 
-def three_way_table(results: dict, label: str) -> str:
+def three_way_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
+    """The paper's Table "Three-way comparison" with ours; ``order``: the controllers' registry order."""
     # the paper's column order (MPPI, diffusion, PAC); other controllers before PAC, in registry order
-    middle = [n for n in controller_names() if n not in ("mppi", "pac")]
+    middle = [n for n in (*order, *results) if n not in ("mppi", "pac")]
+    middle = list(dict.fromkeys(middle))
     cols = [c for c in ("mppi", *middle, "pac") if c in results]
     head = "| Metric | " + " | ".join(f"{c} (ours) | {c} (paper)" for c in cols) + " |"
     lines = [f"### Three-way comparison on {label}", "", head, "|---" * (1 + 2 * len(cols)) + "|"]
@@ -125,7 +125,9 @@ def three_way_table(results: dict, label: str) -> str:
     return "\n".join(lines)
 
 
-def adaptive_table(by_set: dict[str, dict], specs: dict[str, str] | None = None) -> str:
+def adaptive_table(
+    by_set: dict[str, dict], specs: dict[str, str] | None = None, policy_controllers: tuple[str, ...] = ()
+) -> str:
     """Success of every diffusion controller per scene set; ``specs`` maps a set to its --scenes value
     (the paper's numbers are shown only for the paper's protocols)."""
     specs = specs or {}
@@ -136,7 +138,7 @@ def adaptive_table(by_set: dict[str, dict], specs: dict[str, str] | None = None)
         "|---|---|---|---|---|---|",
     ]
     for set_name, results in by_set.items():
-        for c in [n for n in controller_names() if needs_policy(n)]:
+        for c in policy_controllers:
             if c not in results:
                 continue
             r = results[c]

@@ -5,35 +5,15 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.bench.controllers import ControllerOptions, needs_policy
 from lerobot_formation.bench.paper_tables import adaptive_table, three_way_table
+from lerobot_formation.bench.settings import BenchSettings
 from lerobot_formation.core.metrics import episode_metrics, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
 from lerobot_formation.core.scene import SamplingReport, Scenes
-
-
-@dataclass(frozen=True)
-class BenchSettings:
-    """One bench run's inputs (``lerobot-formation-bench``'s options as a value).
-
-    Args:
-        scenes: the main scene set's spec (``random:N``, ``dataset:N``, a file, ...).
-        unseen: the unseen scene set's spec, or None.
-        seed: first seed of ``random:N``.
-        options: what the controllers are made with.
-        progress: progress bars (only on a terminal).
-    """
-
-    scenes: str
-    unseen: str | None = None
-    seed: int = 0
-    options: ControllerOptions = field(default_factory=ControllerOptions)
-    progress: bool = False
 
 
 def _clean(x):
@@ -98,10 +78,11 @@ def write_results(
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, default=_clean))
     os.replace(tmp, out / "results.json")
-    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({settings.scenes})")]
-    sets = {k: v for k, v in results.items() if any(needs_policy(c) for c in v)}
+    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({settings.scenes})", settings.order)]
+    sets = {k: v for k, v in results.items() if any(c in settings.policy_controllers for c in v)}
     if sets:
-        tables.append(adaptive_table(sets, {label: settings.scenes, "unseen": settings.unseen or ""}))
+        specs = {label: settings.scenes, "unseen": settings.unseen or ""}
+        tables.append(adaptive_table(sets, specs, settings.policy_controllers))
     if error is not None:
         tables.append(f"**Incomplete run**: {error}\n")
     (out / "tables.md").write_text("\n".join(tables))

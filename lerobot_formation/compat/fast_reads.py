@@ -21,13 +21,15 @@ or depth feature, no image transforms):
   e.g. with image features stored in the table or image transforms): the same windowed query on
   in-memory columns.
 
-Any other reader (videos, images, string columns) keeps LeRobot's path. The patch is applied when
-the plugin is imported (``lerobot-train`` imports it through the ``lerobot_env_formation`` shim), by
-``lerobot_compat.patch_dataset_reader``: on a LeRobot version other than the tested one it is not
-applied (one logged warning) and LeRobot's reader runs as shipped.
-DataLoader workers (``--num_workers>0``, spawned) never import the plugin themselves, so a pickled
-reader carries a small marker object of this module: unpickling it in a worker imports this module,
-which patches the worker's reader class too. The in-memory table is not pickled; each worker builds
+Only readers of our own datasets take it (``reader_is_ours``: the PAC dataset's ``scene.*``
+features); any other reader (another project's dataset, videos, images, string columns) keeps
+LeRobot's path. Importing the plugin patches nothing: ``install()`` runs when a formation policy is
+made (``FormationDiffusionPolicy.__init__``: ``lerobot-train``, ``lerobot-eval``, the engine), through
+``lerobot_compat.patch_dataset_reader``; on a LeRobot
+version other than the tested one it is not applied (one logged warning) and LeRobot's reader runs
+as shipped. DataLoader workers (``--num_workers>0``, spawned) never import the plugin themselves, so
+a pickled reader of ours carries a small marker object of this module: unpickling it in a worker
+installs the fast path there too. The in-memory table is not pickled; each worker builds
 its own on its first read.
 """
 
@@ -91,8 +93,27 @@ class _LowDimTable:
         self.tasks: dict[int, str] = {}
 
 
+# Every PAC dataset has these features (``data.dataset_frames.dataset_features``): the fast path takes
+# only readers of such datasets; any other dataset reads through LeRobot's own methods, untouched.
+OUR_FEATURES = ("scene.seed", "scene.obstacles", "scene.goal", "scene.start")
+
+
+def reader_is_ours(reader) -> bool:
+    """Whether ``reader`` reads a formation dataset (all of ``OUR_FEATURES``)."""
+    features = lerobot_compat.reader_meta(reader).features
+    return all(key in features for key in OUR_FEATURES)
+
+
+def _unpickled_marker() -> _FastReadsMarker:
+    install()
+    return _FastReadsMarker()
+
+
 class _FastReadsMarker:
-    """Pickled with each reader: unpickling it imports this module, i.e. installs the fast path."""
+    """Pickled with each reader of ours: unpickling it (in a DataLoader worker) installs the fast path."""
+
+    def __reduce__(self):
+        return _unpickled_marker, ()
 
 
 _CACHES = ("_formation_table", "_formation_columns")  # per process, rebuilt on the first read
@@ -100,14 +121,19 @@ _CACHES = ("_formation_table", "_formation_columns")  # per process, rebuilt on 
 
 def _getstate(self) -> dict:
     state = {k: v for k, v in self.__dict__.items() if k not in _CACHES}
-    state["_formation_fast_reads"] = _FastReadsMarker()
+    if reader_is_ours(self):
+        state["_formation_fast_reads"] = _FastReadsMarker()
     return state
 
 
 def _fast_get_item(self, idx) -> dict:
     table = self.__dict__.get("_formation_table")
     if table is None:
-        if self.__dict__.get("_formation_slow") or not lerobot_compat.reader_is_low_dim(self):
+        if (
+            self.__dict__.get("_formation_slow")
+            or not reader_is_ours(self)
+            or not lerobot_compat.reader_is_low_dim(self)
+        ):
             return lerobot_compat.stock_reader_method("get_item")(self, idx)
         try:
             table = self._formation_table = _LowDimTable(self)
@@ -136,7 +162,11 @@ def _fast_get_item(self, idx) -> dict:
 
 
 def _fast_query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
-    if len(lerobot_compat.reader_meta(self).video_keys) > 0 or not lerobot_compat.reader_table_is_plain(self):
+    if (
+        not reader_is_ours(self)
+        or len(lerobot_compat.reader_meta(self).video_keys) > 0
+        or not lerobot_compat.reader_table_is_plain(self)
+    ):
         return lerobot_compat.stock_reader_method("_query_hf_dataset")(self, query_indices)
     cache = self.__dict__.setdefault("_formation_columns", {})
     result: dict = {}
@@ -162,6 +192,3 @@ def install() -> bool:
 
 def uninstall() -> None:
     lerobot_compat.unpatch_dataset_reader()
-
-
-install()  # importing the plugin turns it on (unless LEROBOT_FORMATION_FAST_READS=0)

@@ -43,6 +43,17 @@ logger = logging.getLogger(__name__)
 _warned: set[str] = set()
 
 
+def config_error(message: str) -> ValueError:
+    """A ValueError for an invalid config value, its message also logged at ERROR level.
+
+    draccus reports a ValueError raised while it builds a config from the command line or a JSON file
+    as "Couldn't instantiate class ... using the given arguments." and drops the message; the log line
+    keeps it visible on the terminal.
+    """
+    logger.error(message)
+    return ValueError(message)
+
+
 def lerobot_version() -> str:
     import lerobot
 
@@ -204,8 +215,6 @@ def install_offline_dataset_root_check() -> None:
         from huggingface_hub import constants
 
         if constants.HF_HUB_OFFLINE:
-            from lerobot_formation.policy.configuration_formation_diffusion import config_error
-
             raise config_error(
                 f"--dataset.root {root} does not exist, and HF_HUB_OFFLINE is set, so LeRobot cannot download "
                 f"it; check the path, or write the dataset there with lerobot-formation-generate --root {root}"
@@ -326,12 +335,12 @@ def save_episode_buffer(ds, frames: dict[str, np.ndarray], task: str) -> bool:
     return True
 
 
-def keep_final_eval_frame() -> bool:
+def keep_final_eval_frame(final_frame_key: str) -> bool:
     """Make ``lerobot-eval``'s videos of formation envs end on the frame that shows the outcome.
 
     LeRobot 0.6.1's ``eval_policy`` renders after the reset and after every step, then writes
     ``frames[: done_index + 1]`` of each episode: the reset frame and the frames *before* the ending
-    step, never the frame after it. For a vector env whose metadata has ``render.FINAL_FRAME_KEY``
+    step, never the frame after it. For a vector env whose metadata has ``final_frame_key``
     (our ``EpisodeOverlay`` sets it) this wraps ``lerobot_eval.rollout`` so that the render after the
     reset is skipped: frame k is then the one after step k and the written slice ends on the ending
     step (the video starts at t = 0.1 s). Other envs keep LeRobot's frames. Patches only a
@@ -347,13 +356,12 @@ def keep_final_eval_frame() -> bool:
     original = module.rollout
     if getattr(original, "_formation_final_frame", False):
         return True
-    from lerobot_formation.envs.render import FINAL_FRAME_KEY
 
     @functools.wraps(original)
     def rollout(*args, **kwargs):
         env = kwargs["env"] if "env" in kwargs else args[0]
         render = kwargs.get("render_callback")
-        if render is not None and (getattr(env, "metadata", None) or {}).get(FINAL_FRAME_KEY):
+        if render is not None and (getattr(env, "metadata", None) or {}).get(final_frame_key):
             seen_reset = []
 
             def after_first(e, render=render):

@@ -27,14 +27,18 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import FreezeAfterEpisodeEnd
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.compat.lerobot_compat import caller_policy_config, install_offline_dataset_root_check
+from lerobot_formation.compat.lerobot_compat import (
+    caller_policy_config,
+    config_error,
+    install_offline_dataset_root_check,
+    keep_final_eval_frame,
+)
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.episode_metrics import FormationEpisodeMetrics, new_run_id
-from lerobot_formation.envs.render import EpisodeOverlay
-from lerobot_formation.policy.configuration_formation_diffusion import config_error
+from lerobot_formation.envs.render import FINAL_FRAME_KEY, EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
 # A --dataset.root that does not exist, offline: one clear error at start-up, not a hub traceback.
@@ -182,7 +186,7 @@ class FormationEnvConfig(EnvConfig):
 
     @property
     def package_name(self) -> str:
-        return "lerobot_formation"
+        return "lerobot_formation.envs"
 
     def get_env_processors(self):
         """LeRobot's env processors (identity), after a start-up check: ``lerobot-train`` calls this once
@@ -227,6 +231,7 @@ class FormationEnvConfig(EnvConfig):
         """
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        keep_final_eval_frame(FINAL_FRAME_KEY)  # our run: lerobot-eval's videos end on the outcome frame
         run_id = new_run_id()  # one per evaluation run, shared by its sub-envs and worker processes
         fns = [self.make_env_factory(run_id, i) for i in range(n_envs)]
         if use_async_envs and n_envs > 1:

@@ -10,6 +10,7 @@ from lerobot.optim import AdamWConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
+from lerobot_formation.compat.lerobot_compat import config_error
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import (
@@ -27,17 +28,6 @@ _BOUNDS = FormationParams()
 
 
 logger = logging.getLogger(__name__)
-
-
-def config_error(message: str) -> ValueError:
-    """A ValueError for an invalid config value, its message also logged at ERROR level.
-
-    draccus reports a ValueError raised while it builds a config from the command line or a JSON file
-    as "Couldn't instantiate class ... using the given arguments." and drops the message; the log line
-    keeps it visible on the terminal.
-    """
-    logger.error(message)
-    return ValueError(message)
 
 
 def _encoding_sizes() -> str:

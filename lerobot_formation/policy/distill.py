@@ -44,10 +44,7 @@ import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
-os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
-
-from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
+from lerobot_formation.threads import add_threads_argument, apply_threads
 
 logger = logging.getLogger(__name__)
 PROCESSOR_FILES = ("policy_preprocessor", "policy_postprocessor")
@@ -150,6 +147,10 @@ def _save_last(out: Path, policy, optimizer, scheduler, step, losses: list[float
 
 
 def main(argv: list[str] | None = None) -> int:
+    # A local teacher and dataset: offline unless the caller says otherwise (set here, before LeRobot and
+    # huggingface_hub load, never at import).
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
     ap = argparse.ArgumentParser(
         prog="python -m lerobot_formation.policy.distill", description=__doc__.split("\n")[0]
     )
@@ -183,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
-    from lerobot_formation.bench.diffusion_controller import CheckpointError, load_policy
     from lerobot_formation.compat.lerobot_compat import global_conditioning
+    from lerobot_formation.policy.checkpoint import CheckpointError, load_policy
     from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
     threads = apply_threads(args.threads)
@@ -229,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     student = FormationDiffusionPolicy(scfg)
     student.load_state_dict(teacher.state_dict())
     # the student's own schedulers (x_0 prediction, trailing) on the teacher's betas
-    from lerobot_formation.bench.diffusion_controller import set_inference_steps
+    from lerobot_formation.policy.checkpoint import set_inference_steps
 
     set_inference_steps(student, args.student_steps)
     if student.ema_diffusion is not None:

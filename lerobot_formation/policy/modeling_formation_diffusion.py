@@ -61,6 +61,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from safetensors import safe_open
 from torch import Tensor
 
+from lerobot_formation.compat import fast_reads
 from lerobot_formation.compat.lerobot_compat import (
     add_weights_loaded_hook,
     denoiser_parts,
@@ -232,6 +233,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 f"loaded with that type's policy class (lerobot.policies.factory.get_policy_class({got!r}))."
             )
         super().__init__(config, **kwargs)
+        fast_reads.install()  # a formation run: fast windowed reads of formation datasets only
         self._lean = _LeanCache()  # inference_backend "lean" / "trace" (never in the state_dict)
         self.ema_diffusion: DiffusionModel | None = None
         self._ema: EMAModel | None = None

@@ -16,7 +16,7 @@ subtraction and the rotation by the heading before it can learn to avoid anythin
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from lerobot.configs.types import PipelineFeatureType, PolicyFeature
@@ -33,7 +33,9 @@ from lerobot.utils.constants import OBS_ENV_STATE as ENV
 from lerobot.utils.constants import OBS_STATE as STATE
 
 from lerobot_formation.core.obstacle_grid import GRID_SIZE, environment_state_dim
-from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+
+if TYPE_CHECKING:  # a type only: the processors need no config module at run time
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 
 def egocentric_environment_state(state: torch.Tensor, env: torch.Tensor, max_obstacles: int) -> torch.Tensor:

@@ -18,7 +18,7 @@ def _derive(*argv: str) -> int:
 
 
 def test_set_changes_config_fields_in_place_and_keeps_the_other_files(tmp_path):
-    from lerobot_formation.bench.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     ckpt = save_nearest_checkpoint(tmp_path / "ckpt")
     (ckpt / "dataset_scenes.json").write_text('{"scenes": []}')

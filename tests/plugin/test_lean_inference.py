@@ -179,7 +179,7 @@ def test_train_mode_uses_the_live_model_without_a_trace():
 def test_precomputed_ddim_steps_equal_diffusers_and_follow_the_scheduler():
     """Bit-identical to diffusers' DDIMScheduler.step; set_inference_steps (a new scheduler, another
     step count) is picked up."""
-    from lerobot_formation.bench.diffusion_controller import set_inference_steps
+    from lerobot_formation.policy.checkpoint import set_inference_steps
 
     policy = _policy()
     batch, noise = history_batch(3), sampling_noise(3)

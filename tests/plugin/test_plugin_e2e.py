@@ -140,9 +140,9 @@ def test_distill_a_one_step_student_and_resume(trained, dataset_root, tmp_path, 
     toward the teacher's, and a second run continues from OUT/last."""
     import torch
 
-    from lerobot_formation.bench.diffusion_controller import load_policy, set_inference_steps
     from lerobot_formation.compat.lerobot_compat import global_conditioning
     from lerobot_formation.policy import distill
+    from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
     teacher_path = trained / "checkpoints" / "000004" / "pretrained_model"
     out = tmp_path / "distill"

@@ -124,10 +124,11 @@ def test_engine_and_select_action_feed_the_replanner_the_same(tmp_path, k, safet
     checkpoint's preprocessor, its noise generator) and the policy's select_action (LeRobot's queues,
     the path of lerobot-eval) run the same Replanner and give the same actions, replans and filter
     interventions."""
-    from lerobot_formation.bench.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.core.dynamics import FormationParams, initial_state, step
     from lerobot_formation.core.observation import midpoint_state
     from lerobot_formation.core.scene import scenes_from_list
+    from lerobot_formation.policy.checkpoint import load_policy
 
     path = save_nearest_checkpoint(
         tmp_path, num_candidates=k, safety_filter=safety_filter, warm_start_step=warm
@@ -162,7 +163,8 @@ def test_engine_and_select_action_feed_the_replanner_the_same(tmp_path, k, safet
 def test_a_bench_override_leaves_the_shared_policy_config_alone(tmp_path):
     """A controller's K and filter are a validated copy of the config (dataclasses.replace): the
     loaded policy, which other controllers share, keeps its own."""
-    from lerobot_formation.bench.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
+    from lerobot_formation.policy.checkpoint import load_policy
 
     bundle = load_policy(save_nearest_checkpoint(tmp_path))
     safe = DiffusionController(

@@ -121,7 +121,7 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
     cfg = tiny_config(warm_start_step=1)
     assert cfg.plans_per_episode and not cfg.safety_layer
     # the engine's step override turns a warm start it leaves no room for off, and says so
-    from lerobot_formation.bench.diffusion_controller import set_inference_steps
+    from lerobot_formation.policy.checkpoint import set_inference_steps
 
     policy = _policy(warm_start_step=3)
     with caplog.at_level(logging.WARNING):
