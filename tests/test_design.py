@@ -131,3 +131,17 @@ def test_the_library_takes_typed_arguments_not_argparse_namespaces():
                 if "args" in params:
                     wrong.append(f"{path}: {node.name}(args)")
     assert not wrong, wrong
+
+
+def test_our_feature_keys_are_lerobots():
+    from lerobot.utils import constants
+
+    from lerobot_formation.compat import old_checkpoints
+    from lerobot_formation.data import dataset_frames
+
+    assert (dataset_frames.OBS_STATE, dataset_frames.OBS_ENV_STATE, dataset_frames.ACTION) == (
+        constants.OBS_STATE,
+        constants.OBS_ENV_STATE,
+        constants.ACTION,
+    )
+    assert old_checkpoints.OBS_ENV_STATE == constants.OBS_ENV_STATE

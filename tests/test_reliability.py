@@ -501,7 +501,7 @@ def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up():
     from lerobot_formation.envs.env_config import FormationEnvConfig
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
-    policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66))  # a grid+list dataset
+    policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66), obstacle_encoding="grid+list")
     make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid+list"), policy_cfg)
     with pytest.raises(ValueError) as e:
         make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid"), policy_cfg)

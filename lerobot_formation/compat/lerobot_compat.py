@@ -320,7 +320,9 @@ def save_episode_buffer(ds, frames: dict[str, np.ndarray], task: str) -> bool:
     then takes the stock ``add_frame`` path."""
     if _untested("pre-built episode buffers (save_episode(episode_data=...))"):
         return False
-    n = len(frames["action"])
+    from lerobot.utils.constants import ACTION
+
+    n = len(frames[ACTION])
     buf = {
         "size": n,
         "task": [task] * n,

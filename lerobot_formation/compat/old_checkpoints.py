@@ -23,6 +23,8 @@ from pathlib import Path
 
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 
+OBS_ENV_STATE = "observation.environment_state"  # lerobot.utils.constants.OBS_ENV_STATE (no torch here)
+
 # field -> the value the code now runs with
 RETIRED_FIELDS = {
     "escape_advantage": None,
@@ -51,7 +53,7 @@ def upgrade_policy_config(raw: dict, where: str = "config.json") -> dict:
             )
         del out[key]
     if out.get("obstacle_encoding") is None:
-        env = (out.get("input_features") or {}).get("observation.environment_state") or {}
+        env = (out.get("input_features") or {}).get(OBS_ENV_STATE) or {}
         size = tuple(env.get("shape") or ())
         matches = [e for e in ENCODINGS if (environment_state_dim(e, out.get("max_obstacles")),) == size]
         if len(matches) != 1:

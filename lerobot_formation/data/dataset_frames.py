@@ -14,6 +14,12 @@ from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.rollout import EpisodeRecords
 from lerobot_formation.core.scene import Scenes
 
+# LeRobot's feature keys (``lerobot.utils.constants``; not imported here: that module loads torch,
+# which the generator's numpy workers do without; tests/test_design.py checks they are equal).
+OBS_STATE = "observation.state"
+OBS_ENV_STATE = "observation.environment_state"
+ACTION = "action"
+
 FPS = 10
 MAX_OBSTACLES = 5
 
@@ -23,13 +29,13 @@ def dataset_features(obstacle_encoding: str = "grid", scene_slots: int = MAX_OBS
     obstacle of every scene, whatever the observation encodes)."""
     grid_names = get_encoding(obstacle_encoding).names(get_encoding(obstacle_encoding).slots(None))
     return {
-        "observation.state": {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
-        "observation.environment_state": {
+        OBS_STATE: {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
+        OBS_ENV_STATE: {
             "dtype": "float32",
             "shape": (len(grid_names),),
             "names": grid_names,
         },
-        "action": {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
+        ACTION: {"dtype": "float32", "shape": (2,), "names": ["v", "omega"]},
         "scene.seed": {"dtype": "int64", "shape": (1,), "names": None},
         "scene.obstacles": {
             "dtype": "float32",
@@ -63,9 +69,9 @@ def episode_frames(
     obs_list = np.zeros((scene_slots, 3), np.float32)
     obs_list[: len(real)] = real
     return {
-        "observation.state": seen["agent_pos"],
-        "observation.environment_state": seen["environment_state"],
-        "action": actions.astype(np.float32),
+        OBS_STATE: seen["agent_pos"],
+        OBS_ENV_STATE: seen["environment_state"],
+        ACTION: actions.astype(np.float32),
         "scene.seed": np.full((n, 1), scenes.seeds[b], dtype=np.int64),
         "scene.obstacles": np.repeat(obs_list.reshape(1, -1), n, axis=0),
         "scene.goal": np.repeat(scenes.goal[b : b + 1].astype(np.float32), n, axis=0),

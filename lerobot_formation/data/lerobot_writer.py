@@ -16,7 +16,7 @@ from lerobot_formation.compat.lerobot_compat import save_episode_buffer, skip_no
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import load_scenes
 from lerobot_formation.core.scene import scene_preset as scene_preset_config
-from lerobot_formation.data.dataset_frames import FPS, MAX_OBSTACLES, dataset_features
+from lerobot_formation.data.dataset_frames import ACTION, FPS, MAX_OBSTACLES, dataset_features
 from lerobot_formation.data.pac_episodes import Generator, seed_stream, shard_episodes
 from lerobot_formation.data.safe_destination import (
     remove_stale_temporaries,
@@ -33,7 +33,7 @@ def write_episode(ds, frames: dict[str, np.ndarray], fast: bool = True) -> None:
     frames are identical either way. On an untested LeRobot version the loop runs."""
     if fast and save_episode_buffer(ds, frames, TASK):
         return
-    for t in range(len(frames["action"])):
+    for t in range(len(frames[ACTION])):
         ds.add_frame({**{k: v[t] for k, v in frames.items()}, "task": TASK})
     ds.save_episode()
 
@@ -116,7 +116,7 @@ def generate(
         )
         with skip, contextlib.closing(episodes_iter):  # closing stops the workers at once, on any exit
             for frames in episodes_iter:
-                frames_total += len(frames["action"])
+                frames_total += len(frames[ACTION])
                 write_episode(ds, frames, fast=fast_write)
             ds.finalize()
             finalized = True

@@ -183,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+    from lerobot.utils.constants import ACTION
 
     from lerobot_formation.compat.lerobot_compat import global_conditioning
     from lerobot_formation.policy.checkpoint import CheckpointError, load_policy
@@ -216,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"--dataset.root {root} gives '{key}' shape {theirs}, but the teacher takes {tuple(feature.shape)} "
                 f"(its obstacle_encoding is {tcfg.obstacle_encoding!r}): distil on a dataset of that encoding"
             )
-    delta = {k: v for k, v in resolve_delta_timestamps(tcfg, meta).items() if k != "action"}
+    delta = {k: v for k, v in resolve_delta_timestamps(tcfg, meta).items() if k != ACTION}
     dataset = LeRobotDataset(repo_id, root=root, delta_timestamps=delta)
     loader = torch.utils.data.DataLoader(
         dataset,

@@ -238,9 +238,9 @@ def test_a_failing_trace_falls_back_to_the_eager_unet(monkeypatch, caplog):
 
 
 def test_untested_lerobot_keeps_the_stock_sampler(monkeypatch, caplog):
+    policy = _policy()  # built on the tested LeRobot (building one on another warns about fast reads)
     monkeypatch.setattr(lerobot_compat, "lerobot_version", lambda: "9.0.0")
     monkeypatch.setattr(lerobot_compat, "_warned", set())
-    policy = _policy()
     batch, noise = history_batch(2), sampling_noise(2)
     with caplog.at_level(logging.WARNING, logger=lerobot_compat.__name__):
         lean = _chunks(policy, "trace", batch, 1, noise)
