@@ -3,6 +3,7 @@ override the engine and the benchmarks use."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -57,10 +58,9 @@ def load_policy(path: str | Path, device: str = "cpu"):
     if missing:
         raise CheckpointError(f"{path} is an incomplete checkpoint: no {', '.join(missing)}")
     try:
-        cfg = PreTrainedConfig.from_pretrained(path)
+        cfg = dataclasses.replace(PreTrainedConfig.from_pretrained(path), device=device)
     except Exception as e:  # draccus raises many types for a bad field; the message names it
         raise CheckpointError(f"{path / 'config.json'} is not a valid formation_diffusion config: {e}") from e
-    cfg.device = device
     try:
         policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
     except (OSError, RuntimeError, ValueError, KeyError) as e:
