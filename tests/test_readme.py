@@ -49,7 +49,7 @@ CONSOLE_SCRIPTS = {
     "lerobot-edit-dataset": "edit_dataset",
 }
 DRACCUS_DEFAULT_TYPES = {"policy": "formation_diffusion", "env": "formation"}
-RUN_SH = {"demo": "python -m lerobot_formation.demo", "test": None, "setup": None}
+RUN_SH = {"demo": "python -m lerobot_formation.bench.demo", "test": None, "setup": None}
 WRAPPER = "python -m lerobot_formation.with_plugin"  # runs the LeRobot script named next
 # docs/ files other helpers write in parallel (issue 27); the lead empties this at the merge.
 WRITTEN_ELSEWHERE = {"docs/design.md", "docs/data-safety.md"}

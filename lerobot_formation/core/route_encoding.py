@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.navigation import SceneFields
-from lerobot_formation.core.obstacle_grid import (
+from lerobot_formation.core.encoding import (
     ObstacleEncoding,
-    _encode_nearest,
-    _nearest_names,
+    encode_nearest,
+    nearest_names,
     nearest_order,
     world_to_body,
 )
+from lerobot_formation.core.navigation import SceneFields
 from lerobot_formation.core.pac import PACConfig, path_blocked
 
 NEAR_CELLS = PACConfig.carrot_cells  # 5 cells of 0.2 m: PAC's carrot
@@ -66,10 +66,10 @@ def route_features(obstacles, mask, goal, pose, slots: int) -> np.ndarray:
 
 
 def _encode(obstacles, mask, goal, pose, slots) -> np.ndarray:
-    base = _encode_nearest(obstacles, mask, goal, pose, slots)
+    base = encode_nearest(obstacles, mask, goal, pose, slots)
     return np.concatenate([base, route_features(obstacles, mask, goal, pose, slots)], axis=1)
 
 
 ENCODING = ObstacleEncoding(
-    "nearest+route", 12, 4, 2, True, _encode, lambda slots: _nearest_names(slots) + ROUTE_NAMES, trailing=5
+    "nearest+route", 12, 4, 2, True, _encode, lambda slots: nearest_names(slots) + ROUTE_NAMES, trailing=5
 )

@@ -29,7 +29,7 @@ import numpy as np
 
 from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import world_to_body
+from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.route_encoding import route_features
 
 
@@ -95,6 +95,8 @@ class RoutePursuitController:
         return pursuit_command(target, d_goal, self.config, self.params.omega_max)
 
 
-def make_route_pursuit(name: str, params: FormationParams, args=None, bundle=None) -> RoutePursuitController:
+def make_route_pursuit(
+    name: str, params: FormationParams, options=None, bundle=None
+) -> RoutePursuitController:
     """The controller registry's factory (``controllers.CONTROLLER_FACTORIES``): default gains."""
     return RoutePursuitController(params=params)

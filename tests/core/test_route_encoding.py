@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.obstacle_grid import environment_state, world_to_body
+from lerobot_formation.core.encoding import world_to_body
+from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.pac import PathAwareController
 from lerobot_formation.core.safety import decode_nearest
 from lerobot_formation.core.scene import FAR, sample_scenes, scene_preset
