@@ -152,6 +152,8 @@ class ObstacleEncoding:
             "nearest"'s (``fixed`` 2, ``per_slot`` 4) is what the safety layer decodes.
         trailing_per_slot: values per obstacle slot after ``trailing`` (e.g. the slots' velocities).
         velocity: ``encode`` takes obstacles (B, M, 5) [x, y, r, vx, vy] (observed velocities).
+        map: ``encode`` takes ``map_obstacles`` (B, M, 3), the map snapshot it plans a route on
+            (``core.conditions.Perception.map_obstacles``), as a keyword.
     """
 
     name: str
@@ -164,6 +166,7 @@ class ObstacleEncoding:
     trailing: int = 0
     trailing_per_slot: int = 0
     velocity: bool = False
+    map: bool = False
 
     def slots(self, max_obstacles: int | None) -> int:
         return self.default_slots if max_obstacles is None or not self.per_slot else int(max_obstacles)
@@ -214,10 +217,21 @@ def environment_state(
     max_obstacles: int | None = None,
     pose: np.ndarray | None = None,
     obstacle_velocity: np.ndarray | None = None,
+    map_obstacles: np.ndarray | None = None,
 ) -> np.ndarray:
     """The ``environment_state`` observation (B, D) float32 of ``encoding`` (see the module docstring);
-    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles)."""
+    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles); ``map_obstacles``
+    (B, M, 3) the map a route-planning encoding plans on (None: ``obstacles``)."""
     enc = get_encoding(encoding)
+    if enc.map:
+        return enc.encode(
+            obstacles,
+            mask,
+            goal,
+            pose,
+            enc.slots(max_obstacles),
+            map_obstacles=obstacles if map_obstacles is None else map_obstacles,
+        )
     if enc.velocity:
         vel = np.zeros((*obstacles.shape[:2], 2)) if obstacle_velocity is None else obstacle_velocity
         obstacles = np.concatenate([obstacles[..., :3], vel], axis=-1)

@@ -17,8 +17,9 @@ swing out when the square turns fast), and the last factor slows it down within 
 There is no footprint check and no memory: the cost-to-go's inflation alone keeps the square off
 the obstacles. Deterministic: the same scene and pose give the same command.
 
-It plans only with what the team perceives (``core.conditions.Perception``): the observed, possibly
-noisy obstacles at their observed positions, and the observed pose.
+It plans only with what the team perceives (``core.conditions.Perception``): the route on its map
+(``map_obstacles``: the static observed obstacles as observed when the map last changed, PAC's map),
+the observed pose. Between map changes the cost-to-go is a cache hit.
 """
 
 from __future__ import annotations
@@ -81,12 +82,12 @@ class RoutePursuitController:
         self.params = params or FormationParams()
 
     def reset(self, view: Perception) -> None:
-        """Nothing to build: the route is recomputed from the perception at every step."""
+        """Nothing to build: the route is looked up on the perception's map at every step (cached fields)."""
 
     def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
         obstacles, mask, goal = view.obstacles, view.mask, view.goal
         pose = np.asarray(view.pose, dtype=np.float64)
-        features = route_features(obstacles, mask, goal, pose, self.config.slots)
+        features = route_features(obstacles, mask, goal, pose, self.config.slots, view.map_obstacles)
         target = features[:, :2].astype(np.float64)  # the 1 m carrot, body frame
         goal_body = world_to_body(goal, pose)
         d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
