@@ -1,9 +1,10 @@
 """Route pursuit: a learning-free baseline that steers the leaders' midpoint down the route hint.
 
 At every control step it computes the ``route_features`` that the default policy observes (the same
-values without moving obstacles, see below; ``core/route_encoding.py``: a grid cost-to-go over the goal and the ``slots`` nearest obstacles,
-obstacles inflated by PAC's ``path_inflate``) and pursues its near point, the carrot ``NEAR_CELLS``
-cells (1 m) down the steepest descent from the midpoint (pure pursuit of a moving look-ahead point).
+values unless a moving obstacle is observed, see below; ``core/route_encoding.py``: a grid
+cost-to-go over the goal and the ``slots`` nearest obstacles, obstacles inflated by PAC's
+``path_inflate``) and pursues its near point, the carrot ``NEAR_CELLS`` cells (1 m) down the steepest
+descent from the midpoint (pure pursuit of a moving look-ahead point).
 
 With the carrot (or, within ``r_goal`` of the goal, the goal itself) at body-frame coordinates
 (x_b, y_b) (x right, y along the heading) and d_goal the midpoint's distance to the goal::
