@@ -45,14 +45,15 @@ def test_env_config_fields_from_the_command_line():
         FormationEnvConfig(action_delay=-1)
 
 
-def test_env_observes_what_the_engine_observes():
+@pytest.mark.parametrize("encoding", ["nearest", "nearest+route"])
+def test_env_observes_what_the_engine_observes(encoding):
     """PAC stepping the env on its perception takes the engine's actions, and the observations the
-    engine records (the dataset's) are the env's."""
+    engine records (the dataset's) are the env's (the route hint on the same map snapshot)."""
     scenes = sample_scenes([1_000_000])
     rec = rollout(
-        scenes, PACController(), max_steps=120, conditions=ALL_ON, record_observations=("nearest", None)
+        scenes, PACController(), max_steps=120, conditions=ALL_ON, record_observations=(encoding, None)
     )
-    env = FormationEnv(obstacle_encoding="nearest", conditions=ALL_ON)
+    env = FormationEnv(obstacle_encoding=encoding, conditions=ALL_ON)
     obs, _ = env.reset(seed=1_000_000)
     ctrl = PACController()
     ctrl.reset(env.teams.perceive())

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from datasets_scripts import generate_pac_dataset as gen_mod
-from datasets_scripts import lerobot_writer
+from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.hub_folder import push_to_folder
 
 

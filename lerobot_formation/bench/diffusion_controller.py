@@ -113,6 +113,7 @@ class DiffusionController:
             self.encoding,
             self.max_obstacles,
             obstacle_velocity=view.obstacle_velocity,
+            map_obstacles=view.map_obstacles,
         )
         obs, env = seen["agent_pos"], seen["environment_state"]
         new = ~self.started[idx]

@@ -77,6 +77,8 @@ class ObstacleEncoding:
             "nearest"'s (``fixed`` 2, ``per_slot`` 4) is what the safety layer decodes.
         trailing_per_slot: values per obstacle slot after ``trailing`` (e.g. the slots' velocities).
         velocity: ``encode`` takes obstacles (B, M, 5) [x, y, r, vx, vy] (observed velocities).
+        map: ``encode`` takes ``map_obstacles`` (B, M, 3), the map snapshot it plans a route on
+            (``core.conditions.Perception.map_obstacles``), as a keyword.
     """
 
     name: str
@@ -89,6 +91,7 @@ class ObstacleEncoding:
     trailing: int = 0
     trailing_per_slot: int = 0
     velocity: bool = False
+    map: bool = False
 
     def slots(self, max_obstacles: int | None) -> int:
         return self.default_slots if max_obstacles is None or not self.per_slot else int(max_obstacles)

@@ -136,10 +136,21 @@ def environment_state(
     max_obstacles: int | None = None,
     pose: np.ndarray | None = None,
     obstacle_velocity: np.ndarray | None = None,
+    map_obstacles: np.ndarray | None = None,
 ) -> np.ndarray:
     """The ``environment_state`` observation (B, D) float32 of ``encoding`` (see the module docstring);
-    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles)."""
+    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles); ``map_obstacles``
+    (B, M, 3) the map a route-planning encoding plans on (None: ``obstacles``)."""
     enc = get_encoding(encoding)
+    if enc.map:
+        return enc.encode(
+            obstacles,
+            mask,
+            goal,
+            pose,
+            enc.slots(max_obstacles),
+            map_obstacles=obstacles if map_obstacles is None else map_obstacles,
+        )
     if enc.velocity:
         vel = np.zeros((*obstacles.shape[:2], 2)) if obstacle_velocity is None else obstacle_velocity
         obstacles = np.concatenate([obstacles[..., :3], vel], axis=-1)
