@@ -331,7 +331,8 @@ def mentioned_paths(doc: Path) -> set[str]:
         if not PATHLIKE.match(word) or "<" in word or "*" in word:
             continue
         first = word.split("/")[0]
-        if first in TOP_LEVEL and "/" in word or first in SUBPACKAGES and "/" in word:
+        # a subpackage path names a module file ("data/x" may as well be a dataset folder at the root)
+        if first in TOP_LEVEL and "/" in word or first in SUBPACKAGES and word.endswith(".py"):
             paths.add(word)
         elif re.fullmatch(r"[\w-]+\.py", word):
             paths.add(word)

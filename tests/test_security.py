@@ -148,6 +148,7 @@ def _tiny_checkpoint(path: Path, env_dim: int = 66) -> Path:
     torch.manual_seed(0)
     cfg = FormationDiffusionConfig(
         device="cpu",
+        obstacle_encoding={66: "grid+list", 51: "grid"}[env_dim],
         push_to_hub=False,
         input_features={
             OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
@@ -215,7 +216,7 @@ def test_processor_class_outside_the_registry_is_refused_by_the_loader_and_the_b
     import shutil
 
     from lerobot_formation.bench.cli import main as bench_main
-    from lerobot_formation.bench.diffusion_controller import CheckpointError, load_policy
+    from lerobot_formation.policy.checkpoint import CheckpointError, load_policy
 
     ckpt = tmp_path / "ckpt"
     shutil.copytree(tiny_checkpoint, ckpt)

@@ -29,7 +29,9 @@ def load_policy(path: str | Path, device: str = "cpu"):
     Raises:
         CheckpointError (a ValueError): the folder is missing or incomplete, ``config.json`` is not
             valid JSON or not a ``formation_diffusion`` config (a stock ``diffusion`` checkpoint has no
-            obstacle encoding and no EMA), or the weights or processors cannot be loaded (truncated).
+            obstacle encoding and no EMA), a processor pipeline names a step that is not registered
+            with LeRobot (``checkpoint_files``; refused before anything is imported), or the weights
+            or processors cannot be loaded (truncated).
     """
     import json
 
@@ -38,6 +40,7 @@ def load_policy(path: str | Path, device: str = "cpu"):
 
     import lerobot_formation.policy.configuration_formation_diffusion  # noqa: F401  (registers the type)
     import lerobot_formation.policy.processor_formation_diffusion  # noqa: F401  (registers its step)
+    from lerobot_formation.policy.checkpoint_files import check_processor_configs
 
     path = Path(path)
     if not path.is_dir():
@@ -61,6 +64,10 @@ def load_policy(path: str | Path, device: str = "cpu"):
         cfg = dataclasses.replace(PreTrainedConfig.from_pretrained(path), device=device)
     except Exception as e:  # draccus raises many types for a bad field; the message names it
         raise CheckpointError(f"{path / 'config.json'} is not a valid formation_diffusion config: {e}") from e
+    try:
+        check_processor_configs(path)  # before anything names a class to import
+    except ValueError as e:
+        raise CheckpointError(str(e)) from e
     try:
         policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
     except (OSError, RuntimeError, ValueError, KeyError) as e:

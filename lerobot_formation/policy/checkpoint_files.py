@@ -31,9 +31,9 @@ class UnsafeCheckpointError(ConfigError):
 
 def registered_processor_steps() -> dict[str, type]:
     """LeRobot's ``ProcessorStepRegistry`` (its registered name -> class), with this plugin's steps."""
-    from lerobot.processor import ProcessorStepRegistry
-
-    import lerobot_formation.policy.processor_formation_diffusion  # noqa: F401  (registers our steps)
+    from lerobot.processor import (
+        ProcessorStepRegistry,
+    )  # ours are registered by whoever loads a formation checkpoint (the plugin, load_policy)
 
     return {name: ProcessorStepRegistry.get(name) for name in ProcessorStepRegistry.list()}
 
