@@ -30,10 +30,9 @@ class UnsafeCheckpointError(ConfigError):
 
 
 def registered_processor_steps() -> dict[str, type]:
-    """LeRobot's ``ProcessorStepRegistry`` (its registered name -> class), with this plugin's steps."""
-    from lerobot.processor import (
-        ProcessorStepRegistry,
-    )  # ours are registered by whoever loads a formation checkpoint (the plugin, load_policy)
+    """LeRobot's ``ProcessorStepRegistry`` (its registered name -> class). This plugin's steps are in it
+    once the plugin (or ``policy.checkpoint.load_policy``) has imported the processor module."""
+    from lerobot.processor import ProcessorStepRegistry
 
     return {name: ProcessorStepRegistry.get(name) for name in ProcessorStepRegistry.list()}
 
