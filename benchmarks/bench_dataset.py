@@ -16,10 +16,14 @@ from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from datasets_scripts import dataset_frames, lerobot_writer, pac_episodes  # noqa: E402
 from datasets_scripts.generate_pac_dataset import PAPER_EPISODES  # noqa: E402
+from lerobot_formation.compat.lerobot_compat import skip_noop_image_embedding  # noqa: E402
 from lerobot_formation.core.dynamics import FormationParams  # noqa: E402
-from lerobot_formation.lerobot_compat import skip_noop_image_embedding  # noqa: E402
+from lerobot_formation.data import (
+    dataset_frames,
+    lerobot_writer,
+    pac_episodes,  # noqa: E402
+)
 
 
 def write_only(episodes, root: Path, fast: bool) -> float:

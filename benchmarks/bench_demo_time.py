@@ -1,6 +1,6 @@
 """Wall time of the main job (``scripts/run.sh demo``), quiet and beside a CPU-bound neighbour.
 
-The demo (``lerobot_formation.demo``: PAC, MPPI, the pretrained diffusion policy and its best-of-10
+The demo (``lerobot_formation.bench.demo``: PAC, MPPI, the pretrained diffusion policy and its best-of-10
 safety layer on 50 unseen scenes, the diffusion controllers on 20 hard scenes, tables and figures)
 is run as a subprocess twice in one run:
 
@@ -9,7 +9,7 @@ is run as a subprocess twice in one run:
   core: ``--load matmul``, a 256x256 numpy matmul loop with one BLAS thread, or ``--load busy``, a
   pure-Python loop) and killed after it.
 
-By default the demo is run as ``<this python> -m lerobot_formation.demo ARGS``, which is exactly what
+By default the demo is run as ``<this python> -m lerobot_formation.bench.demo ARGS``, which is exactly what
 ``scripts/run.sh demo ARGS`` runs after its environment check (same variables: HF_HUB_OFFLINE=1,
 HF_DATASETS_OFFLINE=1, TOKENIZERS_PARALLELISM=false, OMP_NUM_THREADS / MKL_NUM_THREADS /
 LEROBOT_FORMATION_THREADS = ``--threads``). ``--via-run-sh`` runs ``scripts/run.sh demo ARGS`` itself
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--via-run-sh",
         action="store_true",
-        help="run scripts/run.sh demo (default: <this python> -m lerobot_formation.demo, what run.sh runs "
+        help="run scripts/run.sh demo (default: <this python> -m lerobot_formation.bench.demo, what run.sh runs "
         "after its setup check); refused if .venv's install stamp is stale",
     )
     ap.add_argument(
@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     base = (
         [str(REPO / "scripts" / "run.sh"), "demo"]
         if args.via_run_sh
-        else [sys.executable, "-m", "lerobot_formation.demo"]
+        else [sys.executable, "-m", "lerobot_formation.bench.demo"]
     )
     size = QUICK_ARGS if args.quick else []
     env = child_env(threads)

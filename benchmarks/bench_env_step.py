@@ -17,8 +17,8 @@ import time
 import numpy as np
 
 from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 ALL_ON = Conditions(
     sensing_range=3.0,

@@ -180,13 +180,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
+    from lerobot_formation.bench.evaluation import evaluate
+    from lerobot_formation.bench.scene_sets import parse_scenes
     from lerobot_formation.core.dynamics import FormationParams
     from lerobot_formation.core.metrics import two_proportion_z
     from lerobot_formation.core.rollout import SUCCESS
     from lerobot_formation.core.scene import save_scenes
-    from lerobot_formation.diffusion_controller import DiffusionController
-    from lerobot_formation.evaluation import evaluate
-    from lerobot_formation.scene_sets import parse_scenes
 
     threads = apply_threads(args.threads)
     scenes = parse_scenes(
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     engine_s = time.perf_counter() - t0
     engine_success = float(np.mean(rec.outcome == SUCCESS))
     print(
-        f"engine: {engine_s:.1f} s for {len(scenes)} episodes ({ctrl.replans} batched replans), policy load "
+        f"engine: {engine_s:.1f} s for {len(scenes)} episodes ({ctrl.stats['replans']} episode replans), policy load "
         f"{load_s:.1f} s; success {engine_success:.0%}",
         flush=True,
     )

@@ -6,10 +6,10 @@
     for one episode (``reset()`` then ``select_action``: an empty action queue, so one full
     ``generate_actions``), against our fastest setting: DDIM with ``--ddim-steps`` steps
     (``diffusion_controller.set_inference_steps``), batched over ``--batch`` episodes in one
-    ``DiffusionController.plan`` call, per episode. Which step count keeps the paper's success is
+    first ``DiffusionController.act`` call (every episode replans), per episode. Which step count keeps the paper's success is
     measured by the success-against-steps table; pass that count as ``--ddim-steps``.
-(b) The default model's latency (``--policy.path``, its own sampler): one ``DiffusionController.plan``
-    for one episode, per episode for ``--batch`` episodes, and the stock ``select_action`` for one.
+(b) The default model's latency (``--policy.path``, its own sampler): one engine replan (the first
+    ``DiffusionController.act`` after ``reset``) for one episode, per episode for ``--batch`` episodes, and the stock ``select_action`` for one.
 (c) The lean inference path (policy config ``inference_backend``) on the default model
     (``--policy.path``, else pretrained/formation_diffusion_safe): one replan for one observation (B=1),
     i.e. one ``sample_action_chunks`` call (conditioning + the K candidates' batched denoising, what
@@ -32,7 +32,7 @@ Run (full size)::
 
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts c --threads 1
 
-(d) The distilled few-step sampler (``--student PATH``, ``python -m lerobot_formation.distill``): one
+(d) The distilled few-step sampler (``--student PATH``, ``python -m lerobot_formation.policy.distill``): one
     replan at B=1 through LeRobot's ``select_action`` with the checkpoint's processors (``reset()``
     first), teacher (``--policy.path``) with its own sampler against the student with its own, for K in
     ``--lean-candidates`` (K > 1: the safety layer's best-of-K), both traced. ``--parts d`` runs only
@@ -41,7 +41,7 @@ Run (full size)::
 (e) The safety layer (``--parts e``): every replan at B=1 through ``select_action`` over whole episodes
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
     the scorer against its whole-field baseline in the same run, and with a warm-starting checkpoint
-    all K candidates warm-started (``warm_start_all_candidates``). Its headline is the last line
+    all K candidates warm-started (``ReplanExperiment.warm_all_candidates``). Its headline is the last line
     when it runs.
 
 ``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (d) when it
@@ -53,6 +53,7 @@ runs (``replan latency B=1 K=1: ...``: the trace backend against the eager basel
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -87,20 +88,22 @@ def paper_policy(config_path: Path):
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
     from lerobot_formation.core.obstacle_grid import environment_state_dim
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
     raw = json.loads(config_path.read_text())
     fields = {k: v for k, v in raw["policy"].items() if k != "type"}
     fields["device"] = "cpu"
-    cfg = draccus.decode(FormationDiffusionConfig, fields)
     env_dim = environment_state_dim(raw.get("env", {}).get("obstacle_encoding", "grid"))
-    cfg.input_features = {
-        OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
-        OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(env_dim,)),
-    }
-    cfg.output_features = {ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))}
+    cfg = dataclasses.replace(
+        draccus.decode(FormationDiffusionConfig, fields),
+        input_features={
+            OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
+            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(env_dim,)),
+        },
+        output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))},
+    )
     policy = FormationDiffusionPolicy(cfg)
     policy.eval()
 
@@ -133,16 +136,23 @@ def stock_replan_s(policy, pre, post, env_dim: int, repeats: int) -> float:
 
 
 def engine_replan_s(ctrl, n: int, repeats: int) -> float:
-    """One batched DiffusionController.plan for n episodes (seconds for the whole call)."""
+    """One batched engine replan for n episodes: ``reset`` then the first ``act`` (every episode
+    replans), seconds for the whole call."""
+    from lerobot_formation.core.dynamics import initial_state
     from lerobot_formation.core.scene import UNSEEN_SEED_START, sample_scenes
 
     scenes = sample_scenes(UNSEEN_SEED_START + np.arange(n))
     from lerobot_formation.core.conditions import Perception
-    from lerobot_formation.core.dynamics import initial_state
 
     ctrl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     idx = np.arange(n)
-    return timed(lambda: ctrl.plan(idx, scenes.start), repeats)
+    state = initial_state(scenes.start, ctrl.params)
+
+    def replan():
+        ctrl.reset(scenes)
+        ctrl.act(state, idx)
+
+    return timed(replan, repeats)
 
 
 LEAN_VARIANTS = ("eager", "+inference_mode", "+DDIM precomputed", "+traced U-Net")
@@ -151,7 +161,7 @@ LEAN_VARIANTS = ("eager", "+inference_mode", "+DDIM precomputed", "+traced U-Net
 def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
     """Median ms of one B=1 replan with K=candidates for each of LEAN_VARIANTS (timed in turn, after two
     warm-up calls each), and the largest chunk difference from eager ("max diff")."""
-    from lerobot_formation.lerobot_compat import global_conditioning
+    from lerobot_formation.compat.lerobot_compat import global_conditioning
 
     cfg = policy.config
     env_dim = cfg.input_features["observation.environment_state"].shape[0]
@@ -172,7 +182,7 @@ def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
 
     def backend(name):
         def run():
-            cfg.inference_backend = name
+            policy.reconfigure(inference_backend=name)
             return policy.sample_action_chunks(batch, candidates, noise=noise)[0]
 
         return run
@@ -190,7 +200,7 @@ def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
             t = time.perf_counter()
             fn()
             times[name].append(time.perf_counter() - t)
-    cfg.inference_backend = "eager"
+    policy.reconfigure(inference_backend="eager")
     result = {name: 1e3 * statistics.median(times[name]) for name in calls}
     result["max diff"] = max(float((out[n] - out["eager"]).abs().max()) for n in calls)
     return result
@@ -199,7 +209,7 @@ def lean_replan_ms(policy, candidates: int, repeats: int) -> dict[str, float]:
 def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
     """Median ms of one U-Net call at B=1 (inference_mode): eager, traced + frozen; and the ms the
     trace took to build (trace, freeze, check)."""
-    from lerobot_formation.lerobot_compat import global_conditioning
+    from lerobot_formation.compat.lerobot_compat import global_conditioning
 
     cfg = policy.config
     model = policy.inference_model
@@ -226,7 +236,7 @@ def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
 
 def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) -> str:
     """Print part (c); return its headline (K=1 at steps[0], trace against eager)."""
-    from lerobot_formation.diffusion_controller import load_policy, set_inference_steps
+    from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
     policy = load_policy(path)[0]
     cfg = policy.config
@@ -264,17 +274,17 @@ def student_part(teacher_path: str, student_path: str, candidates: list[int], re
     checkpoint's pre- and postprocessors, ``reset()`` first so the chunk is sampled), the teacher with its
     own sampler against the distilled student with its own, for K in ``candidates`` (K > 1: the
     safety layer's best-of-K, ``num_candidates``), both with inference_backend "trace"."""
-    from lerobot_formation.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     rows = {}
     for name, path in (("teacher", teacher_path), ("student", student_path)):
         policy, pre, post = load_policy(path)
+        policy.reconfigure(inference_backend="trace")
         cfg = policy.config
-        cfg.inference_backend = "trace"
         env_dim = cfg.input_features["observation.environment_state"].shape[0]
         sampler = f"DDIM {cfg.num_inference_steps} {cfg.timestep_spacing}, {cfg.prediction_type} prediction"
         for k in candidates:
-            cfg.num_candidates = k
+            policy.reconfigure(num_candidates=k)
             rows[name, k] = 1e3 * stock_replan_s(policy, pre, post, env_dim, repeats)
         rows[name] = sampler
     print(
@@ -304,7 +314,7 @@ def episode_replans_ms(policy, pre, post, encoding: str, seeds, scorer=None) -> 
     from lerobot.envs.utils import preprocess_observation
 
     from lerobot_formation.core import safety
-    from lerobot_formation.env import FormationEnv
+    from lerobot_formation.envs.env import FormationEnv
 
     env = FormationEnv(obstacle_encoding=encoding)
     shipped = safety.cost_to_go_at
@@ -343,11 +353,12 @@ def safety_part(path: str, k: int, scenes: int) -> str:
     convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions)."""
     from lerobot_formation.core import navigation
     from lerobot_formation.core.scene import UNSEEN_SEED_START
-    from lerobot_formation.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
 
     policy, pre, post = load_policy(path)
+    policy.reconfigure(inference_backend="trace")
     cfg = policy.config
-    cfg.inference_backend = "trace"
     seeds = UNSEEN_SEED_START + np.arange(scenes)
 
     def whole_field(obstacles, goal, points, rows=None, **kw):
@@ -362,7 +373,8 @@ def safety_part(path: str, k: int, scenes: int) -> str:
     if cfg.warm_start_step:  # the real-time best-of-K: every candidate warm-started, j fewer denoiser calls
         variants.append((f"K={k}, all candidates warm", k, None, True))
     for label, kk, scorer, all_warm in variants:
-        cfg.num_candidates, cfg.warm_start_all_candidates = kk, all_warm
+        policy.reconfigure(num_candidates=kk)
+        policy.replanner = Replanner(policy, experiment=ReplanExperiment(warm_all_candidates=all_warm))
         runs[label] = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, scorer)
     same = np.array_equal(np.asarray(runs[f"K={k}"][1]), np.asarray(runs[f"K={k}, whole field"][1]))
     print(
@@ -404,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--student",
         default=None,
-        help="a distilled few-step checkpoint (python -m lerobot_formation.distill): part (d) times it "
+        help="a distilled few-step checkpoint (python -m lerobot_formation.policy.distill): part (d) times it "
         "against --policy.path (default pretrained/formation_diffusion_safe) through select_action",
     )
     ap.add_argument("--safety-scenes", type=int, default=10, help="unseen scenes of part (e)")
@@ -414,7 +426,8 @@ def main(argv: list[str] | None = None) -> int:
     apply_threads(args.threads)
     threads = torch.get_num_threads()
 
-    from lerobot_formation.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
+    from lerobot_formation.policy.checkpoint import load_policy
 
     print(
         f"torch threads {threads}, {os.cpu_count()} CPUs; median of {args.repeats} after a warm-up",
@@ -459,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def paper_part(args) -> None:
     """Part (a): the paper-size network."""
-    from lerobot_formation.diffusion_controller import DiffusionController
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
 
     policy, pre, post = paper_policy(Path(args.paper_config))
     cfg = policy.config

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from lerobot_formation.core.scene import UNSEEN_SEED_START
-from lerobot_formation.env import FormationEnv
+from lerobot_formation.envs.env import FormationEnv
 
 
 def run(encoding: str, seeds: list[int], actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -26,7 +26,7 @@ lowest time per replan is marked and is the headline, with its time per replan a
 Samplers: every step count of ``--steps`` runs with every timestep spacing of ``--spacings`` (default:
 the checkpoint's; "trailing" starts the first DDIM step at the last training timestep, which 1-3 step
 sampling needs), and every ``--student PATH`` (a distilled few-step checkpoint,
-``python -m lerobot_formation.distill``) runs with its own step count and spacing, all in one run.
+``python -m lerobot_formation.policy.distill``) runs with its own step count and spacing, all in one run.
 
 Options: ``--n-action-steps N`` executes N actions per replan instead of the checkpoint's;
 ``--inference-backend eager|lean|trace`` sets the loaded policy config's ``inference_backend``
@@ -146,8 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--controller",
         default="diffusion",
-        help="a diffusion controller of lerobot-formation-bench: diffusion, diffusion-bestof, diffusion-adaptive, "
-        "diffusion-cbf, diffusion-safe (default: %(default)s)",
+        help="a diffusion controller of lerobot-formation-bench: diffusion, diffusion-bestof, "
+        "diffusion-cbf, diffusion-safe, diffusion-policy (default: %(default)s)",
     )
     ap.add_argument(
         "--candidates", type=int, default=10, help="K of the best-of-K controllers (default: %(default)s)"
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         "--student",
         action="append",
         default=[],
-        help="a distilled few-step checkpoint (python -m lerobot_formation.distill), run with its own "
+        help="a distilled few-step checkpoint (python -m lerobot_formation.policy.distill), run with its own "
         "num_inference_steps and timestep_spacing beside the teacher's settings; repeatable",
     )
     ap.add_argument("--out", default=None, help="write every number to this JSON file")
@@ -202,12 +202,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
-    from lerobot_formation.bench_results import controller_results
-    from lerobot_formation.controllers import CONTROLLERS, make_controller
+    from lerobot_formation.bench.controllers import CONTROLLERS, make_controller
+    from lerobot_formation.bench.evaluation import evaluate
+    from lerobot_formation.bench.results import controller_results
+    from lerobot_formation.bench.scene_sets import parse_scenes
+    from lerobot_formation.bench.settings import ControllerOptions
     from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.diffusion_controller import load_policy
-    from lerobot_formation.evaluation import evaluate
-    from lerobot_formation.scene_sets import parse_scenes
+    from lerobot_formation.policy.checkpoint import load_policy
 
     if args.controller not in CONTROLLERS:
         ap.error(f"unknown controller {args.controller!r}; choose from {CONTROLLERS}")
@@ -265,17 +266,16 @@ def main(argv: list[str] | None = None) -> int:
     params = FormationParams()
     results: dict[str, dict[str, dict]] = {}
     # each checkpoint's own warm start, restored per setting (a step count at or below it turns it off)
-    warm = {id(b): getattr(b[0].config, "warm_start_step", 0) for b in [bundle] + [b for _, b in students]}
+    warm = {id(b): b[0].config.warm_start_step for b in [bundle] + [b for _, b in students]}
     for label, path, bun, k, spacing in settings:
-        bun[0].config.timestep_spacing = spacing
-        bun[0].config.warm_start_step = warm[id(bun)]
-        bench_args = argparse.Namespace(
+        bun[0].reconfigure(timestep_spacing=spacing, warm_start_step=warm[id(bun)])
+        options = ControllerOptions(
             candidates=args.candidates, num_inference_steps=k, seed_policy=args.seed_policy, policy_path=path
         )
         results[label] = {}
         for s in sets:
             try:
-                ctrl = make_controller(args.controller, params, bench_args, bun)
+                ctrl = make_controller(args.controller, params, options, bun)
             except ValueError as e:  # e.g. a safety-layer controller on a world-frame checkpoint
                 ap.error(f"controller {args.controller}: {e}")
             t0 = time.perf_counter()
@@ -294,18 +294,16 @@ def main(argv: list[str] | None = None) -> int:
                 "timeouts": entry["timeouts"],
                 "wall_s": wall,
                 "replans": stats.get("replans"),
-                "policy_calls": getattr(ctrl, "replans", None),
             }
             results[label][s] = e
             lo, hi = e["success_ci95"]
             per = f", {1e3 * wall / e['replans']:.2f} ms per replan" if e["replans"] else ""
             print(
                 f"[{s}] {label}: success {e['success_rate']:.0%} [{lo:.0%}, {hi:.0%}] of {e['n_episodes']} "
-                f"(collisions {e['collisions']}, timeouts {e['timeouts']}) in {wall:.1f} s, {e['replans']} replans "
-                f"in {e['policy_calls']} batched calls{per}",
+                f"(collisions {e['collisions']}, timeouts {e['timeouts']}) in {wall:.1f} s, {e['replans']} replans{per}",
                 flush=True,
             )
-        bundle[0].config.timestep_spacing = cfg_spacing
+        bundle[0].reconfigure(timestep_spacing=cfg_spacing)
 
     ok = within_noise(results, ref)
     per_replan = {lab: seconds_per_replan(results[lab]) for lab in results}

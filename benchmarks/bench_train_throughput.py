@@ -129,7 +129,7 @@ class Trainer:
         """The DataLoader exactly as lerobot-train builds it, for these worker options."""
         from lerobot.datasets import EpisodeAwareSampler
 
-        from lerobot_formation.lerobot_compat import train_dataloader_worker_kwargs
+        from lerobot_formation.compat.lerobot_compat import train_dataloader_worker_kwargs
 
         cfg, ds = self.cfg, self.dataset
         cfg.num_workers, cfg.prefetch_factor, cfg.persistent_workers = (
@@ -302,7 +302,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sweep-prefetch", default="2,4,8")
     ap.add_argument("--sweep-steps", type=int, default=None, help="timed steps per sweep setting")
     ap.add_argument("--probe", action="store_true", help="measure the per-sample read cost")
-    ap.add_argument("--fast-reads", action="store_true", help="also measure lerobot_formation.fast_reads")
+    ap.add_argument(
+        "--fast-reads", action="store_true", help="also measure lerobot_formation.compat.fast_reads"
+    )
     ap.add_argument("--probe-samples", type=int, default=200)
     args, overrides = ap.parse_known_args(argv)
     for o in overrides:
@@ -310,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"unrecognised argument {o!r} (config overrides look like --policy.horizon=16)")
 
     logging.getLogger().setLevel(logging.WARNING)
-    from lerobot_formation import fast_reads
+    from lerobot_formation.compat import fast_reads
 
     fast_reads.uninstall()  # the stock reader first, whatever imported the plugin
     # Spawned workers re-import this script (and with it the plugin): keep them stock too.
@@ -407,10 +409,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(f"ratio pure compute / with loader: {pure / with_loader:.2f}x")
     if args.fast_reads:
-        # The plugin's fix: LeRobot's reader with lerobot_formation.fast_reads (in-memory columns),
+        # The plugin's fix: LeRobot's reader with lerobot_formation.compat.fast_reads (in-memory columns),
         # same batches, same update; in the main process (--num_workers=0) and, if the stock run used
         # workers, with the same workers (a pickled reader installs the fast path in each worker).
-        from lerobot_formation import fast_reads
+        from lerobot_formation.compat import fast_reads
 
         os.environ["LEROBOT_FORMATION_FAST_READS"] = "1"
         fast_reads.install()

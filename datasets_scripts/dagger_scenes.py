@@ -76,7 +76,7 @@ def dagger_scenes(
     num_inference_steps: int | None = None,
     min_clearance: float = 0.05,
 ) -> tuple[Scenes, dict]:
-    from lerobot_formation.diffusion_controller import DiffusionController
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
 
     params = FormationParams()
     scenes = sample_scenes(seed + np.arange(rollouts), scene_preset(preset))

@@ -49,12 +49,17 @@ import argparse
 import sys
 from pathlib import Path
 
-from datasets_scripts.hub_folder import hub_destinations, push_to_folder
-from datasets_scripts.lerobot_writer import generate
-from datasets_scripts.safe_destination import check_inside, check_replaceable, check_repo_id, exit_on_signals
-from lerobot_formation.condition_flags import add_condition_arguments, conditions_from_args
 from lerobot_formation.core.obstacle_grid import ENCODINGS
 from lerobot_formation.core.scene import SCENE_PRESETS
+from lerobot_formation.data.hub_folder import hub_destinations, push_to_folder
+from lerobot_formation.data.lerobot_writer import generate
+from lerobot_formation.data.safe_destination import (
+    check_inside,
+    check_replaceable,
+    check_repo_id,
+    exit_on_signals,
+)
+from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.threads import add_threads_argument, apply_threads
 
 PAPER_EPISODES = 1878
@@ -142,7 +147,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.scenes and not Path(args.scenes).is_file():
         ap.error(f"--scenes file {args.scenes} does not exist")
     try:
-        conditions_from_args(args)
+        conditions_from_flags(args)
     except ValueError as e:
         ap.error(str(e).replace("conditions: ", "--env."))
     return args
@@ -184,7 +189,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             workers=args.workers,
             scene_preset=args.scene_preset,
             min_scene_slots=args.scene_slots,
-            conditions=conditions_from_args(args),
+            conditions=conditions_from_flags(args),
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -9,20 +9,21 @@ default holds at most 5 obstacles) say so instead of a number.
     python scripts/ablation.py --new pretrained/formation_diffusion_safe --old pretrained/formation_diffusion_cpu \\
         --sets random:100,hard:100 --out outputs/ablation
 
-Rows: PAC; MPPI; route pursuit (``core/route_pursuit.py``, no learning); the old default (paper data, egocentric grid+list list) standard and adaptive; the
+Rows: PAC; MPPI; route pursuit (``core/route_pursuit.py``, no learning); the old default (paper data, egocentric grid+list list) standard; the
 new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escapes, CBF filter,
-both, both + escapes ("escapes": ``escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
+both, both + escapes ("escapes": ``ReplanExperiment.escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
 also replaces sampled chunks that make too little progress; without it, only when none is safe);
 with ``--dagger CKPT`` the same model after a DAgger round; with ``--route CKPT`` the same rows for
 a model observing the "nearest+route" encoding (the route hint, ``core/route_encoding.py``); with ``--n-action-steps N`` the new
 model executing N instead of its trained number of actions per replan (an action-execution change);
-"+ blending": ``replan_blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
+"+ blending": ``ReplanExperiment.blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
 executed one, ``core.replan_blend``; the other rows run without it); "+ warm start":
 ``warm_start_step`` = ``--warm-start-step`` (a replan starts from the last chunk's unexecuted rest,
 noised; the other rows sample from pure noise; with ``--blend-steps 0`` these rows are named without
-"+ blending"); "+ stop": ``blocked_fallback`` "stop"; with ``--student CKPT`` a
-distilled few-step checkpoint (``python -m lerobot_formation.distill``) standard and with its best
-safety layer.
+"+ blending"); "+ stop": ``ReplanExperiment.blocked_fallback`` "stop"; with ``--student CKPT`` a
+distilled few-step checkpoint (``python -m lerobot_formation.policy.distill``) standard and with its best
+safety layer. The blending, escape, stop and all-candidates settings are the replanner's experiment
+settings (``policy.replanner.ReplanExperiment``), not policy config fields.
 """
 
 from __future__ import annotations
@@ -30,21 +31,26 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import fields
 from pathlib import Path
 
-from lerobot_formation.bench_results import controller_results, safety_rates
-from lerobot_formation.controllers import make_controller
+from lerobot_formation.bench.controllers import make_controller
+from lerobot_formation.bench.evaluation import evaluate
+from lerobot_formation.bench.results import controller_results, safety_rates
+from lerobot_formation.bench.scene_sets import parse_scenes
+from lerobot_formation.bench.settings import ControllerOptions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START
-from lerobot_formation.evaluation import evaluate
-from lerobot_formation.scene_sets import parse_scenes
+from lerobot_formation.policy.replanner import ReplanExperiment
+
+EXPERIMENT_FIELDS = {f.name for f in fields(ReplanExperiment)}
 
 
 def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     """(label, checkpoint, controller, n_action_steps override, policy config overrides)."""
     adv = {"escape_advantage": args.escape_advantage}
     no_adv = {"escape_advantage": None}  # escape manoeuvres only when no sampled chunk is safe
-    blend = {"replan_blend_steps": args.blend_steps}
+    blend = {"blend_steps": args.blend_steps}
     rows = [
         ("PAC", None, "pac", None, {}),
         ("MPPI", None, "mppi", None, {}),
@@ -52,7 +58,6 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     ]
     if args.old:
         rows += [("old default, standard", args.old, "diffusion", None, {})]
-        rows += [("old default, adaptive K=10 (world-frame rule)", args.old, "diffusion-adaptive", None, {})]
     for tag, path in (("new", args.new), ("new + DAgger", args.dagger), ("route", args.route)):
         if not path:
             continue
@@ -102,7 +107,7 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                     path,
                     "diffusion-bestof",
                     None,
-                    {**adv, **warm, "warm_start_all_candidates": True},
+                    {**adv, **warm, "warm_all_candidates": True},
                 ),
                 (f"{tag}, best-of-{k} + CBF{ws}", path, "diffusion-safe", None, {**no_adv, **warm}),
             ]
@@ -166,13 +171,13 @@ def main(argv: list[str] | None = None) -> int:
         "--escape-advantage",
         type=float,
         default=0.1,
-        help="escape_advantage [m] of the '+ escapes' rows (policy config field)",
+        help="escape_advantage [m] of the '+ escapes' rows (ReplanExperiment)",
     )
     ap.add_argument(
         "--blend-steps",
         type=int,
         default=4,
-        help="replan_blend_steps of the '+ blending' rows (policy config field; 0: no such rows)",
+        help="blend_steps of the '+ blending' rows (ReplanExperiment; 0: no such rows)",
     )
     ap.add_argument(
         "--num-inference-steps",
@@ -196,16 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     params = FormationParams()
     sets = [s for s in args.sets.split(",") if s]
     scenes = {s: parse_scenes(s, args.seed) for s in sets}
-    bench_args = argparse.Namespace(
-        candidates=args.candidates,
-        num_inference_steps=args.num_inference_steps,
-        seed_policy=0,
-        policy_path=None,
-    )
-    from lerobot_formation.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     bundles: dict[str, tuple] = {}
-    trained: dict[str, int] = {}
     results: dict[str, dict] = {}
     rows = row_specs(args)
     if args.rows:
@@ -217,25 +215,27 @@ def main(argv: list[str] | None = None) -> int:
         if path:
             if path not in bundles:
                 bundles[path] = load_policy(path)
-                cfg = bundles[path][0].config
-                trained[path] = {
-                    "n_action_steps": cfg.n_action_steps,
-                    "escape_advantage": cfg.escape_advantage,
-                    "replan_blend_steps": 0,  # rows without "blending" run without it
-                    "blocked_fallback": "widest",  # rows without "stop" keep the widest sampled chunk
-                    "warm_start_step": 0,  # rows without "warm start" sample every replan from noise
-                    "warm_start_all_candidates": False,
-                }
             bundle = bundles[path]
-            settings = {**trained[path], **({"n_action_steps": n_act} if n_act else {}), **overrides}
-            for key, value in settings.items():
-                setattr(bundle[0].config, key, value)
-        bench_args.policy_path = path
+        # rows without "blending", "stop", "escapes" or "warm start" run without them
+        settings = {
+            "warm_start_step": 0,
+            # a training-window field derived from n_action_steps: derived again (None)
+            **({"n_action_steps": n_act, "drop_n_last_frames": None} if n_act else {}),
+            **overrides,
+        }
+        experiment = ReplanExperiment(**{k: v for k, v in settings.items() if k in EXPERIMENT_FIELDS})
+        options = ControllerOptions(
+            policy_path=path,
+            candidates=args.candidates,
+            num_inference_steps=args.num_inference_steps,
+            overrides={k: v for k, v in settings.items() if k not in EXPERIMENT_FIELDS},
+            experiment=experiment,
+        )
         for s in sets:
             sc = scenes[s]
             t0 = time.perf_counter()
             try:
-                ctrl = make_controller(name, params, bench_args, bundle)
+                ctrl = make_controller(name, params, options, bundle)
                 rec = evaluate(ctrl, sc, params, progress=False)
             except ValueError as e:  # e.g. more obstacles than a "grid+list" policy can observe
                 results[label][s] = {"error": str(e).split(";")[0]}

@@ -41,11 +41,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     apply_threads(args.threads)  # before torch loads
 
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
+    from lerobot_formation.bench.evaluation import evaluate
+    from lerobot_formation.bench.scene_sets import parse_scenes
     from lerobot_formation.core.metrics import wilson_interval
     from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT
-    from lerobot_formation.diffusion_controller import DiffusionController
-    from lerobot_formation.evaluation import evaluate
-    from lerobot_formation.scene_sets import parse_scenes
 
     ckpts = sorted(p for p in (args.run / "checkpoints").iterdir() if p.name.isdigit())
     if not ckpts:

@@ -1,21 +1,23 @@
 """A checkpoint with changed policy options, its weights kept: the start of a fine-tune.
 
     python scripts/derive_checkpoint.py outputs/train_safe/checkpoints/032000/pretrained_model \
-        outputs/safe_egocentric_init --set egocentric_state=true
+        outputs/cpu_egocentric_init --set egocentric_obstacles=true
 
 ``lerobot-train --policy.path=...`` loads the processors saved with the checkpoint, so an option that
-adds a processor step (``egocentric_state``, ``egocentric_obstacles``) cannot be switched on from the
+adds a processor step (``egocentric_obstacles``) cannot be switched on from the
 command line for a fine-tune. This copies the weights, sets the options in config.json and rebuilds
 both processors with ``make_formation_diffusion_pre_post_processors`` from the checkpoint's own
 normalisation statistics; every other file of the folder (model card, ``dataset_scenes.json``, ...) is
 copied as it is. Written to a temporary folder, then renamed into place, so ``dest`` may be the
-checkpoint itself: ``--set escape_advantage=0.1 --set inference_backend=trace`` on an exported
-policy changes those two fields in place.
+checkpoint itself: ``--set safety_margin=0.1 --set inference_backend=trace`` on an exported
+policy changes those two fields in place. The fields are applied with ``dataclasses.replace``, so the
+config's checks run.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -46,7 +48,9 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot.processor import NormalizerProcessorStep
 
     import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor steps)
-    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+    from lerobot_formation.policy.processor_formation_diffusion import (
+        make_formation_diffusion_pre_post_processors,
+    )
 
     src = args.checkpoint
     if not (src / "model.safetensors").is_file() or not (src / "config.json").is_file():
@@ -57,13 +61,18 @@ def main(argv: list[str] | None = None) -> int:
     if norm is None:
         raise SystemExit(f"error: {src}/policy_preprocessor.json has no normalizer step")
     raw = json.loads((src / "config.json").read_text())
+    names = {f.name for f in dataclasses.fields(cfg)}
+    changes = {}
     for item in args.set:
         key, sep, value = item.partition("=")
-        if not sep or not hasattr(cfg, key):
+        if not sep or key not in names:
             raise SystemExit(f"error: --set {item!r}: expected FIELD=VALUE with a {cfg.type} config field")
-        setattr(cfg, key, parse_value(value))
-        raw[key] = parse_value(value)
-    cfg.validate_features()
+        changes[key] = raw[key] = parse_value(value)
+    try:
+        cfg = dataclasses.replace(cfg, **changes)
+        cfg.validate_features()
+    except ValueError as e:
+        raise SystemExit(f"error: --set: {e}") from None
     tmp = args.dest.parent / f".{args.dest.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)

@@ -48,8 +48,8 @@ def main() -> None:
         for f in ckpt.iterdir():
             if f.name.startswith("policy_") or f.name == "train_config.json":
                 shutil.copy(f, tmp / f.name)
+        from lerobot_formation.bench.scene_sets import dataset_scenes
         from lerobot_formation.core.scene import save_scenes
-        from lerobot_formation.scene_sets import dataset_scenes
 
         save_scenes(dataset_scenes(args.dataset_root, args.scenes), tmp / "dataset_scenes.json")
         card = args.card.read_text() if args.card else ""

@@ -1,6 +1,10 @@
 #!/usr/bin/env bash
 # Every number in the README's results table, in order (about an hour on 2 CPU cores after the
 # training run). Logs go to outputs/results/.
+# Since issue 25 (2026-12-03) the policy fields escape_advantage, replan_blend_steps, blocked_fallback,
+# warm_start_all_candidates and egocentric_state are retired: the derive_checkpoint.py lines below that
+# set them record how the earlier results were made and now stop with an error; the same settings are
+# ReplanExperiment rows of scripts/ablation.py (--escape-advantage, --blend-steps, ...).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1
@@ -32,7 +36,8 @@ $PY benchmarks/bench_train_throughput.py --dataset.root data/formation_pac_list 
   --num-workers 1 --fast-reads | tee $OUT/bench_train_throughput.log
 
 # The paper's experiments (issue 5)
-$BIN/lerobot-formation-bench --controllers pac,mppi,diffusion,diffusion-adaptive --policy.path $MODEL \
+# (the world-frame "diffusion-adaptive" rule is retired: best-of-K needs an egocentric checkpoint)
+$BIN/lerobot-formation-bench --controllers pac,mppi,diffusion --policy.path $MODEL \
   --scenes dataset:100 --unseen random:100 --out $OUT/bench --no-progress | tee $OUT/bench.log
 for k in 2 5 10 25 100; do
   $BIN/lerobot-formation-bench --controllers diffusion --policy.path $MODEL --scenes dataset:100 \
@@ -91,7 +96,7 @@ $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger 
 # Few-step sampling (issue 10): DDIM steps and spacings, and a distilled one-step student
 $PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 1,2,3,4,5,10 --spacings leading,trailing \
   --out $OUT/sampling_steps_spacing.json | tee $OUT/sampling_steps_spacing.log
-$PY -m lerobot_formation.distill --teacher $SAFE --dataset.root data/formation_wide_dagger --student-steps 1 \
+$PY -m lerobot_formation.policy.distill --teacher $SAFE --dataset.root data/formation_wide_dagger --student-steps 1 \
   --steps 2000 --lr 3e-4 --batch-size 256 --save-every 200 --out outputs/distill_1step --threads 1
 $PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 2,3,4,10 \
   --student outputs/distill_1step/pretrained_model --out $OUT/sampling_steps_student.json | tee $OUT/sampling_steps_student.log

@@ -144,7 +144,7 @@ case "$cmd" in
   setup) setup ;;
   demo)
     setup
-    .venv/bin/python -m lerobot_formation.demo "$@"
+    .venv/bin/python -m lerobot_formation.bench.demo "$@"
     ;;
   test)
     setup

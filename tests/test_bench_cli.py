@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from lerobot_formation.bench import main
+from lerobot_formation.bench.cli import main
+from lerobot_formation.bench.scene_sets import parse_scenes
 from lerobot_formation.core.scene import sample_scenes, save_scenes
-from lerobot_formation.scene_sets import parse_scenes
 
 
 def test_bench_pac_and_mppi_write_results_tables_and_figures(tmp_path):

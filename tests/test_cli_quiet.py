@@ -13,8 +13,8 @@ import pytest
 from draccus.wrappers.docstring import get_attribute_docstring, get_preferred_help_text
 
 import datasets_scripts.generate_pac_dataset as gen
-from lerobot_formation import bench
-from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.bench import cli as bench
+from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.plugin import TORCHCODEC_NOTE, _TorchcodecLoadWarning, quiet_torchcodec_warning
 
 BAR = ("ep/s", "s/ep", "it/s", "%|")  # pieces of a tqdm line
@@ -129,7 +129,7 @@ def test_with_plugin_names_the_lerobot_scripts_it_takes(capsys):
 
 
 def test_the_demo_lists_its_figures_once_and_names_its_sets(tmp_path, capsys):
-    from lerobot_formation.demo import main as demo_main
+    from lerobot_formation.bench.demo import main as demo_main
 
     out = tmp_path / "demo"
     argv = ["--controllers", "pac", "--scenes", "random:2", "--unseen", "hard:4", "--out", str(out)]

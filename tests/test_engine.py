@@ -11,8 +11,7 @@ A tiny checkpoint is trained once for this module through the real ``lerobot-tra
        is alive: after one ends, the stock loop still draws noise for it and the engine does not;
     2. whole episodes through the ``lerobot-eval`` console script: the same success rate and mean
        episode reward on the same scenes, within sampling noise (tolerance below);
-(b) the adaptive policy with K = 1 and the same noise is the standard policy, action for action;
-(c) the DDIM step override (``set_inference_steps``) sets the sampler and its step count on both the
+(b) the DDIM step override (``set_inference_steps``) sets the sampler and its step count on both the
     live and the EMA model, is what the engine and ``select_action`` run, and rejects bad counts.
 
 Tolerance of (a2): the two paths draw their noise from different generators once episodes end, so
@@ -37,6 +36,8 @@ import numpy as np
 import pytest
 import torch
 
+from lerobot_formation.bench.diffusion_controller import DiffusionController
+from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.dynamics import FormationParams, initial_state
 from lerobot_formation.core.rollout import COLLISION, SUCCESS
@@ -47,8 +48,7 @@ from lerobot_formation.core.scene import (
     save_scenes,
     scenes_from_list,
 )
-from lerobot_formation.diffusion_controller import DiffusionController, load_policy, set_inference_steps
-from lerobot_formation.evaluation import evaluate
+from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -117,7 +117,7 @@ def test_engine_actions_equal_lerobot_rollout(checkpoint, bundle, workdir):
     from lerobot.scripts.lerobot_eval import rollout
 
     from lerobot_formation.core.dynamics import clip_action
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     B, T, seed = 8, 24, 7  # three replans of n_action_steps = 8; far goals, so all stay alive
     scenes_file = workdir / "parity_scenes.json"
@@ -205,27 +205,6 @@ def check_success_matches_lerobot_eval(
     )
 
 
-def test_adaptive_with_one_candidate_is_standard(checkpoint, bundle):
-    scenes = sample_scenes(UNSEEN_SEED_START + np.arange(6))  # real obstacle fields
-    params = FormationParams(max_steps=40)
-    standard = DiffusionController(checkpoint, seed=3, policy_bundle=bundle)
-    adaptive = DiffusionController(checkpoint, candidates=1, adaptive=True, seed=3, policy_bundle=bundle)
-    assert (standard.name, adaptive.name) == ("diffusion", "diffusion-adaptive")
-    a = evaluate(standard, scenes, params)
-    b = evaluate(adaptive, scenes, params)
-    assert adaptive.replans == standard.replans > 0
-    np.testing.assert_array_equal(a.actions, b.actions)  # NaN padding compares equal
-    np.testing.assert_array_equal(a.outcome, b.outcome)
-    np.testing.assert_array_equal(a.steps, b.steps)
-    # Not vacuous: other noise gives other actions.
-    c = evaluate(
-        DiffusionController(checkpoint, candidates=1, adaptive=True, seed=4, policy_bundle=bundle),
-        scenes,
-        params,
-    )
-    assert not np.array_equal(a.actions[:, :8], c.actions[:, :8])
-
-
 def count_denoiser_calls(model, fn) -> int:
     calls = []
     handle = model.unet.register_forward_hook(lambda *_: calls.append(1))
@@ -243,9 +222,13 @@ def test_ddim_step_override(checkpoint):
     cfg = policy.config
     ctrl = DiffusionController(checkpoint, policy_bundle=(policy, pre, post))
     scenes = sample_scenes(UNSEEN_SEED_START + np.arange(3))
-    ctrl.reset(Perception.exact(scenes, initial_state(scenes.start)))
     idx = np.arange(3)
-    plan = lambda: ctrl.plan(idx, scenes.start)  # noqa: E731
+
+    def plan():  # one replan of all three episodes: a fresh start
+        state = initial_state(scenes.start, ctrl.params)
+        ctrl.reset(Perception.exact(scenes, state))
+        return ctrl.act(Perception.exact(scenes, state), idx)
+
     assert count_denoiser_calls(policy.ema_diffusion, plan) == cfg.num_inference_steps  # checkpoint's: 4
 
     set_inference_steps(policy, None)  # keeps the checkpoint's sampler
@@ -257,7 +240,7 @@ def test_ddim_step_override(checkpoint):
         assert model.num_inference_steps == 2
         assert model.noise_scheduler.config.num_train_timesteps == cfg.num_train_timesteps
     assert count_denoiser_calls(policy.ema_diffusion, plan) == 2
-    assert plan().shape == (3, cfg.n_action_steps, 2)
+    assert plan().shape == (3, 2)
 
     # The stock select_action runs the overridden sampler too.
     obs = pre({"observation.state": torch.zeros(1, 7), "observation.environment_state": torch.zeros(1, 51)})

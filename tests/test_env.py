@@ -5,20 +5,20 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import lerobot_formation
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import sample_scenes, save_scenes
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.envs import ENV_ID
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 
 def test_check_env_passes():
-    env = gym.make(lerobot_formation.ENV_ID, render_mode="rgb_array")
+    env = gym.make(ENV_ID, render_mode="rgb_array")
     check_env(env.unwrapped, skip_render_check=False)
 
 
 def test_registered_spec_and_metadata():
-    env = gym.make(lerobot_formation.ENV_ID)
+    env = gym.make(ENV_ID)
     assert env.spec.max_episode_steps == 600
     assert env.unwrapped.metadata["render_fps"] == 10
 

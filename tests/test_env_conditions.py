@@ -12,9 +12,9 @@ import pytest
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import sample_scenes, scenes_from_list
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.env_config import FormationEnvConfig
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 ALL_ON = Conditions(
     sensing_range=2.0,
@@ -45,14 +45,15 @@ def test_env_config_fields_from_the_command_line():
         FormationEnvConfig(action_delay=-1)
 
 
-def test_env_observes_what_the_engine_observes():
+@pytest.mark.parametrize("encoding", ["nearest", "nearest+route"])
+def test_env_observes_what_the_engine_observes(encoding):
     """PAC stepping the env on its perception takes the engine's actions, and the observations the
-    engine records (the dataset's) are the env's."""
+    engine records (the dataset's) are the env's (the route hint on the same map snapshot)."""
     scenes = sample_scenes([1_000_000])
     rec = rollout(
-        scenes, PACController(), max_steps=120, conditions=ALL_ON, record_observations=("nearest", None)
+        scenes, PACController(), max_steps=120, conditions=ALL_ON, record_observations=(encoding, None)
     )
-    env = FormationEnv(obstacle_encoding="nearest", conditions=ALL_ON)
+    env = FormationEnv(obstacle_encoding=encoding, conditions=ALL_ON)
     obs, _ = env.reset(seed=1_000_000)
     ctrl = PACController()
     ctrl.reset(env.teams.perceive())
@@ -118,7 +119,7 @@ def test_scenes_file_velocities_round_trip(tmp_path):
 
 
 def test_bench_takes_condition_flags(tmp_path, capsys):
-    from lerobot_formation import bench
+    from lerobot_formation.bench import cli as bench
 
     out = tmp_path / "b"
     argv = [
@@ -155,7 +156,7 @@ def test_generator_under_conditions(tmp_path):
 
 
 def test_episode_metrics_see_moving_obstacles_and_executed_actions():
-    from lerobot_formation.episode_metrics import INFO_KEY, FormationEpisodeMetrics
+    from lerobot_formation.envs.episode_metrics import INFO_KEY, FormationEpisodeMetrics
 
     crossing = {"obstacles": [[-4.0, 5.0, 0.5]], "goal": [0.0, 10.0], "velocities": [[0.4, 0.0]]}
     env = FormationEpisodeMetrics(FormationEnv(conditions=Conditions(action_delay=3)))

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 from matplotlib.container import ErrorbarContainer
 
+from lerobot_formation.bench.plots import figures
+from lerobot_formation.bench.scene_sets import scene_set_presets
 from lerobot_formation.core import metrics
 from lerobot_formation.core.dynamics import FormationParams, agent_positions, initial_state
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords, PACController, rollout
 from lerobot_formation.core.scene import Scenes, sample_scenes, scenes_from_list
-from lerobot_formation.plots import figures
-from lerobot_formation.scene_sets import scene_set_presets
 
 PAPER_START = [0.0, 0.0, np.pi / 2]  # midpoint at the origin, heading +y
 
@@ -252,7 +252,7 @@ def test_success_chart_error_bars_are_wilson_intervals(captured, tmp_path):
 
 
 def test_bench_writes_the_success_chart_and_lists_the_figures(tmp_path, capsys):
-    from lerobot_formation.bench import main
+    from lerobot_formation.bench.cli import main
 
     assert (
         main(["--controllers", "pac", "--scenes", "random:2", "--out", str(tmp_path), "--no-progress"]) == 0
@@ -264,7 +264,7 @@ def test_bench_writes_the_success_chart_and_lists_the_figures(tmp_path, capsys):
 
 
 def test_success_chart_names_each_scene_set_by_what_it_is(captured, tmp_path):
-    from lerobot_formation.bench_figures import write_success_figure
+    from lerobot_formation.bench.figures import write_success_figure
     from lerobot_formation.core.scene import UNSEEN_SEED_START
 
     entry = {"success_rate": 0.5, "n_episodes": 4}
@@ -349,7 +349,7 @@ def test_figures_show_the_sensed_map_and_moving_obstacles(conditioned, captured,
 
 
 def test_renderer_draws_unsensed_obstacles_faint_and_trails():
-    from lerobot_formation.render import COLORS, Renderer
+    from lerobot_formation.envs.render import COLORS, Renderer
 
     r = Renderer(size=100, bounds=(0.0, 10.0))
     obstacles = np.array([[2.0, 2.0, 0.5], [7.0, 7.0, 0.5]])

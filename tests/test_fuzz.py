@@ -13,8 +13,8 @@ import pytest
 
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import Scenes, load_scenes
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 BASE = {
     "scenes": [

@@ -6,9 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from lerobot_formation.bench import main as bench_main
-from lerobot_formation.bench_merge import main as merge_main
-from lerobot_formation.controllers import make_controller
+from lerobot_formation.bench.cli import main as bench_main
+from lerobot_formation.bench.controllers import make_controller
+from lerobot_formation.bench.evaluation import evaluate
+from lerobot_formation.bench.levels import LEVELS, get_level, level_env_fields
+from lerobot_formation.bench.merge import main as merge_main
+from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import SUCCESS, Teams, rollout
@@ -24,9 +27,6 @@ from lerobot_formation.core.scene import (
     scene_preset,
     scene_validity,
 )
-from lerobot_formation.evaluation import evaluate
-from lerobot_formation.levels import LEVELS, get_level, level_env_fields, level_scenes
-from lerobot_formation.scene_sets import parse_scenes
 
 
 def _scene(obstacles, goal, start=(0.0, 0.0, np.pi / 2)) -> Scenes:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lerobot_formation.bench import main as bench_main
-from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.bench.cli import main as bench_main
+from lerobot_formation.envs.env_config import FormationEnvConfig
 
 NEAR_GOALS = [{"obstacles": [], "goal": [0.0, 0.5]}, {"obstacles": [], "goal": [0.0, 0.7]}]  # a few steps
 
@@ -105,7 +105,7 @@ def test_results_json_episodes_name_file_scenes_by_index(tmp_path):
 
 
 def test_the_vector_env_reports_the_file_index_too(tmp_path):
-    from lerobot_formation.vector_env import FormationVectorEnv
+    from lerobot_formation.envs.vector_env import FormationVectorEnv
 
     vec = FormationVectorEnv(2, scenes_file=str(_scenes_file(tmp_path)))
     _, info = vec.reset(seed=0)

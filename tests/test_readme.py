@@ -49,7 +49,7 @@ CONSOLE_SCRIPTS = {
     "lerobot-edit-dataset": "edit_dataset",
 }
 DRACCUS_DEFAULT_TYPES = {"policy": "formation_diffusion", "env": "formation"}
-RUN_SH = {"demo": "python -m lerobot_formation.demo", "test": None, "setup": None}
+RUN_SH = {"demo": "python -m lerobot_formation.bench.demo", "test": None, "setup": None}
 WRAPPER = "python -m lerobot_formation.with_plugin"  # runs the LeRobot script named next
 # docs/ files other helpers write in parallel (issue 27); the lead empties this at the merge.
 WRITTEN_ELSEWHERE = {"docs/design.md", "docs/data-safety.md"}
@@ -331,7 +331,8 @@ def mentioned_paths(doc: Path) -> set[str]:
         if not PATHLIKE.match(word) or "<" in word or "*" in word:
             continue
         first = word.split("/")[0]
-        if first in TOP_LEVEL and "/" in word or first in SUBPACKAGES and "/" in word:
+        # a subpackage path names a module file ("data/x" may as well be a dataset folder at the root)
+        if first in TOP_LEVEL and "/" in word or first in SUBPACKAGES and word.endswith(".py"):
             paths.add(word)
         elif re.fullmatch(r"[\w-]+\.py", word):
             paths.add(word)

@@ -21,14 +21,14 @@ import numpy as np
 import pytest
 
 from datasets_scripts import generate_pac_dataset as gen_mod
-from datasets_scripts import lerobot_writer
-from datasets_scripts.safe_destination import remove_stale_temporaries, rename_noreplace
-from lerobot_formation.bench import main as bench_main
+from lerobot_formation.bench.cli import main as bench_main
+from lerobot_formation.bench.scene_sets import parse_scenes
 from lerobot_formation.core.navigation import cost_to_go
 from lerobot_formation.core.scene import SceneConfig, load_scenes, sample_scenes, scenes_from_list
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.scene_sets import parse_scenes
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.data import lerobot_writer
+from lerobot_formation.data.safe_destination import remove_stale_temporaries, rename_noreplace
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "pretrained" / "formation_diffusion_cpu"
@@ -432,7 +432,7 @@ def test_failing_controller_keeps_the_finished_results(tmp_path, capsys):
         bench_main([*argv, "--out", str(out), "--no-figures", "--no-progress"])
     assert e.value.code == 2
     assert last_error_line(capsys.readouterr().err).startswith(
-        "error: controller diffusion-safe: the policy's safety layer needs a checkpoint"
+        "error: controller diffusion-safe: the safety layer (num_candidates=10, safety_filter='cbf') needs an egocentric"
     )
     res = json.loads((out / "results.json").read_text())
     assert res["pac"]["n_episodes"] == 2 and "diffusion-safe" not in res
@@ -457,7 +457,7 @@ def test_step_after_the_episode_ended_raises():
 
 def test_lerobot_wrapper_stack_replays_after_the_end(tmp_path):
     """LeRobot's FreezeAfterEpisodeEnd keeps stepping finished sub-envs: it must not reach the env."""
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL])
     env = FormationEnvConfig(scenes_file=str(f), episode_length=20).make_env_factory()()
@@ -498,10 +498,10 @@ def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up():
     """lerobot-train calls make_env_pre_post_processors(env_cfg, policy_cfg) before its first step."""
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
-    policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66))  # a grid+list dataset
+    policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66), obstacle_encoding="grid+list")
     make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid+list"), policy_cfg)
     with pytest.raises(ValueError) as e:
         make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid"), policy_cfg)
@@ -515,7 +515,7 @@ def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
     from huggingface_hub import constants
     from lerobot.configs.default import DatasetConfig
 
-    import lerobot_formation.env_config  # noqa: F401  (installs the check, as the plugin import does)
+    import lerobot_formation.envs.env_config  # noqa: F401  (installs the check, as the plugin import does)
 
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
     missing = tmp_path / "no_dataset"
@@ -530,7 +530,7 @@ def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
 
 
 def test_env_scenes_file_is_checked_at_start_up(tmp_path):
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     with pytest.raises(ValueError, match="env.scenes_file: scenes file .* does not exist"):
         FormationEnvConfig(scenes_file=str(tmp_path / "nope.json"))
@@ -538,7 +538,7 @@ def test_env_scenes_file_is_checked_at_start_up(tmp_path):
 
 # -- the formation-metrics JSONL ---------------------------------------------------------------------
 def test_jsonl_lines_carry_run_id_and_episode_index(tmp_path):
-    from lerobot_formation.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig
 
     f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL, EMPTY_NEAR_GOAL])
     log = tmp_path / "m.jsonl"
@@ -565,8 +565,8 @@ def _tiny_policy(**overrides):
     """A tiny untrained grid (51 values) formation_diffusion policy in eval mode."""
     import torch
 
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
     torch.manual_seed(0)
     kwargs = {
@@ -650,7 +650,7 @@ def test_perfect_controller_on_100_scenes_draws_and_writes(tmp_path):
 
 
 def test_failing_figure_is_one_line_and_keeps_the_results(tmp_path, capsys, monkeypatch):
-    import lerobot_formation.plots as plots
+    import lerobot_formation.bench.plots as plots
 
     def broken(*args, **kwargs):
         raise RuntimeError("no renderer")
@@ -698,7 +698,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.configs.default import DatasetConfig
 from lerobot.configs.train import TrainPipelineConfig
 import lerobot_formation.plugin
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 def train_config(data, out):
     policy = FormationDiffusionConfig(
@@ -767,7 +767,7 @@ def test_second_training_run_into_one_output_dir_refuses(tmp_path):
     ],
 )
 def test_config_values_are_checked(field, value, message):
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     with pytest.raises(ValueError, match=message):
         FormationDiffusionConfig(**{**_tiny_diffusion_kwargs(51), field: value})
@@ -874,7 +874,7 @@ def test_register_registers_everything_and_the_package_root_stays_light():
         "assert 'torch' not in sys.modules and 'lerobot' not in sys.modules, 'the package root imported torch'\n"
         "from lerobot_formation.core.scene import sample_scenes\n"
         "assert 'torch' not in sys.modules\n"
-        "lerobot_formation.register()\n"
+        "import lerobot_formation.plugin\n"
         "from lerobot.configs.policies import PreTrainedConfig\n"
         "from lerobot.envs.configs import EnvConfig\n"
         "from lerobot.processor import ProcessorStepRegistry\n"

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 from datasets_scripts import generate_pac_dataset as gen_mod
-from datasets_scripts import lerobot_writer
-from datasets_scripts.hub_folder import push_to_folder
+from lerobot_formation.data import lerobot_writer
+from lerobot_formation.data.hub_folder import push_to_folder
 
 
 def last_error_line(err: str) -> str:
@@ -139,13 +139,16 @@ def _tiny_checkpoint(path: Path, env_dim: int = 66) -> Path:
     from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.policy.processor_formation_diffusion import (
+        make_formation_diffusion_pre_post_processors,
+    )
 
     torch.manual_seed(0)
     cfg = FormationDiffusionConfig(
         device="cpu",
+        obstacle_encoding={66: "grid+list", 51: "grid"}[env_dim],
         push_to_hub=False,
         input_features={
             OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
@@ -186,7 +189,7 @@ def tiny_checkpoint(tmp_path_factory) -> Path:
 
 
 def test_distill_resume_never_unpickles_code(tmp_path, capsys):
-    from lerobot_formation.distill import main as distill_main
+    from lerobot_formation.policy.distill import main as distill_main
 
     teacher = _tiny_checkpoint(tmp_path / "teacher", env_dim=51)
     data = tmp_path / "data"
@@ -212,8 +215,8 @@ def test_processor_class_outside_the_registry_is_refused_by_the_loader_and_the_b
 ):
     import shutil
 
-    from lerobot_formation.bench import main as bench_main
-    from lerobot_formation.diffusion_controller import CheckpointError, load_policy
+    from lerobot_formation.bench.cli import main as bench_main
+    from lerobot_formation.policy.checkpoint import CheckpointError, load_policy
 
     ckpt = tmp_path / "ckpt"
     shutil.copytree(tiny_checkpoint, ckpt)

@@ -81,7 +81,7 @@ def _main_of(relpath: str):
 @pytest.mark.parametrize(
     "cli",
     [
-        "lerobot_formation.demo",
+        "lerobot_formation.bench.demo",
         "datasets_scripts.dagger_scenes",
         "scripts/checkpoint_curve.py",
         "benchmarks/bench_eval_speed.py",

@@ -149,6 +149,10 @@ class Perception:
         goal: (B, 2) the goal.
         map_version: (B,) int64, incremented whenever the set of observed obstacles of a team changes:
             a controller caches what it derives from the map (a cost-to-go) by it.
+        map_obstacles: (B, M, 3) the map a controller or the route hint builds its cost-to-go from:
+            the observed static obstacles as observed (noisy) at the step ``map_version`` last
+            changed, so it is constant between map changes; moving obstacles and unobserved slots
+            are padding (FAR, FAR, 0). Without conditions it is ``obstacles``.
     """
 
     pose: np.ndarray
@@ -158,6 +162,7 @@ class Perception:
     obstacle_velocity: np.ndarray
     goal: np.ndarray
     map_version: np.ndarray
+    map_obstacles: np.ndarray
 
     def __len__(self) -> int:
         return len(self.pose)
@@ -171,6 +176,7 @@ class Perception:
             self.obstacle_velocity[idx],
             self.goal[idx],
             self.map_version[idx],
+            self.map_obstacles[idx],
         )
 
     @property
@@ -190,6 +196,7 @@ class Perception:
             np.zeros((B, M, 2)),
             scenes.goal,
             np.zeros(B, dtype=np.int64),
+            scenes.obstacles,
         )
 
 
@@ -294,6 +301,8 @@ class ConditionedWorld:
         self.seen = np.zeros((B, M), dtype=bool)  # observed now (with memory: ever)
         self.seen_step = np.full((B, M), -1, dtype=np.int64)
         self.map_version = np.zeros(B, dtype=np.int64)
+        self.map_obstacles = np.zeros((B, M, 3))  # Perception.map_obstacles, taken by ``perceive``
+        self.map_taken = np.full(B, -1, dtype=np.int64)  # the map_version map_obstacles was taken at
         self.queue = np.zeros((B, conditions.action_delay, 2))
         self.executed = np.zeros((B, 2))  # the velocity applied over the last step (rate limits)
         self.velocity = np.zeros((B, M, 2))
@@ -311,6 +320,7 @@ class ConditionedWorld:
         self.seen[idx] = False
         self.seen_step[idx] = -1
         self.map_version[idx] = 0
+        self.map_taken[idx] = -1
         self.queue[idx] = 0.0
         self.executed[idx] = 0.0
         self.velocity[idx] = obstacle_velocities(scenes, self.conditions)
@@ -328,6 +338,8 @@ class ConditionedWorld:
             "seen",
             "seen_step",
             "map_version",
+            "map_obstacles",
+            "map_taken",
             "queue",
             "executed",
             "velocity",
@@ -388,7 +400,9 @@ class ConditionedWorld:
         move_obstacles(obstacles, self.velocity, self.params.dt, self.bounds, self.zones)
 
     def perceive(self, state: FormationState, scenes: Scenes) -> Perception:
-        """What the teams perceive now (``Perception``), from their true state and scenes."""
+        """What the teams perceive now (``Perception``), from their true state and scenes. A team whose
+        ``map_version`` changed since its last map snapshot gets a new one (``Perception.map_obstacles``)
+        from this perception: the env and the engine perceive at every step, so it is the step's own."""
         c = self.conditions
         B, M, _ = scenes.obstacles.shape
         pose = state.pose
@@ -404,6 +418,20 @@ class ConditionedWorld:
             noisy[..., 2] = np.maximum(noisy[..., 2], MIN_OBSERVED_RADIUS)
             obstacles = np.where(self.seen[..., None], noisy, obstacles)
         velocity = np.where(self.seen[..., None], self.velocity, 0.0)
+        retake = self.map_taken != self.map_version  # the map changed since its last snapshot
+        if retake.any():
+            static = ~np.any(velocity[retake] != 0, axis=-1)  # moving obstacles stay off the map
+            self.map_obstacles[retake] = np.where(
+                static[..., None], obstacles[retake], np.array([FAR, FAR, 0.0])
+            )
+            self.map_taken[retake] = self.map_version[retake]
         return Perception(
-            pose, state.velocity, obstacles, self.seen.copy(), velocity, scenes.goal, self.map_version.copy()
+            pose,
+            state.velocity,
+            obstacles,
+            self.seen.copy(),
+            velocity,
+            scenes.goal,
+            self.map_version.copy(),
+            self.map_obstacles.copy(),
         )

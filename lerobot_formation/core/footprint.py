@@ -1,5 +1,4 @@
-"""Whole-formation footprint predictions for candidate action sequences, and the "safest" rule of
-adaptive sampling.
+"""Whole-formation footprint predictions for candidate action sequences.
 
 ``sequence_clearance`` rolls B x C action sequences (B, C, T, 2) through the midpoint unicycle and
 places the rigid formation template (all four agents, followers at their square slots) at every
@@ -7,13 +6,7 @@ step; it returns each candidate's smallest agent clearance and its end pose. The
 assumed to sit on their slots: they track them within the formation-error floor (~0.05 m), which
 ``margin`` covers.
 
-``select_safest`` is the adaptive policy's rule (the paper does not define "safest"):
-  1. discard candidates whose footprint comes within ``margin`` of an obstacle (any agent, followers
-     included: the square's rear corners swing out when the team turns);
-  2. among the rest, prefer progress toward the goal: the largest decrease of the cost-to-go
-     (grid shortest-path distance around inflated obstacles) from the start to the end of the
-     rollout; plain clearance maximisation would steer away from everything, goal included;
-  3. if every candidate collides, take the one with the largest predicted clearance.
+The best-of-K scorer that uses them is ``core.safety.select_chunk``.
 """
 
 from __future__ import annotations
@@ -22,9 +15,8 @@ import numpy as np
 
 from lerobot_formation.core.dynamics import body_to_world, rollout_poses
 from lerobot_formation.core.geometry import xy_clearance
-from lerobot_formation.core.navigation import CostToGo
 
-__all__ = ["rollout_poses", "select_safest", "sequence_clearance", "template_clearance"]
+__all__ = ["rollout_poses", "sequence_clearance", "template_clearance"]
 
 
 def template_clearance(
@@ -56,27 +48,3 @@ def sequence_clearance(
     poses = rollout_poses(pose, actions, dt)  # (B, C, T, 3)
     clear = template_clearance(poses, obstacles, template, agent_radius)
     return clear.min(axis=-1), poses[:, :, -1]
-
-
-def select_safest(
-    pose: np.ndarray,
-    candidates: np.ndarray,
-    obstacles: np.ndarray,
-    ctg: CostToGo,
-    template: np.ndarray,
-    dt: float,
-    agent_radius: float,
-    margin: float = 0.05,
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Index (B,) of the chosen candidate among (B, K, T, 2), and diagnostics."""
-    B, K = candidates.shape[:2]
-    clear, end = sequence_clearance(pose, candidates, obstacles, template, dt, agent_radius)
-    start_cost = ctg.at(pose[:, :2])  # (B,)
-    end_cost = ctg.at(end[..., :2].reshape(B * K, 2), rows=np.repeat(np.arange(B), K))
-    progress = start_cost[:, None] - end_cost.reshape(B, K)
-    safe = clear >= margin
-    score = np.where(safe, progress, -np.inf)
-    best = np.argmax(score, axis=1)
-    fallback = np.argmax(clear, axis=1)
-    choice = np.where(safe.any(axis=1), best, fallback)
-    return choice, {"clearance": clear, "progress": progress, "safe": safe}

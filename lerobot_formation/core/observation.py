@@ -47,6 +47,7 @@ def observe(
     max_obstacles: int | None = None,
     world_state: np.ndarray | None = None,
     obstacle_velocity: np.ndarray | None = None,
+    map_obstacles: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """``{"agent_pos": (B, 7), "environment_state": (B, D)}`` of B teams at ``pose`` (B, 3).
 
@@ -54,7 +55,9 @@ def observe(
     or S = 1 scene for every row (the frames of one episode). ``world_state`` (B, D) is a world-frame
     encoding computed before for these scenes (the episode's start): returned as it is, not
     recomputed; an egocentric encoding ignores it. ``obstacle_velocity`` (S, M, 2): the observed
-    obstacle velocities, for an encoding that observes them (None: static).
+    obstacle velocities, for an encoding that observes them (None: static). ``map_obstacles`` (S, M, 3):
+    the map snapshot the route hint plans on (``core.conditions.Perception.map_obstacles``; None:
+    ``obstacles``, as without conditions).
     """
     B = len(pose)
     if get_encoding(encoding).egocentric:  # moves with the team: one encoding per pose
@@ -62,15 +65,30 @@ def observe(
             obstacles, mask, goal = (np.repeat(a, B, axis=0) for a in (obstacles, mask, goal))
             if obstacle_velocity is not None:
                 obstacle_velocity = np.repeat(obstacle_velocity, B, axis=0)
+            if map_obstacles is not None:
+                map_obstacles = np.repeat(map_obstacles, B, axis=0)
         env = environment_state(
-            obstacles, mask, goal, encoding, max_obstacles, pose=pose, obstacle_velocity=obstacle_velocity
+            obstacles,
+            mask,
+            goal,
+            encoding,
+            max_obstacles,
+            pose=pose,
+            obstacle_velocity=obstacle_velocity,
+            map_obstacles=map_obstacles,
         )
     else:
         env = (
             world_state
             if world_state is not None
             else environment_state(
-                obstacles, mask, goal, encoding, max_obstacles, obstacle_velocity=obstacle_velocity
+                obstacles,
+                mask,
+                goal,
+                encoding,
+                max_obstacles,
+                obstacle_velocity=obstacle_velocity,
+                map_obstacles=map_obstacles,
             )
         )
         if len(env) != B:

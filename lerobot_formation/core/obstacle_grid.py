@@ -29,17 +29,23 @@ Every encoding takes the obstacles the team perceives (``core.conditions.Percept
 ``velocity`` set gets them as (B, M, 5) rows [x, y, r, vx, vy].
 
 Adding an encoding: one new file that defines ``ENCODING = ObstacleEncoding(...)`` (its ``encode``
-and ``names``), and one line at the bottom of this file, ``register("package.module:ENCODING",
-"name")``: the file is imported when the encoding is first used (it may import this module).
+and ``names``; ``ObstacleEncoding``, the body frame and the ``nearest`` view are in
+``core/encoding.py``, which the file imports instead of this registry), and one line at the bottom of
+this file, ``register("package.module:ENCODING", "name")``: the file is imported when the encoding is
+first used.
 """
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
+
+from lerobot_formation.core.encoding import (
+    ObstacleEncoding,
+    encode_nearest,
+    nearest_names,
+)
 
 GRID_SIZE = 7
 
@@ -54,20 +60,6 @@ def obstacle_grid(obstacles: np.ndarray, mask: np.ndarray) -> np.ndarray:
     r = np.where(inside, obstacles[..., 2], 0.0)
     np.maximum.at(grid, (np.repeat(np.arange(B), M), flat.ravel()), r.ravel())
     return grid.astype(np.float32)
-
-
-def world_to_body(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """World points (B, ..., 2) into the body frames of poses (B, 3): x right, y along the heading.
-
-    The inverse of ``dynamics.rotate_body`` plus the translation: body = R(phi - pi/2)^T (p - p_m).
-    """
-    B = len(pose)
-    shape = (B,) + (1,) * (points.ndim - 2)
-    a = pose[:, 2] - np.pi / 2
-    c, s = np.cos(a).reshape(shape), np.sin(a).reshape(shape)
-    dx = points[..., 0] - pose[:, 0].reshape(shape)
-    dy = points[..., 1] - pose[:, 1].reshape(shape)
-    return np.stack([dx * c + dy * s, -dx * s + dy * c], axis=-1)
 
 
 def _grid_names(_: int) -> list[str]:
@@ -101,76 +93,6 @@ def _encode_grid_list(obstacles, mask, goal, pose, max_obstacles) -> np.ndarray:
     return np.concatenate(
         [_encode_grid(obstacles, mask, goal, pose, 0), lst.reshape(B, -1).astype(np.float32)], axis=1
     )
-
-
-def _nearest_names(max_obstacles: int) -> list[str]:
-    return ["goal_bx", "goal_by"] + [
-        f"near_{k}_{c}" for k in range(max_obstacles) for c in ("bx", "by", "r", "present")
-    ]
-
-
-def nearest_order(obstacles: np.ndarray, mask: np.ndarray, pose: np.ndarray, slots: int) -> np.ndarray:
-    """Indices (B, min(M, slots)) of the obstacles (B, M, 3) nearest to the midpoints (B, 3) by surface
-    distance, nearest first; masked-out slots sort last."""
-    centres = world_to_body(obstacles[..., :2], pose)  # the body frame: the same bits as the encoding's
-    surface = np.where(mask, np.linalg.norm(centres, axis=-1) - obstacles[..., 2], np.inf)
-    return np.argsort(surface, axis=1, kind="stable")[:, :slots]
-
-
-def _encode_nearest(obstacles, mask, goal, pose, max_obstacles) -> np.ndarray:
-    if pose is None:
-        raise ValueError("the 'nearest' encoding is egocentric: environment_state needs the midpoint pose")
-    B, M, _ = obstacles.shape
-    goal_b = world_to_body(goal[:, None, :], pose)[:, 0]  # (B, 2)
-    centres = world_to_body(obstacles[..., :2], pose)  # (B, M, 2)
-    order = nearest_order(obstacles, mask, pose, max_obstacles)
-    m = order.shape[1]
-    rows = np.zeros((B, max_obstacles, 4))
-    take = lambda a: np.take_along_axis(a, order, axis=1)  # noqa: E731
-    present = take(mask)
-    rows[:, :m, 0] = take(centres[..., 0])
-    rows[:, :m, 1] = take(centres[..., 1])
-    rows[:, :m, 2] = take(obstacles[..., 2])
-    rows[:, :m, 3] = 1.0
-    rows[:, :m] *= present[..., None]
-    return np.concatenate([goal_b, rows.reshape(B, -1)], axis=1).astype(np.float32)
-
-
-@dataclass(frozen=True)
-class ObstacleEncoding:
-    """One way to write obstacles and goal into ``observation.environment_state``.
-
-    Attributes:
-        name: registry key, stored in env and policy configs.
-        default_slots: obstacle rows when ``max_obstacles`` is not given (0: no rows).
-        per_slot: values per obstacle row.
-        fixed: values before the rows (grid and goal).
-        egocentric: depends on the midpoint pose, so the env recomputes it every step.
-        encode: (obstacles (B, M, 3), mask (B, M), goal (B, 2), pose (B, 3) | None, slots) -> (B, D).
-        names: slots -> the D feature names.
-        trailing: values after the rows (e.g. a route hint); a row layout that starts like
-            "nearest"'s (``fixed`` 2, ``per_slot`` 4) is what the safety layer decodes.
-        trailing_per_slot: values per obstacle slot after ``trailing`` (e.g. the slots' velocities).
-        velocity: ``encode`` takes obstacles (B, M, 5) [x, y, r, vx, vy] (observed velocities).
-    """
-
-    name: str
-    default_slots: int
-    per_slot: int
-    fixed: int
-    egocentric: bool
-    encode: Callable[..., np.ndarray]
-    names: Callable[[int], list[str]]
-    trailing: int = 0
-    trailing_per_slot: int = 0
-    velocity: bool = False
-
-    def slots(self, max_obstacles: int | None) -> int:
-        return self.default_slots if max_obstacles is None or not self.per_slot else int(max_obstacles)
-
-    def dim(self, max_obstacles: int | None = None) -> int:
-        slots = self.slots(max_obstacles)
-        return self.fixed + (self.per_slot + self.trailing_per_slot) * slots + self.trailing
 
 
 # Encodings by name: an ObstacleEncoding, or the "module:attribute" path of one (imported when first used).
@@ -214,10 +136,21 @@ def environment_state(
     max_obstacles: int | None = None,
     pose: np.ndarray | None = None,
     obstacle_velocity: np.ndarray | None = None,
+    map_obstacles: np.ndarray | None = None,
 ) -> np.ndarray:
     """The ``environment_state`` observation (B, D) float32 of ``encoding`` (see the module docstring);
-    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles)."""
+    ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles); ``map_obstacles``
+    (B, M, 3) the map a route-planning encoding plans on (None: ``obstacles``)."""
     enc = get_encoding(encoding)
+    if enc.map:
+        return enc.encode(
+            obstacles,
+            mask,
+            goal,
+            pose,
+            enc.slots(max_obstacles),
+            map_obstacles=obstacles if map_obstacles is None else map_obstacles,
+        )
     if enc.velocity:
         vel = np.zeros((*obstacles.shape[:2], 2)) if obstacle_velocity is None else obstacle_velocity
         obstacles = np.concatenate([obstacles[..., :3], vel], axis=-1)
@@ -228,7 +161,7 @@ register(ObstacleEncoding("grid", 0, 0, GRID_SIZE * GRID_SIZE + 2, False, _encod
 register(
     ObstacleEncoding("grid+list", 5, 3, GRID_SIZE * GRID_SIZE + 2, False, _encode_grid_list, _grid_list_names)
 )
-register(ObstacleEncoding("nearest", 12, 4, 2, True, _encode_nearest, _nearest_names))
+register(ObstacleEncoding("nearest", 12, 4, 2, True, encode_nearest, nearest_names))
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
 register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
 register("lerobot_formation.core.velocity_encoding:ENCODING", "nearest+velocity")

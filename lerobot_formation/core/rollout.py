@@ -64,12 +64,11 @@ class Controller(Protocol):
 
 
 def map_obstacles(view: Perception) -> np.ndarray:
-    """The observed obstacles (B, M, 3) a controller builds its map (cost-to-go) from: the static
-    ones; a moving obstacle is left out (padding: far away, radius 0), it is avoided locally."""
-    if not view.moving:
-        return view.obstacles
-    static = ~np.any(view.obstacle_velocity != 0, axis=-1)
-    return np.where(static[..., None], view.obstacles, np.array([1.0e6, 1.0e6, 0.0]))
+    """The observed obstacles (B, M, 3) a controller builds its map (cost-to-go) from:
+    ``Perception.map_obstacles``, the static observed obstacles as observed when the map last changed
+    (moving ones are padding: far away, radius 0, avoided locally); the true obstacles without
+    conditions."""
+    return view.map_obstacles
 
 
 class PACController:
@@ -77,9 +76,9 @@ class PACController:
 
     The cost-to-go (PAC's detour side) is built per team from ``map_obstacles`` of its perception
     when the episode starts and rebuilt for a team only when its ``map_version`` changes (a new
-    obstacle sensed, or one forgotten): with noise it is the noisy snapshot of that moment. The
-    repulsion, the path check and the footprint governor use the current (noisy, moving) observed
-    obstacles at every step."""
+    obstacle sensed, or one forgotten): with noise it is the noisy snapshot of that moment, the same
+    map the route hint (``core.route_encoding``) plans on. The repulsion, the path check and the
+    footprint governor use the current (noisy, moving) observed obstacles at every step."""
 
     name = "pac"
 
@@ -227,6 +226,7 @@ class Teams:
                 self.encoding,
                 self.max_obstacles,
                 obstacle_velocity=v.obstacle_velocity,
+                map_obstacles=v.map_obstacles,
             )
         s = self.scenes
         obs = observe(

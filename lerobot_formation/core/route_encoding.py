@@ -17,23 +17,28 @@ Layout (2 + 4 slots + 5 values, float32): the ``nearest`` encoding (goal [x_b, y
 - ``path_blocked``: 1 when PAC's path check finds the straight segment to the goal blocked (then PAC
   steers for the near carrot instead of the goal), else 0.
 
-The cost-to-go (obstacles inflated by PAC's ``path_inflate``) depends only on the observed scene, not
-on the pose, so it is computed once per distinct scene (``navigation.SceneFields``, cached, the same
-field PAC uses) and each step costs a few array look-ups.
+The cost-to-go (obstacles inflated by PAC's ``path_inflate``) is built on the team's map
+(``core.conditions.Perception.map_obstacles``: the observed static obstacles as observed when the map
+last changed, the same map PAC plans on), from its ``max_obstacles`` obstacles nearest the midpoint.
+It depends only on that map, not on the pose (unless the nearest selection changes), so it is
+computed once per distinct map (``navigation.SceneFields``, cached, the same field PAC uses) and each
+step costs a few array look-ups; under obstacle noise or moving obstacles the map, and so the field,
+stays the same between map changes. The path check reads the current observed obstacles (noisy,
+moving ones included), as PAC's does. Without conditions the map is the observed obstacles.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.navigation import SceneFields
-from lerobot_formation.core.obstacle_grid import (
+from lerobot_formation.core.encoding import (
     ObstacleEncoding,
-    _encode_nearest,
-    _nearest_names,
+    encode_nearest,
+    nearest_names,
     nearest_order,
     world_to_body,
 )
+from lerobot_formation.core.navigation import SceneFields
 from lerobot_formation.core.pac import PACConfig, path_blocked
 
 NEAR_CELLS = PACConfig.carrot_cells  # 5 cells of 0.2 m: PAC's carrot
@@ -51,13 +56,15 @@ def observed_obstacles(obstacles: np.ndarray, mask: np.ndarray, pose: np.ndarray
     return out
 
 
-def route_features(obstacles, mask, goal, pose, slots: int) -> np.ndarray:
-    """The 5 route values (B, 5) float32 of B midpoints (see the module docstring)."""
+def route_features(obstacles, mask, goal, pose, slots: int, map_obstacles=None) -> np.ndarray:
+    """The 5 route values (B, 5) float32 of B midpoints (see the module docstring): the carrots on the
+    cost-to-go of ``map_obstacles`` (B, M, 3) (None: ``obstacles``), the path check on ``obstacles``."""
     B = len(pose)
     observed = observed_obstacles(obstacles, mask, pose, slots)
+    mapped = observed if map_obstacles is None else observed_obstacles(map_obstacles, mask, pose, slots)
     goal = np.asarray(goal, np.float64)
     c = PACConfig()
-    fields = SceneFields.build(observed, goal, inflate=c.path_inflate)  # PAC's field of the same scene
+    fields = SceneFields.build(mapped, goal, inflate=c.path_inflate)  # PAC's field of the same map
     near = fields.carrot(pose[:, :2], NEAR_CELLS)
     far = fields.carrot(near, FAR_CELLS - NEAR_CELLS)
     blocked = path_blocked(pose[:, :2], goal, observed, c.lookahead, c.inflate)
@@ -65,11 +72,19 @@ def route_features(obstacles, mask, goal, pose, slots: int) -> np.ndarray:
     return np.concatenate([body.reshape(B, 4), blocked[:, None]], axis=1).astype(np.float32)
 
 
-def _encode(obstacles, mask, goal, pose, slots) -> np.ndarray:
-    base = _encode_nearest(obstacles, mask, goal, pose, slots)
-    return np.concatenate([base, route_features(obstacles, mask, goal, pose, slots)], axis=1)
+def _encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
+    base = encode_nearest(obstacles, mask, goal, pose, slots)
+    return np.concatenate([base, route_features(obstacles, mask, goal, pose, slots, map_obstacles)], axis=1)
 
 
 ENCODING = ObstacleEncoding(
-    "nearest+route", 12, 4, 2, True, _encode, lambda slots: _nearest_names(slots) + ROUTE_NAMES, trailing=5
+    "nearest+route",
+    12,
+    4,
+    2,
+    True,
+    _encode,
+    lambda slots: nearest_names(slots) + ROUTE_NAMES,
+    trailing=5,
+    map=True,
 )

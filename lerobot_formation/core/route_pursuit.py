@@ -1,9 +1,10 @@
 """Route pursuit: a learning-free baseline that steers the leaders' midpoint down the route hint.
 
-At every control step it computes the same ``route_features`` that the default policy observes
-(``core/route_encoding.py``: a grid cost-to-go over the goal and the ``slots`` nearest obstacles,
-obstacles inflated by PAC's ``path_inflate``) and pursues its near point, the carrot ``NEAR_CELLS``
-cells (1 m) down the steepest descent from the midpoint (pure pursuit of a moving look-ahead point).
+At every control step it computes the ``route_features`` that the default policy observes (the same
+values unless a moving obstacle is observed, see below; ``core/route_encoding.py``: a grid
+cost-to-go over the goal and the ``slots`` nearest obstacles, obstacles inflated by PAC's
+``path_inflate``) and pursues its near point, the carrot ``NEAR_CELLS`` cells (1 m) down the steepest
+descent from the midpoint (pure pursuit of a moving look-ahead point).
 
 With the carrot (or, within ``r_goal`` of the goal, the goal itself) at body-frame coordinates
 (x_b, y_b) (x right, y along the heading) and d_goal the midpoint's distance to the goal::
@@ -17,8 +18,12 @@ swing out when the square turns fast), and the last factor slows it down within 
 There is no footprint check and no memory: the cost-to-go's inflation alone keeps the square off
 the obstacles. Deterministic: the same scene and pose give the same command.
 
-It plans only with what the team perceives (``core.conditions.Perception``): the observed, possibly
-noisy obstacles at their observed positions, and the observed pose.
+It plans only with what the team perceives (``core.conditions.Perception``) and the observed pose: the
+route on its map (``map_obstacles``: the static observed obstacles as observed when the map last
+changed, PAC's map and the policy's route hint), plus the observed moving obstacles where they are
+now, since nothing else steers it around them (so under moving obstacles its field is rebuilt at every
+step once one is observed, and its route differs from the policy's hint, which leaves them out).
+Between map changes, with no moving obstacle observed, the cost-to-go is a cache hit.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ import numpy as np
 
 from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import world_to_body
+from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.route_encoding import route_features
 
 
@@ -81,12 +86,15 @@ class RoutePursuitController:
         self.params = params or FormationParams()
 
     def reset(self, view: Perception) -> None:
-        """Nothing to build: the route is recomputed from the perception at every step."""
+        """Nothing to build: the route is looked up on the perception's map at every step (cached fields)."""
 
     def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
         obstacles, mask, goal = view.obstacles, view.mask, view.goal
         pose = np.asarray(view.pose, dtype=np.float64)
-        features = route_features(obstacles, mask, goal, pose, self.config.slots)
+        # no local avoidance: observed moving obstacles join the map where they are now
+        moving = np.any(view.obstacle_velocity != 0, axis=-1)
+        plan = np.where(moving[..., None], obstacles, view.map_obstacles)
+        features = route_features(obstacles, mask, goal, pose, self.config.slots, plan)
         target = features[:, :2].astype(np.float64)  # the 1 m carrot, body frame
         goal_body = world_to_body(goal, pose)
         d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
@@ -95,6 +103,8 @@ class RoutePursuitController:
         return pursuit_command(target, d_goal, self.config, self.params.omega_max)
 
 
-def make_route_pursuit(name: str, params: FormationParams, args=None, bundle=None) -> RoutePursuitController:
+def make_route_pursuit(
+    name: str, params: FormationParams, options=None, bundle=None
+) -> RoutePursuitController:
     """The controller registry's factory (``controllers.CONTROLLER_FACTORIES``): default gains."""
     return RoutePursuitController(params=params)

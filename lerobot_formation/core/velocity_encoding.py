@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.obstacle_grid import (
+from lerobot_formation.core.encoding import (
     ObstacleEncoding,
-    _encode_nearest,
-    _nearest_names,
+    encode_nearest,
+    nearest_names,
     nearest_order,
 )
 
@@ -30,7 +30,7 @@ def body_velocities(velocity: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 def _encode(obstacles, mask, goal, pose, slots) -> np.ndarray:
     B = len(pose)
-    base = _encode_nearest(obstacles[..., :3], mask, goal, pose, slots)
+    base = encode_nearest(obstacles[..., :3], mask, goal, pose, slots)
     order = nearest_order(obstacles[..., :3], mask, pose, slots)
     body = body_velocities(obstacles[..., 3:5], pose)
     present = np.take_along_axis(mask, order, axis=1)[..., None]
@@ -40,7 +40,7 @@ def _encode(obstacles, mask, goal, pose, slots) -> np.ndarray:
 
 
 def _names(slots: int) -> list[str]:
-    return _nearest_names(slots) + [f"near_{k}_{c}" for k in range(slots) for c in ("vbx", "vby")]
+    return nearest_names(slots) + [f"near_{k}_{c}" for k in range(slots) for c in ("vbx", "vby")]
 
 
 ENCODING = ObstacleEncoding(

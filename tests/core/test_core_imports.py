@@ -1,4 +1,4 @@
-"""The core stays NumPy only: importing all of it pulls in neither torch nor lerobot."""
+"""The core stays NumPy only: importing all of it pulls in neither torch, LeRobot nor gymnasium."""
 
 import subprocess
 import sys
@@ -8,7 +8,7 @@ def test_core_imports_no_torch_or_lerobot():
     code = (
         "import sys, pkgutil, importlib, lerobot_formation.core as c\n"
         "for m in pkgutil.iter_modules(c.__path__): importlib.import_module('lerobot_formation.core.' + m.name)\n"
-        "bad = [m for m in ('torch', 'lerobot') if m in sys.modules]\n"
+        "bad = [m for m in ('torch', 'lerobot', 'gymnasium') if m in sys.modules]\n"
         "assert not bad, bad\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from lerobot_formation.core.dynamics import rotate_body
+from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.obstacle_grid import (
     ENCODING_REGISTRY,
     ENCODINGS,
     environment_state,
     environment_state_dim,
     get_encoding,
-    world_to_body,
 )
 from lerobot_formation.core.safety import decode_nearest
 from lerobot_formation.core.scene import FAR, SCENE_PRESETS, sample_scenes

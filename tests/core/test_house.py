@@ -5,17 +5,17 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from datasets_scripts.dataset_frames import episode_frames
 from lerobot_formation.core import dynamics
-from lerobot_formation.core.footprint import select_safest, sequence_clearance
+from lerobot_formation.core.footprint import sequence_clearance
 from lerobot_formation.core.formation_graph import FormationGraph
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.navigation import _SHIFTS, cost_to_go, cost_to_go_at
 from lerobot_formation.core.pac import PathAwareController
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import SCENE_PRESETS, sample_scenes, scenes_from_list
-from lerobot_formation.env import FormationEnv
-from lerobot_formation.vector_env import FormationVectorEnv
+from lerobot_formation.data.dataset_frames import episode_frames
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 TEMPLATE = np.asarray(FormationGraph().template)
 
@@ -80,36 +80,6 @@ def test_cost_to_go_at_equals_the_whole_field_bit_for_bit(kwargs):
 # -- candidate scoring ------------------------------------------------------------------------------
 def _candidates(rng, B, K, T=12):
     return np.stack([rng.uniform(0, 0.6, (B, K, T)), rng.uniform(-1.5, 1.5, (B, K, T))], axis=-1)
-
-
-def test_select_safest_picks_a_safe_candidate_when_there_is_one():
-    rng = np.random.default_rng(0)
-    for scenes in _scenes():
-        B = len(scenes)
-        ctg = cost_to_go(scenes.obstacles, scenes.goal, inflate=0.9)
-        for margin in (0.05, 0.4, 1.0):  # from most candidates safe to almost none
-            cand = _candidates(rng, B, 16)
-            cand[:, 3] = 0.0  # standing still keeps the start's clearance
-            choice, diag = select_safest(
-                scenes.start, cand, scenes.obstacles, ctg, TEMPLATE, 0.1, 0.1, margin
-            )
-            rows = np.arange(B)
-            has_safe = diag["safe"].any(axis=1)
-            assert diag["safe"][rows, choice][has_safe].all()
-            # among the safe ones, the most progress; with none safe, the largest clearance
-            progress = np.where(diag["safe"], diag["progress"], -np.inf).max(axis=1)
-            assert np.array_equal(diag["progress"][rows, choice][has_safe], progress[has_safe])
-            clear = diag["clearance"]
-            assert np.array_equal(clear[rows, choice][~has_safe], clear.max(axis=1)[~has_safe])
-
-
-def test_select_safest_with_one_candidate_returns_it():
-    scenes = _scenes()[0]
-    ctg = cost_to_go(scenes.obstacles, scenes.goal)
-    cand = _candidates(np.random.default_rng(1), len(scenes), 1)
-    for margin in (0.0, 100.0):  # safe or not: it is the only one
-        choice, _ = select_safest(scenes.start, cand, scenes.obstacles, ctg, TEMPLATE, 0.1, 0.1, margin)
-        assert np.array_equal(choice, np.zeros(len(scenes), dtype=choice.dtype))
 
 
 # -- PAC's footprint --------------------------------------------------------------------------------

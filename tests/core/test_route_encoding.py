@@ -3,8 +3,13 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.obstacle_grid import environment_state, world_to_body
+from lerobot_formation.core import navigation
+from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.encoding import world_to_body
+from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.pac import PathAwareController
+from lerobot_formation.core.rollout import PACController, rollout
+from lerobot_formation.core.route_pursuit import RoutePursuitController
 from lerobot_formation.core.safety import decode_nearest
 from lerobot_formation.core.scene import FAR, sample_scenes, scene_preset
 
@@ -77,3 +82,61 @@ def test_pac_command_does_not_depend_on_the_batch():
         alone = PathAwareController()
         alone.reset(scenes.obstacles[b : b + 1], scenes.goal[b : b + 1])
         np.testing.assert_array_equal(alone.command(pose[b : b + 1])[0], batch[b])
+
+
+@pytest.mark.parametrize("controller, moving", [("route-pursuit", 0), ("pac", 0), ("pac", 1)])
+def test_route_hint_field_is_rebuilt_only_when_the_map_changes(monkeypatch, controller, moving):
+    """Under obstacle noise (and moving obstacles) the observed obstacles change at every step, but
+    the route hint's cost-to-go (route pursuit's, or the ``nearest+route`` observations recorded
+    beside PAC, which builds its field on the same map) is built on ``Perception.map_obstacles``: once
+    per map version of a team (scenes of at most 12 obstacles: the nearest selection is the whole map)."""
+    builds = []
+
+    def counting(obstacles, goal, **kwargs):
+        builds.append(obstacles.copy())
+        return cost_to_go(obstacles, goal, **kwargs)
+
+    cost_to_go = navigation.cost_to_go
+    monkeypatch.setattr(navigation, "cost_to_go", counting)
+    monkeypatch.setattr(navigation, "_SCENE_FIELDS", type(navigation._SCENE_FIELDS)())
+    views = []
+
+    class Spy:
+        def __init__(self, inner):
+            self.inner, self.name = inner, inner.name
+
+        def reset(self, view):
+            self.inner.reset(view)
+
+        def act(self, view, idx):
+            views.append((idx, view[np.arange(len(view))]))
+            return self.inner.act(view, idx)
+
+    scenes = sample_scenes([1_000_000, 1_000_001, 1_000_002])
+    cond = Conditions(obstacle_noise=0.05, sensing_range=1.5, moving_obstacles=moving, obstacle_speed=0.3)
+    inner = RoutePursuitController() if controller == "route-pursuit" else PACController()
+    record = None if controller == "route-pursuit" else ("nearest+route", None)
+    rec = rollout(scenes, Spy(inner), max_steps=80, conditions=cond, record_observations=record)
+    assert record is None or rec.observations["environment_state"].shape[-1] == 55
+    versions, steps, moved = set(), 0, 0
+    last: dict[tuple, tuple] = {}
+    for idx, view in views:
+        for r, b in enumerate(idx):
+            steps += 1
+            key = (int(b), int(view.map_version[r]))
+            seen = view.obstacles[r][view.mask[r]]
+            if key in last:  # the same map version: the same map, though the observed obstacles moved
+                np.testing.assert_array_equal(view.map_obstacles[r], last[key][0])
+                moved += not np.array_equal(seen, last[key][1])
+            else:  # a new map: the static observed obstacles of this step, moving ones padding
+                static = ~np.any(view.obstacle_velocity[r] != 0, axis=-1)
+                np.testing.assert_array_equal(view.map_obstacles[r][static], view.obstacles[r][static])
+                assert (view.map_obstacles[r][~static] == [FAR, FAR, 0.0]).all()
+                last[key] = (view.map_obstacles[r].copy(), seen)
+            last[key] = (last[key][0], seen)
+            versions.add(key)
+    assert steps > 100 and moved > steps / 2  # the noise moves the observed obstacles
+    if moving:  # a moving obstacle was observed, and left off the map
+        assert any((v.obstacle_velocity != 0).any() for _, v in views)
+    # one field per team and map version (fewer when a map repeats), not one per step
+    assert len({b for b, _ in versions}) <= len(builds) <= len(versions) < steps / 5

@@ -13,12 +13,12 @@ import pytest
 import yaml
 
 from datasets_scripts import generate_pac_dataset as gen
-from datasets_scripts import lerobot_writer
-from datasets_scripts.dataset_frames import episode_frames
-from datasets_scripts.hub_folder import push_to_folder
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import sample_scenes, scenes_from_frames
-from lerobot_formation.env import TASK
+from lerobot_formation.data import lerobot_writer
+from lerobot_formation.data.dataset_frames import episode_frames
+from lerobot_formation.data.hub_folder import push_to_folder
+from lerobot_formation.envs.env import TASK
 
 REPO = "local/formation_test"
 N = 10

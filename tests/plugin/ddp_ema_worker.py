@@ -13,7 +13,7 @@ from accelerate import Accelerator
 from accelerate.utils import DistributedDataParallelKwargs
 from plugin_helpers import tiny_config, train_batch
 
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 STEPS = 3
 

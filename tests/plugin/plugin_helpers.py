@@ -4,7 +4,7 @@ import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 HORIZON, N_OBS, N_ACT = 16, 2, 8
 
@@ -83,8 +83,10 @@ def nearest_config(**overrides) -> FormationDiffusionConfig:
 
 def save_nearest_checkpoint(path, **overrides):
     """A tiny untrained 'nearest' policy saved with its processors, as lerobot-train saves one."""
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-    from lerobot_formation.processor_formation_diffusion import make_formation_diffusion_pre_post_processors
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.policy.processor_formation_diffusion import (
+        make_formation_diffusion_pre_post_processors,
+    )
 
     torch.manual_seed(0)
     cfg = nearest_config(**overrides)

@@ -18,28 +18,27 @@ def _derive(*argv: str) -> int:
 
 
 def test_set_changes_config_fields_in_place_and_keeps_the_other_files(tmp_path):
-    from lerobot_formation.diffusion_controller import load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     ckpt = save_nearest_checkpoint(tmp_path / "ckpt")
     (ckpt / "dataset_scenes.json").write_text('{"scenes": []}')
     before = {p.name: p.read_bytes() for p in ckpt.iterdir()}
     config = json.loads(before["config.json"])
-    assert config["escape_advantage"] is None and config["inference_backend"] == "eager"
+    assert config["safety_margin"] == 0.1 and config["inference_backend"] == "eager"
 
     assert (
-        _derive(str(ckpt), str(ckpt), "--set", "escape_advantage=0.1", "--set", "inference_backend=trace")
-        == 0
+        _derive(str(ckpt), str(ckpt), "--set", "safety_margin=0.05", "--set", "inference_backend=trace") == 0
     )
 
     after = {p.name: p.read_bytes() for p in ckpt.iterdir()}
     assert set(after) == set(before)
     changed = json.loads(after["config.json"])
     assert list(changed) == list(config)  # same fields, same order
-    assert changed == {**config, "escape_advantage": 0.1, "inference_backend": "trace"}
+    assert changed == {**config, "safety_margin": 0.05, "inference_backend": "trace"}
     # the weights, the extra file and the processors (same steps, same statistics) byte for byte
     assert all(after[name] == data for name, data in before.items() if name != "config.json")
     policy, _, _ = load_policy(ckpt)
-    assert policy.config.escape_advantage == 0.1 and policy.config.inference_backend == "trace"
+    assert policy.config.safety_margin == 0.05 and policy.config.inference_backend == "trace"
     assert not list(tmp_path.glob(".ckpt.tmp*"))
 
 

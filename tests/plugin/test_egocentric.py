@@ -9,8 +9,8 @@ from plugin_helpers import formation_features, tiny_config
 
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.scene import sample_scenes
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-from lerobot_formation.processor_formation_diffusion import (
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.processor_formation_diffusion import (
     EgocentricObstaclesProcessorStep,
     egocentric_environment_state,
     make_formation_diffusion_pre_post_processors,
@@ -62,7 +62,12 @@ def test_history_windows_use_each_frames_own_pose():
 
 def test_step_sits_before_the_normalizer_and_loads_back(tmp_path):
     inputs, outputs = formation_features(env_dim=66)
-    cfg = tiny_config(input_features=inputs, output_features=outputs, egocentric_obstacles=True)
+    cfg = tiny_config(
+        input_features=inputs,
+        output_features=outputs,
+        egocentric_obstacles=True,
+        obstacle_encoding="grid+list",
+    )
     pre, _ = make_formation_diffusion_pre_post_processors(cfg, STATS)
     names = [type(s).__name__ for s in pre.steps]
     assert names.index("EgocentricObstaclesProcessorStep") == names.index("NormalizerProcessorStep") - 1
@@ -77,7 +82,7 @@ def test_step_sits_before_the_normalizer_and_loads_back(tmp_path):
     )
     # Off by default: the paper's world-frame observation passes through.
     plain, _ = make_formation_diffusion_pre_post_processors(
-        tiny_config(input_features=inputs, output_features=outputs), STATS
+        tiny_config(input_features=inputs, output_features=outputs, obstacle_encoding="grid+list"), STATS
     )
     torch.testing.assert_close(plain(dict(obs))[OBS_ENV_STATE], obs[OBS_ENV_STATE])
 
@@ -94,43 +99,3 @@ def test_egocentric_needs_the_obstacle_list():
         egocentric_environment_state(torch.zeros(1, 7), torch.zeros(1, 51), 5)
     with pytest.raises(ValueError, match=r"need observation.state and observation.environment_state"):
         EgocentricObstaclesProcessorStep().observation({OBS_ENV_STATE: torch.zeros(1, 66)})
-
-
-def test_egocentric_state_is_the_body_frame_velocity():
-    """[x, y, cos, sin, x', y', omega] -> [0, 0, 0, 1, v_right, v_forward, omega], as world_to_body."""
-    from lerobot_formation.core.obstacle_grid import world_to_body
-    from lerobot_formation.processor_formation_diffusion import egocentric_state
-
-    _, pose, state, _ = world_batch(8)
-    out = egocentric_state(torch.tensor(state, dtype=torch.float64)).numpy()
-    vel_body = world_to_body(pose[:, None, :2] + state[:, None, 4:6], pose)[:, 0]
-    np.testing.assert_allclose(out[:, 4:6], vel_body, atol=1e-6)
-    np.testing.assert_array_equal(out[:, :4], np.tile([0, 0, 0, 1], (8, 1)))
-    np.testing.assert_array_equal(out[:, 6], state[:, 6])
-    # A team driving along its heading has no sideways velocity, whatever its heading.
-    phi = torch.linspace(-3, 3, 7)
-    drive = torch.stack(
-        [phi * 0 + 2, phi * 0 - 1, phi.cos(), phi.sin(), 0.4 * phi.cos(), 0.4 * phi.sin(), phi * 0], -1
-    )
-    torch.testing.assert_close(egocentric_state(drive)[:, 4:6], torch.tensor([[0.0, 0.4]]).expand(7, 2))
-    with pytest.raises(ValueError, match=r"egocentric state needs observation.state .*got \(1, 6\)"):
-        egocentric_state(torch.zeros(1, 6))
-
-
-def test_egocentric_state_step_is_saved_and_needs_a_relative_obstacle_view(tmp_path):
-    inputs, outputs = formation_features(env_dim=50)  # "nearest": already egocentric
-    cfg = tiny_config(input_features=inputs, output_features=outputs, egocentric_state=True)
-    pre, _ = make_formation_diffusion_pre_post_processors(cfg, STATS)
-    names = [type(s).__name__ for s in pre.steps]
-    assert names.index("EgocentricStateProcessorStep") == names.index("NormalizerProcessorStep") - 1
-    pre.save_pretrained(tmp_path)
-    loaded = PolicyProcessorPipeline.from_pretrained(tmp_path, config_filename="policy_preprocessor.json")
-    _, _, state, _ = world_batch(3)
-    obs = {OBS_STATE: torch.tensor(state), OBS_ENV_STATE: torch.zeros(3, 50)}
-    torch.testing.assert_close(loaded(dict(obs))[OBS_STATE], pre(dict(obs))[OBS_STATE])
-    # Without the world pose, world-frame obstacles would mean nothing: refused with the fix named.
-    inputs, outputs = formation_features(env_dim=51)
-    with pytest.raises(ValueError, match=r"egocentric_state=true drops the world pose.*'grid'.*nearest"):
-        FormationDiffusionPolicy(
-            tiny_config(input_features=inputs, output_features=outputs, egocentric_state=True)
-        )

@@ -7,10 +7,10 @@ import pytest
 import torch
 from plugin_helpers import tiny_config
 
-from lerobot_formation.env_config import FormationEnvConfig
-from lerobot_formation.lerobot_compat import keep_final_eval_frame
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
-from lerobot_formation.render import FINAL_FRAME_KEY, OUTCOME_COLORS, annotate
+from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.envs.render import FINAL_FRAME_KEY, OUTCOME_COLORS, annotate
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 STRAIGHT = np.array([0.6, 0.0], np.float32)  # full speed ahead; the team starts at (0, 0) facing +y
 SCENES = {
@@ -86,7 +86,7 @@ def test_lerobot_eval_video_ends_on_the_outcome_frame(monkeypatch, tmp_path):
     from lerobot.scripts import lerobot_eval
 
     # The CLIs import lerobot_eval before the plugin; here the test imports it after, so patch now.
-    assert keep_final_eval_frame() and keep_final_eval_frame()  # idempotent
+    assert keep_final_eval_frame(FINAL_FRAME_KEY) and keep_final_eval_frame(FINAL_FRAME_KEY)  # idempotent
     assert lerobot_eval.rollout._formation_final_frame and not hasattr(
         lerobot_eval.rollout.__wrapped__, "_formation_final_frame"
     )
@@ -96,10 +96,10 @@ def test_lerobot_eval_video_ends_on_the_outcome_frame(monkeypatch, tmp_path):
 
     def videos(rollout) -> list[np.ndarray]:
         written = []
+        env = FormationEnvConfig(episode_length=5).create_envs(1)["formation"][0]  # wraps rollout if not yet
+        assert env.metadata[FINAL_FRAME_KEY] and lerobot_eval.rollout._formation_final_frame
         monkeypatch.setattr(lerobot_eval, "rollout", rollout)
         monkeypatch.setattr(lerobot_eval, "write_video", lambda path, frames, fps: written.append(frames))
-        env = FormationEnvConfig(episode_length=5).create_envs(1)["formation"][0]
-        assert env.metadata[FINAL_FRAME_KEY]
         try:
             identity = lambda x: x  # noqa: E731
             lerobot_eval.eval_policy(
@@ -123,10 +123,10 @@ def test_lerobot_eval_video_ends_on_the_outcome_frame(monkeypatch, tmp_path):
 def test_a_gym_made_env_gets_the_same_overlay_outside_its_time_limit():
     import gymnasium as gym
 
-    import lerobot_formation
-    from lerobot_formation.render import EpisodeOverlay
+    from lerobot_formation.envs import ENV_ID
+    from lerobot_formation.envs.render import EpisodeOverlay
 
-    env = EpisodeOverlay(gym.make(lerobot_formation.ENV_ID, render_mode="rgb_array", max_episode_steps=8))
+    env = EpisodeOverlay(gym.make(ENV_ID, render_mode="rgb_array", max_episode_steps=8))
     env.reset(options={"scene": SCENES["timeout"]})
     for _ in range(8):
         *_, terminated, truncated, _ = env.step(STRAIGHT)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from datasets_scripts import lerobot_writer
-from lerobot_formation import fast_reads
+from lerobot_formation.compat import fast_reads
+from lerobot_formation.data import lerobot_writer
 
 REPO = "local/fast_reads"
 

@@ -11,10 +11,10 @@ import torch
 from plugin_helpers import N_ACT, N_OBS, history_batch, obs_batch, sampling_noise, tiny_config
 from safetensors import safe_open
 
-from lerobot_formation import lerobot_compat
-from lerobot_formation import modeling_formation_diffusion as modeling
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.compat import lerobot_compat
+from lerobot_formation.policy import modeling_formation_diffusion as modeling
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 TOL = dict(rtol=1e-5, atol=1e-5)
 
@@ -29,7 +29,7 @@ def _policy(**overrides) -> FormationDiffusionPolicy:
 
 
 def _chunks(policy, backend, batch, k, noise):
-    policy.config.inference_backend = backend
+    policy.reconfigure(inference_backend=backend)
     return policy.sample_action_chunks(batch, k, noise=noise)
 
 
@@ -97,7 +97,7 @@ def test_unseeded_noise_is_drawn_as_lerobot_draws_it():
     batch = history_batch(2)
     chunks = {}
     for backend in ("eager", "trace"):
-        policy.config.inference_backend = backend
+        policy.reconfigure(inference_backend=backend)
         torch.manual_seed(5)
         chunks[backend] = policy.sample_action_chunks(batch, 2)
     torch.testing.assert_close(chunks["trace"], chunks["eager"], **TOL)
@@ -179,7 +179,7 @@ def test_train_mode_uses_the_live_model_without_a_trace():
 def test_precomputed_ddim_steps_equal_diffusers_and_follow_the_scheduler():
     """Bit-identical to diffusers' DDIMScheduler.step; set_inference_steps (a new scheduler, another
     step count) is picked up."""
-    from lerobot_formation.diffusion_controller import set_inference_steps
+    from lerobot_formation.policy.checkpoint import set_inference_steps
 
     policy = _policy()
     batch, noise = history_batch(3), sampling_noise(3)
@@ -238,9 +238,9 @@ def test_a_failing_trace_falls_back_to_the_eager_unet(monkeypatch, caplog):
 
 
 def test_untested_lerobot_keeps_the_stock_sampler(monkeypatch, caplog):
+    policy = _policy()  # built on the tested LeRobot (building one on another warns about fast reads)
     monkeypatch.setattr(lerobot_compat, "lerobot_version", lambda: "9.0.0")
     monkeypatch.setattr(lerobot_compat, "_warned", set())
-    policy = _policy()
     batch, noise = history_batch(2), sampling_noise(2)
     with caplog.at_level(logging.WARNING, logger=lerobot_compat.__name__):
         lean = _chunks(policy, "trace", batch, 1, noise)
@@ -260,7 +260,7 @@ def test_timestep_spacing_field_is_checked_and_applied(tmp_path):
     scheduler = policy.ema_diffusion.noise_scheduler
     assert scheduler.config.timestep_spacing == "trailing"
     assert list(scheduler.timesteps) == [scheduler.config.num_train_timesteps - 1]  # leading: [0]
-    policy.config.timestep_spacing = "leading"  # a changed config takes effect at the next call
+    policy.reconfigure(timestep_spacing="leading")  # a changed config takes effect at the next call
     policy.sample_action_chunks(history_batch(1), 1, noise=sampling_noise(1))
     assert list(policy.ema_diffusion.noise_scheduler.timesteps) == [0]
 

@@ -6,10 +6,10 @@ import logging
 import numpy as np
 import pytest
 
-from datasets_scripts.dataset_frames import dataset_features
-from datasets_scripts.lerobot_writer import write_episode
-from lerobot_formation import fast_reads, lerobot_compat
-from lerobot_formation.env import TASK
+from lerobot_formation.compat import fast_reads, lerobot_compat
+from lerobot_formation.data.dataset_frames import dataset_features
+from lerobot_formation.data.lerobot_writer import write_episode
+from lerobot_formation.envs.env import TASK
 
 
 @pytest.fixture
@@ -120,7 +120,7 @@ def test_queued_history_is_the_batch_until_observations_are_pushed():
     import torch
     from plugin_helpers import N_OBS, obs_batch, tiny_config
 
-    from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
     policy = FormationDiffusionPolicy(tiny_config())
     policy.reset()

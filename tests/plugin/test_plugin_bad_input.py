@@ -9,7 +9,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from plugin_helpers import formation_features, tiny_config
 
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 
 def dataset_features(state=(7,), env=(51,), action=(2,)) -> dict:
@@ -21,19 +21,20 @@ def dataset_features(state=(7,), env=(51,), action=(2,)) -> dict:
     return feats
 
 
-def build_from_dataset(**shapes) -> FormationDiffusionPolicy:
+def build_from_dataset(obstacle_encoding: str = "grid", **shapes) -> FormationDiffusionPolicy:
     """What lerobot-train's make_policy does with a dataset's features."""
     features = dataset_to_policy_features(dataset_features(**shapes))
-    cfg = tiny_config(input_features={}, output_features={})
-    cfg.output_features = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
-    cfg.input_features = {k: f for k, f in features.items() if k not in cfg.output_features}
+    outputs = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
+    inputs = {k: f for k, f in features.items() if k not in outputs}
+    cfg = tiny_config(input_features=inputs, output_features=outputs, obstacle_encoding=obstacle_encoding)
     return FormationDiffusionPolicy(cfg)
 
 
 def test_dataset_features_build():
     policy = build_from_dataset()
     assert policy.config.env_state_feature.shape == (51,)
-    assert build_from_dataset(env=(66,)).config.env_state_feature.shape == (66,)
+    policy = build_from_dataset("grid+list", env=(66,))
+    assert policy.config.env_state_feature.shape == (66,)
 
 
 @pytest.mark.parametrize(
@@ -42,12 +43,12 @@ def test_dataset_features_build():
         ({"state": None}, r"needs the input feature 'observation.state' \(STATE, shape \(7,\)"),
         (
             {"env": None},
-            r"needs the input feature 'observation.environment_state' \(ENV, shape \(51,\) or \(66,\)",
+            r"needs the input feature 'observation.environment_state' \(ENV, shape \(51,\): obstacle_encoding 'grid'",
         ),
         ({"state": (9,)}, r"'observation.state' must have shape \(7,\) .*got \(9,\)"),
         (
             {"env": (49,)},
-            r"'observation.environment_state' must have shape \(51,\) .* or \(66,\) .*got \(49,\)",
+            r"'observation.environment_state' has shape \(49,\), but obstacle_encoding='grid' .* has \(51,\)",
         ),
         ({"action": (3,)}, r"needs the output feature 'action' \(ACTION, shape \(2,\)"),
         ({"action": None}, r"needs the output feature 'action'"),
@@ -121,7 +122,8 @@ def test_non_config_is_refused():
 def test_observation_of_the_wrong_encoding_is_explained():
     """A "grid+list" policy evaluated on a "grid" env: say which --env.obstacle_encoding to use."""
     inputs, outputs = formation_features(env_dim=66)
-    policy = FormationDiffusionPolicy(tiny_config(input_features=inputs, output_features=outputs)).eval()
+    cfg = tiny_config(input_features=inputs, output_features=outputs, obstacle_encoding="grid+list")
+    policy = FormationDiffusionPolicy(cfg).eval()
     obs = {OBS_STATE: torch.zeros(1, 7), OBS_ENV_STATE: torch.zeros(1, 51)}
     with pytest.raises(
         ValueError, match=r"has 51 values .* trained on 66. .*--env.obstacle_encoding=grid\+list"

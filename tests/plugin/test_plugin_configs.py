@@ -9,8 +9,8 @@ from lerobot.configs.train import TrainPipelineConfig
 from lerobot.optim import AdamWConfig, DiffuserSchedulerConfig
 from plugin_helpers import tiny_config
 
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 NAMES = ["formation_diffusion_paper", "formation_diffusion_cpu", "formation_diffusion_tiny"]
@@ -94,7 +94,7 @@ def test_config_errors_stay_visible_through_draccus():
     """draccus says only "Couldn't instantiate class ..."; the ConfigError with the message is in the
     chain, and is what LeRobot's parser prints (tests/test_reliability.py runs the CLIs)."""
     import lerobot_formation.plugin  # noqa: F401  (the DecodingError message, as in the CLIs)
-    from lerobot_formation.errors import config_error_in_chain
+    from lerobot_formation.compat.run_checks import config_error_in_chain
 
     with pytest.raises(Exception) as err:  # noqa: B017
         parse("formation_diffusion_tiny", "--policy.horizon=30")

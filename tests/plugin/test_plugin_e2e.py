@@ -67,6 +67,7 @@ def trained(workdir, dataset_root, run_cli) -> Path:
         f"--dataset.repo_id={REPO_ID}",
         f"--dataset.root={dataset_root}",
         "--env.obstacle_encoding=grid+list",
+        "--policy.obstacle_encoding=grid+list",  # stored in the checkpoint, never guessed from the size
         "--policy.egocentric_obstacles=true",  # the CPU config's custom preprocessor step
         f"--output_dir={out}",
         cwd=workdir,
@@ -134,14 +135,14 @@ def test_resume_continues_the_run(trained, workdir, run_cli):
 
 
 def test_distill_a_one_step_student_and_resume(trained, dataset_root, tmp_path, capsys):
-    """``python -m lerobot_formation.distill`` on the tiny checkpoint: the student is a loadable
+    """``python -m lerobot_formation.policy.distill`` on the tiny checkpoint: the student is a loadable
     formation_diffusion checkpoint (x_0 prediction, 1 trailing DDIM step), its one-step samples move
     toward the teacher's, and a second run continues from OUT/last."""
     import torch
 
-    from lerobot_formation import distill
-    from lerobot_formation.diffusion_controller import load_policy, set_inference_steps
-    from lerobot_formation.lerobot_compat import global_conditioning
+    from lerobot_formation.compat.lerobot_compat import global_conditioning
+    from lerobot_formation.policy import distill
+    from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
     teacher_path = trained / "checkpoints" / "000004" / "pretrained_model"
     out = tmp_path / "distill"
@@ -186,7 +187,7 @@ def test_distill_a_one_step_student_and_resume(trained, dataset_root, tmp_path, 
 def test_distill_refuses_a_dataset_of_another_obstacle_encoding(dataset_root, tmp_path, capsys):
     """The shipped default observes 'nearest+route' (55 values); a 'grid+list' dataset is refused at
     start-up with both shapes named, not with a matmul error deep in the first step."""
-    from lerobot_formation import distill
+    from lerobot_formation.policy import distill
 
     teacher = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_safe"
     argv = ["--teacher", str(teacher), "--dataset.root", str(dataset_root), "--out", str(tmp_path / "s")]

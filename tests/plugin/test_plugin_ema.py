@@ -12,7 +12,7 @@ import torch
 from diffusers.training_utils import EMAModel
 from plugin_helpers import N_ACT, obs_batch, tiny_config, train_batch
 
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 
 def make_policy(seed=0, **overrides) -> FormationDiffusionPolicy:

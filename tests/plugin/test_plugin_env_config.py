@@ -13,8 +13,8 @@ from lerobot.envs.utils import NEW_ROLLOUT_OPTION, env_to_policy_features, prepr
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS
-from lerobot_formation.env_config import FormationEnvConfig
-from lerobot_formation.episode_metrics import INFO_KEY
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.envs.episode_metrics import INFO_KEY
 
 CIRCLE = np.array([0.5, 1.5], np.float32)  # [v, omega]: a tight circle, never reaches the goal
 
@@ -34,7 +34,7 @@ def test_registered_and_features_include_action():
 def test_factory_pickles_by_reference():
     factory = FormationEnvConfig(episode_length=5).make_env_factory()
     blob = pickle.dumps(factory)
-    assert b"lerobot_formation.env_config" in blob
+    assert b"lerobot_formation.envs.env_config" in blob
     env = pickle.loads(blob)()
     assert env.get_wrapper_attr("_max_episode_steps") == 5
     env.close()

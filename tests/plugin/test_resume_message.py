@@ -5,8 +5,8 @@ from __future__ import annotations
 import logging
 from types import SimpleNamespace
 
-from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
-from lerobot_formation.env_config import FormationEnvConfig
+from lerobot_formation.envs.env_config import FormationEnvConfig
+from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 
 def make_env_pre_post_processors(env_cfg, policy_cfg):  # noqa: ARG001  (LeRobot's name and signature)

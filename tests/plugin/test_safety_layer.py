@@ -1,5 +1,7 @@
 """The safety layer inside ``formation_diffusion`` (config fields num_candidates / safety_filter)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -16,7 +18,7 @@ from plugin_helpers import (
 from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.scene import FAR
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 
 def _env_state(obstacles, pose=(0.0, 0.0, np.pi / 2), goal=(0.0, 8.0)):
@@ -33,9 +35,11 @@ def _batch(env):
 
 def test_safety_layer_needs_egocentric_encoding_and_fixed_bounds():
     with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):
-        tiny_config(num_candidates=4).validate_features()  # grid encoding (51 values)
+        tiny_config(num_candidates=4)  # grid encoding (51 values)
     with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):
-        nearest_config(safety_filter="cbf", fixed_action_bounds=False).validate_features()
+        nearest_config(safety_filter="cbf", fixed_action_bounds=False)
+    with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):  # an override, too
+        dataclasses.replace(tiny_config(), num_candidates=4)
     with pytest.raises(ValueError, match="safety_filter must be one of"):
         nearest_config(safety_filter="qp")
     with pytest.raises(ValueError, match="obstacle_encoding='nearest'"):
@@ -45,7 +49,10 @@ def test_safety_layer_needs_egocentric_encoding_and_fixed_bounds():
         ).validate_features()
     cfg = tiny_config()
     cfg.validate_features()
-    assert cfg.obstacle_encoding == "grid"  # found once from the size, then stored
+    assert cfg.obstacle_encoding == "grid"  # the default, stored; never guessed from the size
+    inputs, outputs = formation_features(env_dim=66)  # a "grid+list" observation
+    with pytest.raises(ValueError, match=r"obstacle_encoding='grid'.*--env.obstacle_encoding=grid"):
+        tiny_config(input_features=inputs, output_features=outputs).validate_features()
 
 
 def test_one_candidate_without_filter_equals_standard_sampling():
@@ -106,38 +113,30 @@ def test_action_normalisation_round_trips_the_fixed_bounds():
 
 
 @pytest.mark.parametrize(
-    ("k", "safety_filter", "blend", "fallback", "warm"),
+    ("k", "safety_filter", "warm"),
     [
-        (3, "cbf", 0, "widest", 0),
-        (3, "cbf", 3, "widest", 0),
-        (1, "none", 2, "widest", 0),
-        (3, "none", 3, "stop", 0),
-        (1, "none", 2, "widest", 1),  # warm-started replans
-        (3, "cbf", 3, "widest", 2),  # ... after the filter cut a chunk short
+        (3, "cbf", 0),
+        (1, "none", 1),  # warm-started replans
+        (3, "cbf", 2),  # ... after the filter cut a chunk short
     ],
 )
-def test_engine_and_select_action_run_the_same_safety_layer(
-    tmp_path, k, safety_filter, blend, fallback, warm
-):
-    """One episode, same noise: the engine's controller and the policy's select_action (the path of
-    lerobot-eval) give the same actions, replans and filter interventions, with and without replan
-    blending (the engine blends physical actions, select_action normalised ones)."""
+def test_engine_and_select_action_feed_the_replanner_the_same(tmp_path, k, safety_filter, warm):
+    """One episode, same noise: the engine's controller (its own observation histories, the
+    checkpoint's preprocessor, its noise generator) and the policy's select_action (LeRobot's queues,
+    the path of lerobot-eval) run the same Replanner and give the same actions, replans and filter
+    interventions."""
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.core.dynamics import FormationParams, initial_state, step
     from lerobot_formation.core.observation import midpoint_state
     from lerobot_formation.core.scene import scenes_from_list
-    from lerobot_formation.diffusion_controller import DiffusionController, load_policy
+    from lerobot_formation.policy.checkpoint import load_policy
 
     path = save_nearest_checkpoint(
-        tmp_path,
-        num_candidates=k,
-        safety_filter=safety_filter,
-        replan_blend_steps=blend,
-        blocked_fallback=fallback,
-        warm_start_step=warm,
+        tmp_path, num_candidates=k, safety_filter=safety_filter, warm_start_step=warm
     )
     scene = scenes_from_list([{"obstacles": [[0.6, 1.3, 0.35], [-1.0, 3.0, 0.5]], "goal": [0.5, 6.0]}])
     params = FormationParams()
-    engine = DiffusionController(path, candidates=k, safety_filter=safety_filter, seed=7, params=params)
+    engine = DiffusionController(path, seed=7, params=params)
     state = initial_state(scene.start, params)
     engine.reset(Perception.exact(scene, state))
     policy, pre, post = load_policy(path)
@@ -151,7 +150,7 @@ def test_engine_and_select_action_run_the_same_safety_layer(
                 environment_state(scene.obstacles, scene.mask, scene.goal, "nearest", pose=state.pose)
             ),
         }
-        replan = policy._plan_pos is None or bool(policy._plan_pos[0] >= policy.config.n_action_steps)
+        replan = bool(policy.replanner.needs_replan(torch.tensor([0]))[0])
         noise = torch.randn((k, HORIZON, 2), generator=gen) if replan else None
         a_policy = post(policy.select_action(pre(obs), noise=noise)).numpy()
         np.testing.assert_allclose(a_policy, a_engine, atol=1e-5)
@@ -162,29 +161,57 @@ def test_engine_and_select_action_run_the_same_safety_layer(
     assert engine.stats["filter_interventions"] >= 1 or safety_filter == "none"
 
 
-def test_a_negative_or_nan_escape_advantage_is_refused_with_its_value():
-    with pytest.raises(ValueError, match=r"escape_advantage must be null or >= 0 \[m\], got -0.1"):
-        nearest_config(escape_advantage=-0.1)
-    with pytest.raises(ValueError, match=r"config values must be finite numbers, got escape_advantage=nan"):
-        nearest_config(escape_advantage=float("nan"))
-    assert nearest_config(escape_advantage=None).escape_advantage is None
+def test_a_bench_override_leaves_the_shared_policy_config_alone(tmp_path):
+    """A controller's K and filter are a validated copy of the config (dataclasses.replace): the
+    loaded policy, which other controllers share, keeps its own."""
+    from lerobot_formation.bench.diffusion_controller import DiffusionController
+    from lerobot_formation.policy.checkpoint import load_policy
+
+    bundle = load_policy(save_nearest_checkpoint(tmp_path))
+    safe = DiffusionController(
+        None, policy_bundle=bundle, overrides={"num_candidates": 5, "safety_filter": "cbf"}
+    )
+    assert (safe.replanner.config.num_candidates, safe.replanner.config.safety_filter) == (5, "cbf")
+    assert (bundle[0].config.num_candidates, bundle[0].config.safety_filter) == (1, "none")
+    with pytest.raises(ValueError, match=r"num_candidates must be >= 1, got 0"):
+        DiffusionController(None, policy_bundle=bundle, overrides={"num_candidates": 0})
 
 
-def test_blocked_fallback_is_checked_with_its_value():
+def test_replan_experiment_settings_are_checked_with_their_value():
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
+
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match=rf"escape_advantage must be None or >= 0 \[m\], got {bad}"):
+            ReplanExperiment(escape_advantage=bad)
     with pytest.raises(
         ValueError, match=r"blocked_fallback must be one of \('widest', 'stop'\), got 'brake'"
     ):
-        nearest_config(blocked_fallback="brake")
-    assert nearest_config(blocked_fallback="stop").blocked_fallback == "stop"
+        ReplanExperiment(blocked_fallback="brake")
+    with pytest.raises(ValueError, match=r"blend_steps must be >= 0, got -1"):
+        ReplanExperiment(blend_steps=-1)
+    policy = FormationDiffusionPolicy(nearest_config())
+    with pytest.raises(ValueError, match=r"blend_steps must be in \[0, 15\] \(the chunk's length\), got 16"):
+        Replanner(policy, experiment=ReplanExperiment(blend_steps=16))
 
 
-def test_replan_blend_steps_is_checked_with_its_value():
-    with pytest.raises(
-        ValueError, match=r"replan_blend_steps must be in \[0, 15\] \(the chunk's length\), got 16"
-    ):
-        nearest_config(replan_blend_steps=16)
-    cfg = nearest_config(replan_blend_steps=3)
-    assert cfg.plans_per_episode and not cfg.safety_layer
+def test_replan_blending_starts_a_new_chunk_at_the_executed_action():
+    """With blending (an experiment setting) the first action after a replan moves from the last
+    executed action toward the new chunk by 1 - 1/(m+1) of the way (``core.replan_blend``)."""
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
+
+    torch.manual_seed(0)
+    policy = FormationDiffusionPolicy(nearest_config()).eval()
+    replanner = Replanner(policy, experiment=ReplanExperiment(blend_steps=3))
+    env = _env_state([])
+    stacked = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in _batch(env).items()}
+    noise = torch.randn(2, HORIZON, 2, generator=torch.Generator().manual_seed(3))
+    replanner.start(1)
+    for _ in range(policy.config.n_action_steps):
+        last = replanner.act(env, lambda rows: stacked, noise=noise[:1])
+    raw = policy.sample_action_chunks(stacked, 1, noise=noise[1:])[:, 0]
+    first = replanner.act(env, lambda rows: stacked, noise=noise[1:])
+    torch.testing.assert_close(first, raw[:, 0] + 0.75 * (last - raw[:, 0]))
+    assert replanner.stats["replans"] == 2
 
 
 def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
@@ -203,8 +230,8 @@ def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
     straight = np.tile([0.5, 0.0], (1, 1, HORIZON, 1))  # into the first obstacle
     turn = np.tile([0.3, 1.0], (1, 1, HORIZON, 1))
     chunks = np.concatenate([straight, turn], axis=1)
-    kept55, info55 = route.choose_chunk_raw(env55, chunks)
-    kept50, info50 = plain.choose_chunk_raw(env50, chunks)
+    kept55, info55 = route.replanner.choose_raw(env55, chunks)
+    kept50, info50 = plain.replanner.choose_raw(env50, chunks)
     np.testing.assert_array_equal(kept55, kept50)
     np.testing.assert_array_equal(info55["safe"], info50["safe"])
     assert not info55["safe"][0, 0]  # the straight chunk hits the obstacle ahead

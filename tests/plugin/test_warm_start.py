@@ -8,8 +8,9 @@ import pytest
 import torch
 from plugin_helpers import HORIZON, N_OBS, history_batch, sampling_noise, tiny_config
 
-from lerobot_formation.lerobot_compat import global_conditioning
-from lerobot_formation.modeling_formation_diffusion import FormationDiffusionPolicy, warm_start_guess
+from lerobot_formation.compat.lerobot_compat import global_conditioning
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.replanner import warm_start_guess
 
 TOL = dict(rtol=1e-5, atol=1e-5)
 T = HORIZON - N_OBS + 1  # a chunk's length, from the current step on
@@ -42,13 +43,13 @@ def test_cold_rows_and_step_zero_are_plain_sampling(backend):
     batch, noise, guess = history_batch(3), sampling_noise(3), _guess(3)
     plain = policy.sample_action_chunks(batch, 1, noise=noise)
     none_warm = (guess, torch.zeros(3, dtype=torch.bool))
-    policy.config.warm_start_step = 2
     torch.testing.assert_close(
-        policy.sample_action_chunks(batch, 1, noise=noise, warm_start=none_warm), plain
+        policy.sample_action_chunks(batch, 1, noise=noise, warm_start=none_warm, warm_start_step=2), plain
     )
-    policy.config.warm_start_step = 0
     all_warm = (guess, torch.ones(3, dtype=torch.bool))
-    torch.testing.assert_close(policy.sample_action_chunks(batch, 1, noise=noise, warm_start=all_warm), plain)
+    torch.testing.assert_close(
+        policy.sample_action_chunks(batch, 1, noise=noise, warm_start=all_warm, warm_start_step=0), plain
+    )
 
 
 @pytest.mark.parametrize("backend", ["eager", "lean", "trace"])
@@ -74,8 +75,7 @@ def test_warm_rows_are_sdedit_from_their_guess(backend, j):
     want = x[:, N_OBS - 1 :]
     torch.testing.assert_close(got[0], want[0], **TOL)
     torch.testing.assert_close(got[2], want[2], **TOL)
-    policy.config.warm_start_step = 0
-    plain = policy.sample_action_chunks(batch, 1, noise=noise)[:, 0]
+    plain = policy.sample_action_chunks(batch, 1, noise=noise, warm_start_step=0)[:, 0]
     torch.testing.assert_close(got[1], plain[1], **TOL)
     assert not torch.allclose(got[0], plain[0], **TOL)  # the guess did change the warm rows
 
@@ -87,20 +87,18 @@ def test_only_the_first_candidate_continues_the_last_plan():
     warm = policy.sample_action_chunks(
         batch, K, noise=noise, warm_start=(guess, torch.ones(B, dtype=torch.bool))
     )
-    policy.config.warm_start_step = 0
-    cold = policy.sample_action_chunks(batch, K, noise=noise)
+    cold = policy.sample_action_chunks(batch, K, noise=noise, warm_start_step=0)
     torch.testing.assert_close(warm[:, 1:], cold[:, 1:], **TOL)
     assert not torch.allclose(warm[:, 0], cold[:, 0], **TOL)
 
 
 def test_all_candidates_warm_on_request():
-    policy = _policy(inference_backend="lean", warm_start_step=2, warm_start_all_candidates=True)
+    policy = _policy(inference_backend="lean", warm_start_step=2)
     B, K = 2, 3
     batch, noise, guess = history_batch(B), sampling_noise(B * K), _guess(B)
     use = torch.tensor([True, False])
-    warm = policy.sample_action_chunks(batch, K, noise=noise, warm_start=(guess, use))
+    warm = policy.sample_action_chunks(batch, K, noise=noise, warm_start=(guess, use), warm_all=True)
     # each candidate of row 0 equals one warm-started sample of its own noise, row 1 stays cold
-    policy.config.warm_start_all_candidates = False
     for k in range(K):
         one = policy.sample_action_chunks(
             {key: v[:1] for key, v in batch.items()},
@@ -109,8 +107,7 @@ def test_all_candidates_warm_on_request():
             warm_start=(guess[:1], use[:1]),
         )
         torch.testing.assert_close(warm[0, k], one[0, 0], **TOL)
-    policy.config.warm_start_step = 0
-    cold = policy.sample_action_chunks(batch, K, noise=noise)
+    cold = policy.sample_action_chunks(batch, K, noise=noise, warm_start_step=0)
     torch.testing.assert_close(warm[1], cold[1], **TOL)
 
 
@@ -124,31 +121,30 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
     cfg = tiny_config(warm_start_step=1)
     assert cfg.plans_per_episode and not cfg.safety_layer
     # the engine's step override turns a warm start it leaves no room for off, and says so
-    from lerobot_formation.diffusion_controller import set_inference_steps
+    from lerobot_formation.policy.checkpoint import set_inference_steps
 
     policy = _policy(warm_start_step=3)
     with caplog.at_level(logging.WARNING):
         set_inference_steps(policy, 3)
     assert policy.config.warm_start_step == 0 and "warm_start_step 3 needs more than 3" in caplog.text
     policy.sample_action_chunks(history_batch(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)))
-    # a config changed behind the validation's back is refused when sampling
-    policy.config.warm_start_step = 5
+    # a warm start past the sampler's steps is refused when sampling
     with pytest.raises(ValueError, match="warm_start_step must be below the sampler's 3 steps, got 5"):
         policy.sample_action_chunks(
-            history_batch(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool))
+            history_batch(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)), warm_start_step=5
         )
 
 
 def test_a_distilled_student_of_a_warm_starting_teacher_samples_from_noise(tmp_path):
-    from lerobot_formation import distill
-    from lerobot_formation.configuration_formation_diffusion import FormationDiffusionConfig
+    from lerobot_formation.policy import distill
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
-    teacher = tiny_config(warm_start_step=2, warm_start_all_candidates=True)
+    teacher = tiny_config(warm_start_step=2)
     student = distill.student_config(teacher, 1)
-    assert (student.warm_start_step, student.warm_start_all_candidates, student.num_inference_steps) == (
+    assert (student.warm_start_step, student.num_inference_steps, student.timestep_spacing) == (
         0,
-        False,
         1,
+        "trailing",
     )
     student._save_pretrained(tmp_path)  # and it loads back: a warm start past its 1 step would be refused
     assert FormationDiffusionConfig.from_pretrained(tmp_path).warm_start_step == 0

@@ -1,0 +1,1 @@
+"""The evaluation engine (``evaluation``, ``controllers``), scene sets, results, tables, figures, the bench CLI and the demo."""

@@ -1,0 +1,332 @@
+"""``lerobot-formation-bench``: the paper's experiments in one command.
+
+Runs controllers on a scene set with the batched evaluation engine, computes every SPEC metric
+(Wilson 95 % intervals on success), and writes ``results.json``, ``tables.md`` (the paper's two
+tables with its own numbers beside ours) and PNG figures.
+
+Example::
+
+    lerobot-formation-bench --controllers pac,mppi,diffusion,diffusion-bestof \\
+        --policy.path pretrained/formation_diffusion_cpu --scenes dataset:100 --unseen random:100 \\
+        --seed 1000000 --out outputs/bench
+
+Scenes: ``random:N`` (the valid scenes of seeds S..S+N-1, S = --seed, default 1_000_000, which the
+dataset never uses; ``<preset>:N`` the same from a scene preset of ``core.scene.SCENE_PRESETS``, e.g.
+``gates:25``; ``hard:N`` N/4 scenes of each of gates, blockers, dense and goals), the
+``dataset:N`` (the first N episodes of a dataset: ``--dataset.root``, or the
+``dataset_scenes.json`` shipped with the policy), or a scenes JSON file. ``--unseen random:N`` also
+runs the diffusion controllers on unseen scenes for the standard-vs-adaptive table.
+
+Realistic conditions: ``--env.<field> VALUE`` with the env config's field names (docs/conditions.md),
+e.g. ``--env.sensing_range 3 --env.action_delay 2 --env.moving_obstacles 2 --env.obstacle_speed 0.3``;
+every controller then sees only what the team perceives. ``results.json`` records them in
+``meta.conditions``.
+
+Bad input (arguments, scene files, a ``--policy.path`` that is missing, incomplete, broken or of
+another policy type, a controller the checkpoint cannot serve) is one line ``error: ...`` on stderr
+and exit code 2. If a controller fails after others finished, ``results.json`` and ``tables.md`` are
+still written with the finished ones (``meta.incomplete``, ``meta.error``) before the error.
+Clearance metrics are null (n/a in the tables) for scenes with no obstacle.
+
+Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.bench.levels``)
+under the level's conditions, from the level's first seed unless ``--seed`` is given.
+
+Sharding: ``--shard I/N`` runs the scenes whose index i in the scene set has i % N == I (each keeps
+its seed and index); ``lerobot-formation-bench-merge`` (``python -m lerobot_formation.bench.merge``)
+combines the N shards' folders into the results.json and tables.md of one run.
+
+``results.json`` and
+``tables.md`` are written first (each to a temporary file renamed into place), the figures after
+them: a figure that fails is one ``warning:`` line (and ``meta.figure_errors``), the results stay; a
+results file that cannot be written (a full disk) is one ``error:`` line, exit code 1, with no
+temporary file left behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_formation.bench.controllers import controller_names, make_controller, needs_policy
+from lerobot_formation.bench.evaluation import evaluate
+from lerobot_formation.bench.figures import draw_bench_figures
+from lerobot_formation.bench.levels import get_level
+from lerobot_formation.bench.results import controller_results, safety_rates, write_results
+from lerobot_formation.bench.scene_sets import parse_scenes
+from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
+from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
+from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
+from lerobot_formation.threads import add_threads_argument, apply_threads
+
+
+class BenchInputError(ValueError):
+    """A bad input found while running (a controller that this checkpoint cannot serve, ...): reported
+    as one ``error:`` line, exit code 2, after writing the results of the controllers that finished."""
+
+
+def run_set(
+    names,
+    scenes,
+    params,
+    settings: BenchSettings,
+    label: str,
+    bundle,
+    into: dict | None = None,
+    records: dict | None = None,
+    conditions: Conditions | None = None,
+    indices=None,
+) -> dict:
+    """Run the controllers ``names`` on ``scenes`` under ``conditions``; each finished controller's
+    entry is put into ``into`` (default: a new dict, returned) at once, so a later failure keeps it.
+    ``records``: a dict that also receives each controller's ``EpisodeRecords`` (for the figures, drawn
+    after the results are written: ``bench_figures.draw_bench_figures``). ``indices``: each scene's
+    index in its whole scene set (a shard's), default 0..len-1."""
+    results = into if into is not None else {}
+    spec = (settings.unseen if label == "unseen" else settings.scenes) or ""
+    for name in names:
+        t0 = time.perf_counter()
+        try:
+            ctrl = make_controller(name, params, settings.options, bundle)
+        except ValueError as e:
+            raise BenchInputError(f"controller {name}: {e}") from e
+        rec = evaluate(
+            ctrl, scenes, params, progress=settings.progress, desc=f"{name} ({label})", conditions=conditions
+        )
+        entry = controller_results(rec, scenes, indices)
+        entry["wall_time_s"] = time.perf_counter() - t0
+        if getattr(ctrl, "stats", None):  # the safety layer's interventions
+            entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
+        entry["scenes"] = label
+        entry["figures"] = []
+        if records is not None:
+            records[name] = rec
+        results[name] = entry
+        lo, hi = entry["success_ci95"]
+        print(  # the set by its spec (random:50, hard:20, dataset:100): "unseen" is not what it is
+            f"[{spec or label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
+            f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
+            flush=True,
+        )
+    return results
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="lerobot-formation-bench",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    ap.add_argument("--controllers", default="pac", help=f"comma-separated, from {controller_names()}")
+    ap.add_argument(
+        "--scenes",
+        default="random:20",
+        help="random:N, <preset>:N (paper, wide, gates, blockers, dense, goals, bend, trap, crowd, long, "
+        "behind), hard:N, structures:N, mixed-hard:N, levelK:N (K = 0..5), dataset:N or FILE.json",
+    )
+    ap.add_argument(
+        "--unseen", default=None, help="also run the diffusion controllers on these scenes (random:N)"
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help=f"first seed of the scene sets (default {UNSEEN_SEED_START}; a level's own for levelK:N)",
+    )
+    ap.add_argument(
+        "--shard",
+        default=None,
+        help="I/N: run only the scenes whose index i has i %% N == I (merge with lerobot-formation-bench-merge)",
+    )
+    ap.add_argument("--policy.path", dest="policy_path", default=None, help="LeRobot checkpoint folder")
+    ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="dataset for dataset:N")
+    ap.add_argument("--candidates", type=int, default=10, help="K of the adaptive policy")
+    ap.add_argument(
+        "--num-inference-steps", type=int, default=None, help="DDIM steps (default: checkpoint's)"
+    )
+    ap.add_argument("--seed-policy", type=int, default=0, help="seed of the policies' noise")
+    ap.add_argument("--out", default="outputs/bench", help="output folder")
+    ap.add_argument("--no-figures", action="store_true", help="write results.json and tables.md only")
+    ap.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bars (there are none either when stderr is not a terminal); the summary "
+        "lines are always printed",
+    )
+    add_threads_argument(ap, "torch threads of the diffusion controllers")
+    add_condition_arguments(ap)
+    return ap
+
+
+def _fail(message: str):
+    """One line ``error: ...`` on stderr and exit code 2 (bad input; no traceback)."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def parse_shard(text: str | None) -> tuple[int, int] | None:
+    """``"I/N"`` -> (I, N) with 0 <= I < N; None -> None; ValueError naming the value otherwise."""
+    if text is None:
+        return None
+    index, _, count = text.partition("/")
+    try:
+        i, n = int(index), int(count)
+    except ValueError:
+        i, n = -1, 0
+    if not 0 <= i < n:
+        raise ValueError(f"--shard must be I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
+    return i, n
+
+
+def _write_or_fail(out: Path, results: dict, label: str, settings: BenchSettings, report, **kw) -> None:
+    """``write_results``; a file that cannot be written (a full disk, no permission) is one line
+    ``error: ...`` and exit code 1."""
+    try:
+        write_results(out, results, label, settings, report, **kw)
+    except OSError as e:
+        print(f"error: cannot write the results into {out}: {e}", file=sys.stderr)
+        raise SystemExit(1) from e
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    try:
+        shard = parse_shard(args.shard)
+        kind, colon, _ = args.scenes.partition(":")
+        level = get_level(kind) if colon and kind.startswith("level") else None
+    except ValueError as e:
+        _fail(str(e))
+    if args.seed is None:  # resolved here, so results.json records the seed used
+        args.seed = level.seed if level is not None else UNSEEN_SEED_START
+    apply_threads(args.threads)
+    names = [c.strip() for c in args.controllers.split(",") if c.strip()]
+    for n in names:
+        if n not in controller_names():
+            _fail(f"unknown controller {n!r}; choose from {controller_names()}")
+    diffusion = [n for n in names if needs_policy(n)]
+    if diffusion and not args.policy_path:
+        _fail(f"controllers {diffusion} need --policy.path")
+    if args.candidates < 1:
+        _fail(f"--candidates must be >= 1, got {args.candidates}")
+    if args.num_inference_steps is not None and args.num_inference_steps < 1:
+        _fail(f"--num-inference-steps must be >= 1, got {args.num_inference_steps}")
+    try:
+        flags = conditions_from_flags(args)
+    except ValueError as e:
+        _fail(str(e).replace("conditions: ", "--env."))
+    if level is not None and flags.enabled:
+        _fail(
+            f"{args.scenes} fixes its own conditions ({level.conditions.changed() or 'none'}); drop --env flags {flags.changed()}"
+        )
+    conditions = level.conditions if level is not None else flags
+    report = SamplingReport()
+    try:
+        scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
+        unseen = parse_scenes(args.unseen, args.seed) if args.unseen else None
+    except ValueError as e:
+        _fail(str(e))
+    indices = unseen_indices = None
+    if shard is not None:  # a deterministic slice; each scene keeps its seed and its index in the set
+        indices = np.arange(shard[0], len(scenes), shard[1])
+        scenes = scenes[indices]
+        if unseen is not None:
+            unseen_indices = np.arange(shard[0], len(unseen), shard[1])
+            unseen = unseen[unseen_indices]
+        for spec, idx in ((args.scenes, indices), (args.unseen, unseen_indices)):
+            if idx is not None and len(idx) == 0:
+                _fail(f"--shard {args.shard}: the scene set {spec} has no scene of this shard")
+    params = FormationParams()
+    out = Path(args.out)
+    bundle = None
+    if diffusion:
+        from lerobot_formation.policy.checkpoint import load_policy
+
+        # torch's thread count is --threads (apply_threads set OMP_NUM_THREADS before torch loads).
+        try:
+            bundle = load_policy(args.policy_path)
+        except ValueError as e:  # CheckpointError: missing, incomplete, broken or another policy type
+            _fail(f"--policy.path: {e}")
+        steps, most = args.num_inference_steps, bundle[0].config.num_train_timesteps
+        if steps is not None and steps > most:
+            _fail(
+                f"--num-inference-steps must be in [1, {most}] (the checkpoint's training steps), got {steps}"
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
+    results: dict[str, dict] = {label: {}}
+    settings = BenchSettings(
+        scenes=args.scenes,
+        unseen=args.unseen,
+        seed=args.seed,
+        options=ControllerOptions(
+            policy_path=args.policy_path,
+            candidates=args.candidates,
+            num_inference_steps=args.num_inference_steps,
+            seed_policy=args.seed_policy,
+        ),
+        # progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them
+        progress=not args.no_progress and sys.stderr.isatty(),
+        order=controller_names(),
+        policy_controllers=tuple(n for n in controller_names() if needs_policy(n)),
+        shard=args.shard,
+    )
+    # each controller's episode records, for the figures drawn after the results are written
+    records: dict[str, dict] | None = None if args.no_figures else {label: {}, "unseen": {}}
+    try:
+        kept = None if records is None else records[label]
+        run_set(names, scenes, params, settings, label, bundle, results[label], kept, conditions, indices)
+        if unseen is not None and diffusion:
+            results["unseen"] = {}
+            kept = None if records is None else records["unseen"]
+            run_set(
+                diffusion,
+                unseen,
+                params,
+                settings,
+                "unseen",
+                bundle,
+                results["unseen"],
+                kept,
+                conditions,
+                unseen_indices,
+            )
+    except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
+        done = [f"{k}/{c}" for k, v in results.items() for c in v]
+        message = str(e) if isinstance(e, BenchInputError) else f"{type(e).__name__}: {e}"
+        if done:
+            _write_or_fail(
+                out, results, label, settings, report, error=message, conditions=conditions.changed()
+            )
+            print(f"wrote {out / 'results.json'} with the finished controllers {done}", file=sys.stderr)
+        if isinstance(e, BenchInputError):
+            _fail(message)
+        raise
+    if report.drawn:
+        print(
+            f"scenes: {report.accepted} valid of {report.drawn} drawn, rejection rate {report.rejection_rate:.1%} "
+            f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
+            f"no passage {report.rejected_passage})"
+        )
+    _write_or_fail(
+        out, results, label, settings, report, conditions=conditions.changed()
+    )  # the results first, the figures after them
+    print(f"wrote {out / 'results.json'}, {out / 'tables.md'}", flush=True)
+    if records is not None:
+        specs = {label: args.scenes, "unseen": args.unseen or ""}
+        scene_sets = {label: scenes, "unseen": unseen}
+        figures, failed = draw_bench_figures(out, results, records, scene_sets, specs, args.seed)
+        _write_or_fail(
+            out, results, label, settings, report, conditions=conditions.changed(), figure_errors=failed
+        )  # with the figures' names
+        print(f"figures in {out}: {', '.join(figures)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

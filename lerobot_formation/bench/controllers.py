@@ -1,0 +1,91 @@
+"""The controllers the bench, the ablation script and the sweeps run, by name.
+
+``CONTROLLER_FACTORIES`` maps a name to a factory ``(name, params, options, policy bundle) ->
+controller``, or to the ``"module:function"`` path of one (imported when the controller is first
+made, so a new controller is one new file and one line here). A controller needs only
+``reset(scenes)`` and ``act(state, idx) -> (len(idx), 2)`` (``core.rollout.Controller``);
+``options`` is a ``ControllerOptions``. Controllers whose name starts with ``diffusion`` run a
+checkpoint: the bench asks for ``--policy.path`` and loads it once into ``bundle``. Each of them is
+the policy's ``Replanner`` with the checkpoint's config and, for K and the filter, an override
+(``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+
+from lerobot_formation.bench.settings import ControllerOptions
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.rollout import PACController
+
+
+def _diffusion(safety_filter: str | None, best_of_k: bool | None):
+    """A factory of a diffusion controller with the filter ``safety_filter`` and K = --candidates
+    (``best_of_k``) or 1; None for both: the checkpoint's own settings."""
+
+    def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
+        from lerobot_formation.bench.diffusion_controller import DiffusionController
+
+        overrides = {}
+        if safety_filter is not None:
+            overrides = {
+                "num_candidates": options.candidates if best_of_k else 1,
+                "safety_filter": safety_filter,
+            }
+        return DiffusionController(
+            options.policy_path,
+            num_inference_steps=options.num_inference_steps,
+            seed=options.seed_policy,
+            params=params,
+            policy_bundle=bundle,
+            overrides={**overrides, **options.overrides},
+            experiment=options.experiment,
+            name=name,
+        )
+
+    return factory
+
+
+def _pac(name, params, options, bundle=None):
+    return PACController(params=params)
+
+
+def _mppi(name, params, options, bundle=None):
+    from lerobot_formation.core.mppi import MPPIConfig, MPPIController
+
+    return MPPIController(MPPIConfig(seed=options.seed_policy), params)
+
+
+# Controllers by name (see the module docstring): a factory, or the "module:function" path of one.
+CONTROLLER_FACTORIES: dict[str, Callable | str] = {
+    "pac": _pac,
+    "mppi": _mppi,
+    "route-pursuit": "lerobot_formation.core.route_pursuit:make_route_pursuit",
+    "diffusion": _diffusion("none", best_of_k=False),  # standard: one sample per replan
+    "diffusion-bestof": _diffusion("none", best_of_k=True),  # best-of-K (footprint, then progress)
+    "diffusion-cbf": _diffusion("cbf", best_of_k=False),  # one sample, CBF filter on every action
+    "diffusion-safe": _diffusion("cbf", best_of_k=True),  # best-of-K and the CBF filter
+    "diffusion-policy": _diffusion(None, None),  # the checkpoint's config as stored
+}
+CONTROLLERS = tuple(CONTROLLER_FACTORIES)
+
+
+def controller_names() -> tuple[str, ...]:
+    """The registered names, in registry order (``CONTROLLERS`` plus any registered since import)."""
+    return tuple(CONTROLLER_FACTORIES)
+
+
+def needs_policy(name: str) -> bool:
+    """Whether controller ``name`` runs a diffusion checkpoint (``--policy.path``)."""
+    return name.startswith("diffusion")
+
+
+def make_controller(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
+    if name not in CONTROLLER_FACTORIES:
+        raise ValueError(f"unknown controller {name!r}; choose from {controller_names()}")
+    factory = CONTROLLER_FACTORIES[name]
+    if isinstance(factory, str):  # "module:function", imported now
+        module, _, attr = factory.partition(":")
+        factory = getattr(importlib.import_module(module), attr)
+    return factory(name, params, options, bundle)

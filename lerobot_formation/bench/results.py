@@ -1,0 +1,121 @@
+"""The bench's results: per-controller metrics, ``results.json`` and ``tables.md``."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_formation.bench.paper_tables import adaptive_table, three_way_table
+from lerobot_formation.bench.settings import BenchSettings
+from lerobot_formation.core.metrics import episode_metrics, summarize
+from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
+from lerobot_formation.core.scene import SamplingReport, Scenes
+
+
+def _clean(x):
+    if isinstance(x, float | np.floating):
+        return None if not np.isfinite(x) else float(x)
+    if isinstance(x, np.integer | np.bool_):
+        return x.item()
+    return x
+
+
+def safety_rates(stats: dict) -> dict:
+    """The safety layer's intervention rates from a controller's ``stats`` counts: CBF-changed
+    actions per step, replans with no safe candidate per replan."""
+    return {
+        "filter_intervention_rate": stats["filter_interventions"] / max(stats["steps"], 1),
+        "replans_none_safe_rate": stats["replans_none_safe"] / max(stats["replans"], 1),
+    }
+
+
+def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dict:
+    """A controller's summary (``summarize``) plus ``episodes``: per episode its ``scene_index`` in
+    the scene set (``indices[b]``, default b: a shard keeps the whole set's), seed, outcome, steps and
+    metrics."""
+    per = episode_metrics(rec, scenes.start, scenes.goal)
+    summary = summarize(per)
+    indices = np.arange(len(rec)) if indices is None else np.asarray(indices)
+    episodes = []
+    for b in range(len(rec)):
+        seed = int(scenes.seeds[b])
+        e = {
+            "scene_index": int(
+                indices[b]
+            ),  # in the whole scene set (a shard keeps it); names a scene of a file
+            "seed": seed if seed >= 0 else None,  # None: a scene of a file, it has no seed
+            "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
+            "steps": int(rec.steps[b]),
+        }
+        e.update({k: _clean(v[b]) for k, v in per.items() if k not in ("success", "collision", "timeout")})
+        episodes.append(e)
+    summary["episodes"] = episodes
+    return summary
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file ``.NAME.tmp-PID`` beside it, flushed to disk,
+    then renamed into place: ``path`` is either the old file or the whole new one, and on any error
+    (a full disk) the temporary file is removed and the error raised."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())  # a full disk often shows only here
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_results(
+    out: Path,
+    results: dict,
+    label: str,
+    settings: BenchSettings,
+    report: SamplingReport,
+    error: str | None = None,
+    conditions: dict | None = None,
+    figure_errors: list[str] | None = None,
+):
+    """results.json and tables.md of the controllers in ``results`` (each written atomically,
+    ``atomic_write_text``); ``error`` marks a run that stopped early (``meta.incomplete``,
+    ``meta.error``), with what finished before it; ``conditions``: the realistic conditions that were
+    on (``Conditions.changed()``), kept as ``meta.conditions``; ``figure_errors`` lists figures that
+    failed."""
+    # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
+    # other scene sets under "by_scenes".
+    payload = dict(results.get(label, {}))
+    payload["by_scenes"] = {k: v for k, v in results.items()}
+    payload["meta"] = {
+        "scenes": settings.scenes,
+        "unseen": settings.unseen,
+        "seed": settings.seed,
+        "policy_path": settings.options.policy_path,
+        "candidates": settings.options.candidates,
+        "num_inference_steps": settings.options.num_inference_steps,
+        "date": time.strftime("%Y-%m-%d"),
+        "scene_sampling": report.as_dict() if report.drawn else None,
+        "shard": settings.shard,
+        "incomplete": error is not None,
+        "error": error,
+        "figure_errors": figure_errors or [],
+    }
+    payload["meta"]["conditions"] = conditions or {}  # the fields not at their default
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=1, default=_clean))
+    tables = [three_way_table(results.get(label, {}), f"{label} scenes ({settings.scenes})", settings.order)]
+    sets = {k: v for k, v in results.items() if any(c in settings.policy_controllers for c in v)}
+    if sets:
+        specs = {label: settings.scenes, "unseen": settings.unseen or ""}
+        tables.append(adaptive_table(sets, specs, settings.policy_controllers))
+    if error is not None:
+        tables.append(f"**Incomplete run**: {error}\n")
+    atomic_write_text(out / "tables.md", "\n".join(tables))

@@ -1,0 +1,118 @@
+"""The one loader for checkpoints written before the lean policy config (issue 25).
+
+``python -m lerobot_formation.compat.old_checkpoints FOLDER`` rewrites ``config.json`` (and the
+``policy`` part of ``train_config.json``) of a ``formation_diffusion`` checkpoint in place, written to
+a temporary file and renamed into position:
+
+- a retired field (``RETIRED_FIELDS``) is dropped when it holds the value the code now hard-wires;
+  any other value is refused with the field named (an experiment setting: pass it to
+  ``scripts/ablation.py``, i.e. ``policy.replanner.ReplanExperiment``);
+- a config without ``obstacle_encoding`` (checkpoints from before the field) gets the encoding whose
+  ``observation.environment_state`` size at its default slot count is the feature's size: the only
+  place where an encoding is inferred from a size. An ambiguous or unknown size is refused.
+
+Nothing else in the folder is read or changed; no code in the folder is run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+
+OBS_ENV_STATE = "observation.environment_state"  # lerobot.utils.constants.OBS_ENV_STATE (no torch here)
+
+# field -> the value the code now runs with
+RETIRED_FIELDS = {
+    "escape_advantage": None,
+    "blocked_fallback": "widest",
+    "warm_start_all_candidates": False,
+    "replan_blend_steps": 0,
+    "egocentric_state": False,
+}
+
+
+class OldCheckpointError(ValueError):
+    """A checkpoint that cannot be carried over as it is (the message says which field and why)."""
+
+
+def upgrade_policy_config(raw: dict, where: str = "config.json") -> dict:
+    """The policy config dict ``raw`` without retired fields, with ``obstacle_encoding`` (see the
+    module docstring); ``raw`` itself is left as it is."""
+    out = dict(raw)
+    for key, wired in RETIRED_FIELDS.items():
+        if key not in out:
+            continue
+        if out[key] != wired:
+            raise OldCheckpointError(
+                f"{where}: retired field {key}={out[key]!r} differs from the value the policy now runs "
+                f"with ({wired!r}); it is an experiment setting now (scripts/ablation.py, ReplanExperiment)"
+            )
+        del out[key]
+    if out.get("obstacle_encoding") is None:
+        env = (out.get("input_features") or {}).get(OBS_ENV_STATE) or {}
+        size = tuple(env.get("shape") or ())
+        matches = [e for e in ENCODINGS if (environment_state_dim(e, out.get("max_obstacles")),) == size]
+        if len(matches) != 1:
+            raise OldCheckpointError(
+                f"{where}: no obstacle_encoding and observation.environment_state of shape {size} matches "
+                f'{matches or "no encoding"}; set "obstacle_encoding" to one of {ENCODINGS}'
+            )
+        out["obstacle_encoding"] = matches[0]
+    return out
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=4) + "\n")
+    os.replace(tmp, path)
+
+
+def upgrade_checkpoint(folder: str | Path) -> list[str]:
+    """Rewrite ``folder``'s config.json (and train_config.json's policy) in place; returns the files
+    changed. Raises ``OldCheckpointError`` (nothing written) for a value that cannot be carried over."""
+    folder = Path(folder)
+    config_path = folder / "config.json"
+    if not config_path.is_file():
+        raise OldCheckpointError(f"{folder} is not a checkpoint folder: no config.json")
+    raw = json.loads(config_path.read_text())
+    if raw.get("type") != "formation_diffusion":
+        raise OldCheckpointError(
+            f"{config_path} holds a policy of type {raw.get('type')!r}, not formation_diffusion"
+        )
+    writes = {config_path: upgrade_policy_config(raw, str(config_path))}
+    train_path = folder / "train_config.json"
+    if train_path.is_file():
+        train = json.loads(train_path.read_text())
+        if isinstance(train.get("policy"), dict):
+            train["policy"] = upgrade_policy_config(train["policy"], f"{train_path} (policy)")
+            writes[train_path] = train
+    changed = []
+    for path, data in writes.items():
+        if data != json.loads(path.read_text()):
+            _write_json(path, data)
+            changed.append(path.name)
+    return changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("folders", nargs="+", type=Path, help="checkpoint folders (pretrained_model)")
+    args = ap.parse_args(argv)
+    for folder in args.folders:
+        try:
+            changed = upgrade_checkpoint(folder)
+        except (OldCheckpointError, json.JSONDecodeError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print(f"{folder}: {', '.join(changed) if changed else 'already current'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

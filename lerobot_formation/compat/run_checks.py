@@ -1,0 +1,214 @@
+"""The start-up checks of a formation run (no torch; LeRobot and draccus only inside the installers).
+
+- ``ConfigError`` (a ``ValueError``): a config value, a checkpoint or an output folder that a run
+  refuses; the message names the value and what to do. draccus wraps a ``ValueError`` raised while it
+  builds a config in ``ParsingError("Couldn't instantiate class ...")``; ``one_line_config_errors`` and
+  ``config_errors_in_draccus_messages`` make LeRobot's CLIs print it as one ``error:`` line.
+- The training output lock: ``lerobot-train`` takes an exclusive lock beside its ``--output_dir``
+  (``acquire_output_lock``), so a second run into the same folder refuses with the first one's pid.
+
+``install_run_hooks`` switches these on; our configs call it when they are built, so a LeRobot run of
+another project is untouched. This module imports nothing else of ours: every config imports it.
+
+One ``lerobot-train`` run per output folder: a lock file beside it, ``.NAME.train-lock``.
+
+LeRobot refuses an existing ``--output_dir`` only when a run starts and creates the folder at its
+first checkpoint, so two runs started into the same new folder (or two resumes of one run) both
+train and overwrite each other's checkpoints. With the plugin loaded, ``TrainPipelineConfig.validate``
+(the first thing ``lerobot-train`` does) takes an exclusive ``flock`` on ``.NAME.train-lock`` beside
+an explicitly given ``--output_dir`` and writes its pid into it; a second run finds the lock held and
+refuses with a ``ConfigError`` naming that pid. The lock belongs to the open file, so it ends with
+the process however it ends (even SIGKILL): a lock file left by a dead process blocks nothing, the
+next run simply takes it over. A run that exits normally removes the file. Only the main process of
+a multi-process (``accelerate``) run locks. Where ``fcntl`` is missing (Windows) there is no lock.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import os
+import sys
+from pathlib import Path
+
+
+class ConfigError(ValueError):
+    """A config value, a checkpoint or an output folder that a run refuses; the message names the
+    value and what to do."""
+
+
+def config_error_in_chain(exc: BaseException | None) -> ConfigError | None:
+    """The first ``ConfigError`` in ``exc`` and its causes / contexts, or None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, ConfigError):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def config_error(message: str) -> ConfigError:
+    """A ``ConfigError`` (a ValueError) for an invalid config value. draccus wraps it in
+    "Couldn't instantiate class ..."; in a formation run LeRobot's CLIs print the message as one line
+    (``install_run_hooks``)."""
+    return ConfigError(message)
+
+
+try:
+    import fcntl
+except ImportError:  # not POSIX
+    fcntl = None
+
+_held: dict[Path, int] = {}  # output folder -> file descriptor of its lock, held by this process
+
+
+def lock_path(output_dir: Path) -> Path:
+    """The lock file of ``output_dir``: ``.NAME.train-lock`` beside it (not inside: LeRobot refuses
+    an existing output folder on a fresh run)."""
+    output_dir = Path(output_dir).absolute()
+    return output_dir.parent / f".{output_dir.name}.train-lock"
+
+
+def is_main_process() -> bool:
+    """False in the non-main processes of an ``accelerate launch`` (environment variable RANK)."""
+    return os.environ.get("RANK", "0") in ("", "0")
+
+
+def acquire_output_lock(output_dir: Path) -> Path | None:
+    """Lock ``output_dir`` for this process (idempotent); returns the lock file, None without fcntl.
+
+    Raises:
+        ConfigError: another live process holds the lock (its pid is in the message).
+    """
+    if fcntl is None:
+        return None
+    output_dir = Path(output_dir).absolute()
+    lock = lock_path(output_dir)
+    if output_dir in _held:
+        return lock
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise ConfigError(
+                f"--output_dir {output_dir} is in use by another lerobot-train run (pid {holder}); wait for it "
+                f"to finish or choose another --output_dir (lock file {lock})"
+            ) from None
+        try:  # the holder may have removed the file between our open and our lock: lock the new one
+            current = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            current = False
+        if current:
+            break
+        os.close(fd)
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    _held[output_dir] = fd
+    return lock
+
+
+def release_output_lock(output_dir: Path) -> None:
+    """Remove the lock file of ``output_dir`` and unlock it (no-op if this process holds none)."""
+    output_dir = Path(output_dir).absolute()
+    fd = _held.pop(output_dir, None)
+    if fd is None:
+        return
+    with contextlib.suppress(OSError):
+        os.unlink(lock_path(output_dir))  # while still locked, so no one locks the old file meanwhile
+    os.close(fd)
+
+
+@atexit.register
+def _release_all() -> None:
+    for output_dir in list(_held):
+        release_output_lock(output_dir)
+
+
+def install_train_output_lock() -> None:
+    """Make ``TrainPipelineConfig.validate`` (the start of ``lerobot-train``) lock an explicitly given
+    ``--output_dir`` for the run (``train_lock.acquire_output_lock``): a second run into the same
+    folder refuses with the first one's pid. The lock is taken before LeRobot's own checks and dropped
+    if they fail. LeRobot has no hook for a plugin here, so ``validate`` is wrapped (idempotent)."""
+    from pathlib import Path
+
+    from lerobot.configs.train import TrainPipelineConfig
+
+    original = TrainPipelineConfig.validate
+    if getattr(original, "_formation_output_lock", False):
+        return
+
+    def validate(self) -> None:
+
+        given = Path(self.output_dir) if self.output_dir and is_main_process() else None
+        if given is not None:
+            acquire_output_lock(given)
+        try:
+            original(self)
+        except BaseException:
+            if given is not None:
+                release_output_lock(given)
+            raise
+
+    validate._formation_output_lock = True  # type: ignore[attr-defined]
+    TrainPipelineConfig.validate = validate
+
+
+def config_errors_in_draccus_messages() -> None:
+    """Make a draccus ``DecodingError`` caused by a ``ConfigError`` read as that error's message.
+
+    ``lerobot-train --policy.type=...`` decodes the policy as an optional field (a union): draccus
+    turns the error of a bad value into ``DecodingError("`policy`: Could not decode the value into any
+    of the given types: ... Couldn't instantiate class FormationDiffusionConfig using the given
+    arguments.")``, which LeRobot's parser prints as ``error: ...`` and exits: the reason is lost.
+    With this (idempotent) wrap of ``DecodingError.__str__`` that line is ``error: <the reason>``; a
+    DecodingError of any other cause reads as before.
+    """
+    from draccus.utils import DecodingError
+
+    original = DecodingError.__str__
+    if getattr(original, "_formation_config_error", False):
+        return
+
+    def message(self) -> str:
+        error = config_error_in_chain(self.__cause__)
+        return str(error) if error is not None else original(self)
+
+    message._formation_config_error = True  # type: ignore[attr-defined]
+    DecodingError.__str__ = message
+
+
+def one_line_config_errors() -> None:
+    """Install a ``sys.excepthook`` (idempotent) that prints an uncaught exception whose chain holds a
+    ``ConfigError`` as one line ``error: <message>`` (exit status 1, as for any uncaught exception);
+    every other exception goes to the previous hook unchanged. draccus wraps the error of a config
+    value in "Couldn't instantiate class ..." and LeRobot's CLIs let that escape with the parser's
+    ~70-line traceback."""
+
+    previous = sys.excepthook
+    if getattr(previous, "_formation_one_line", False):
+        return
+
+    def hook(exc_type, exc, tb):
+        error = config_error_in_chain(exc)
+        if error is None:
+            previous(exc_type, exc, tb)
+        else:
+            print(f"error: {error}", file=sys.stderr)
+
+    hook._formation_one_line = True  # type: ignore[attr-defined]
+    sys.excepthook = hook
+
+
+def install_run_hooks() -> None:
+    """The start-up checks of a formation run, switched on when one of our configs is built (so a
+    LeRobot run of another project is untouched): an uncaught ``ConfigError`` is one ``error:`` line
+    (``one_line_config_errors``, ``config_errors_in_draccus_messages``) and ``lerobot-train`` locks
+    its ``--output_dir`` (``install_train_output_lock``). Idempotent."""
+    one_line_config_errors()
+    config_errors_in_draccus_messages()
+    install_train_output_lock()

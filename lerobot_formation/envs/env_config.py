@@ -1,0 +1,299 @@
+"""LeRobot env config ``formation``: ``--env.type=formation`` builds ``FormationNav-v0`` for lerobot-eval.
+
+``lerobot-eval --env.type=formation`` and ``lerobot-train --env.type=formation --env_eval_freq=N``
+get a vector env of ``FormationEnv`` teams. Each sub-env is
+
+    FreezeAfterEpisodeEnd(EpisodeOverlay(FormationEpisodeMetrics(TimeLimit(FormationEnv(**gym_kwargs), episode_length))))
+
+built directly by a picklable factory (no gym registry lookup, so ``AsyncVectorEnv`` workers started
+with ``forkserver`` need nothing but the import that unpickling the factory does; that import also
+registers the gym id and this config). ``FreezeAfterEpisodeEnd`` is LeRobot's: a sub-env that has
+finished stops simulating while the rest of the batch runs on. ``EpisodeOverlay`` (``render.py``) writes the
+time and, at the end, the outcome on the rendered frames (the eval videos). ``FormationEpisodeMetrics`` adds the
+formation metrics (see ``lerobot_formation.envs.episode_metrics``: ``info["final_info"]
+["formation_metrics"]`` and, with ``episode_metrics_path``, one JSON line per episode).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+from gymnasium.vector import AutoresetMode
+from gymnasium.wrappers import TimeLimit
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+from lerobot.envs.utils import FreezeAfterEpisodeEnd
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_formation.compat.lerobot_compat import (
+    caller_policy_config,
+    install_offline_dataset_root_check,
+    keep_final_eval_frame,
+    report_resume_with_nothing_to_train,
+)
+from lerobot_formation.compat.run_checks import config_error, install_run_hooks
+from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
+from lerobot_formation.core.observation import STATE_DIM
+from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
+from lerobot_formation.envs.env import FormationEnv
+from lerobot_formation.envs.episode_metrics import (
+    FormationEpisodeMetrics,
+    check_metrics_file,
+    new_run_id,
+    start_metrics_file,
+)
+from lerobot_formation.envs.render import FINAL_FRAME_KEY, EpisodeOverlay
+
+ACTION_DIM = 2  # [v, omega]
+# A --dataset.root that does not exist, offline: one clear error at start-up, not a hub traceback.
+install_offline_dataset_root_check()
+
+
+def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
+    """Raise ``ValueError`` (logged) if the env's ``observation.environment_state`` does not have the
+    size of the policy's input (a dataset of one obstacle encoding, an env of another)."""
+    feature = (getattr(policy_cfg, "input_features", None) or {}).get(OBS_ENV_STATE)
+    if feature is None:
+        return
+    ours = environment_state_dim(env_cfg.obstacle_encoding)
+    theirs = tuple(feature.shape)
+    if theirs == (ours,):
+        return
+    wanted = getattr(policy_cfg, "obstacle_encoding", None)
+    sizes = ", ".join(f"{e} {environment_state_dim(e)}" for e in ENCODINGS)
+    hint = f"pass --env.obstacle_encoding={wanted}" if wanted else f"the encodings' sizes: {sizes}"
+    size = theirs[0] if len(theirs) == 1 else theirs
+    raise config_error(
+        f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' {ours} values, but the "
+        f"policy takes {size} (its dataset or checkpoint{f' uses {wanted!r}' if wanted else ''}): {hint}"
+    )
+
+
+@dataclass
+class FormationEnvFactory:
+    """Builds one LeRobot sub-env. A module-level class, so it pickles by reference for worker processes.
+
+    Args:
+        env_kwargs: keyword arguments of ``FormationEnv``.
+        episode_length: control steps before truncation (``TimeLimit``; LeRobot reads
+            ``_max_episode_steps`` from it).
+        episode_metrics_path: JSON-lines file for per-episode formation metrics, or None.
+        run_id: run id of the JSON lines (one per ``create_envs`` call), None: the wrapper's own.
+        env_index: the sub-env's index, written on its JSON lines.
+    """
+
+    env_kwargs: dict[str, Any]
+    episode_length: int
+    episode_metrics_path: str | None = None
+    run_id: str | None = None
+    env_index: int = 0
+
+    def __call__(self) -> gym.Env:
+        env = TimeLimit(FormationEnv(**self.env_kwargs), max_episode_steps=self.episode_length)
+        env = FormationEpisodeMetrics(
+            env, log_path=self.episode_metrics_path, run_id=self.run_id, env_index=self.env_index
+        )
+        # Outside the TimeLimit, so a truncation shows as the timeout; inside the freeze, so a finished
+        # sub-env keeps rendering its last frame with the outcome.
+        return FreezeAfterEpisodeEnd(EpisodeOverlay(env))
+
+
+@EnvConfig.register_subclass("formation")
+@dataclass
+class FormationEnvConfig(EnvConfig):
+    """The formation-navigation env for ``lerobot-eval`` / ``lerobot-train`` (``--env.type=formation``).
+
+    Args:
+        task: gym task name; the gym id is ``gym_formation/<task>``.
+        fps: control rate [Hz] (dt = 0.1 s); also the video frame rate.
+        episode_length: control steps per episode before a timeout (SPEC: 600 = 60 s).
+        obstacle_encoding: ``"grid"`` (the paper's 7x7 radius grid + goal, 51 values) or
+            ``"grid+list"`` (plus the 5 obstacles [x, y, r], 66 values) or ``"nearest"`` (goal and
+            the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count) or
+            ``"nearest+route"`` (the same plus PAC's cost-to-go route hint from those obstacles, 55
+            values). Must match the policy's ``obstacle_encoding``.
+        scene_preset: scene distribution of seeded resets (``core.scene.SCENE_PRESETS``: "paper",
+            "wide", "gates", "blockers", "dense", "goals").
+        scenes_file: JSON scenes file (``core.scene.save_scenes``); reset seed s picks scene s of the
+            file (a seed past its end is an error: run lerobot-eval with ``--seed=0`` and at most as many
+            episodes as the file holds). None: the scene of seed s is sampled (``sample_scenes``).
+        render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
+        episode_metrics_path: if set, every finished episode appends its formation metrics (one
+            JSON line) to this file; see ``lerobot_formation.envs.episode_metrics``.
+        sensing_range, obstacle_memory, obstacle_noise, pose_noise, action_noise, action_delay,
+            max_linear_accel, max_angular_accel, moving_obstacles, obstacle_speed: realistic
+            conditions (``core.conditions.Conditions``, docs/conditions.md), all off by default, e.g.
+            ``--env.sensing_range=3 --env.action_delay=2``; the in-training evaluation uses them too.
+        episode_metrics_exists: what to do when ``episode_metrics_path`` already holds an earlier
+            run's lines: ``"error"`` (refuse at start-up, naming the file), ``"append"`` or
+            ``"overwrite"``.
+        features: env observation/action features, keyed by the env's own keys; the
+            ``environment_state`` shape follows ``obstacle_encoding``.
+        features_map: env keys to LeRobot keys (``agent_pos`` -> ``observation.state``,
+            ``environment_state`` -> ``observation.environment_state``).
+    """
+
+    # Gym task name; the gym id is gym_formation/<task>.
+    task: str | None = "FormationNav-v0"
+    # Control rate [Hz] (dt = 0.1 s); also the frame rate of the eval videos.
+    fps: int = 10
+    # Control steps per episode before a timeout (600 = 60 s).
+    episode_length: int = 600
+    # Obstacle observation: grid (the paper's 7x7 radius grid + goal, 51 values), grid+list (plus the 5
+    # obstacles [x, y, r], 66 values), nearest (goal + 12 nearest obstacles in the team's frame, 50
+    # values) or nearest+route (plus a route hint, 55). Must match the policy's observation.environment_state.
+    obstacle_encoding: str = "grid"
+    # Scene distribution of seeded resets: paper, or a wider preset (core/scene.py SCENE_PRESETS).
+    scene_preset: str = "paper"
+    # JSON scenes file (core.scene.save_scenes); reset seed s plays scene s of the file (a seed past its
+    # end is an error, no wrap-around: use --seed=0). None: the scene of seed s is sampled.
+    scenes_file: str | None = None
+    # Render mode of the sub-envs; lerobot-eval renders episodes to video with rgb_array.
+    render_mode: str = "rgb_array"
+    # If set, each finished episode appends its formation metrics as a JSON line to this file.
+    episode_metrics_path: str | None = None
+    # Realistic conditions (core/conditions.py, docs/conditions.md); every default is off.
+    # [m] an obstacle is observed once some agent came within this range of its surface (None: all known).
+    sensing_range: float | None = None
+    # Keep obstacles once seen (false: only while within range).
+    obstacle_memory: bool = True
+    # [m] std of the per-step Gaussian noise on each observed obstacle's centre and radius.
+    obstacle_noise: float = 0.0
+    # [m] std of the per-step noise on the observed midpoint position (heading: the same in rad).
+    pose_noise: float = 0.0
+    # Std of the multiplicative noise on each executed command component (a fraction).
+    action_noise: float = 0.0
+    # [control steps] commands take effect this many steps late (the team holds still until then).
+    action_delay: int = 0
+    # [m/s^2] rate limit on the executed v (None: none).
+    max_linear_accel: float | None = None
+    # [rad/s^2] rate limit on the executed omega (None: none).
+    max_angular_accel: float | None = None
+    # How many of a scene's obstacles move at constant velocity, bouncing in the scene's bounds.
+    moving_obstacles: int = 0
+    # [m/s] their speed.
+    obstacle_speed: float = 0.0
+    # If episode_metrics_path already holds an earlier run's lines: error (refuse), append or overwrite.
+    episode_metrics_exists: str = "error"
+    # Parallel tasks of a multi-task benchmark (LeRobot's EnvConfig field; one task here).
+    max_parallel_tasks: int = 1
+    # Skip gymnasium's env checker when LeRobot makes the env (LeRobot's EnvConfig field).
+    disable_env_checker: bool = True
+    # Env observation/action features by the env's own keys; the environment_state shape follows
+    # obstacle_encoding (set in __post_init__).
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(STATE_DIM,)),
+            "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(environment_state_dim("grid"),)),
+        }
+    )
+    # Env keys to LeRobot keys: agent_pos -> observation.state, environment_state ->
+    # observation.environment_state.
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "environment_state": OBS_ENV_STATE,
+        }
+    )
+
+    def __post_init__(self) -> None:
+        install_run_hooks()  # a formation run: one-line config errors, the training output lock
+        if self.obstacle_encoding not in ENCODINGS:
+            raise config_error(
+                f"env.obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
+            )
+        if self.scene_preset not in SCENE_PRESETS:
+            raise config_error(
+                f"env.scene_preset must be one of {tuple(SCENE_PRESETS)}, got {self.scene_preset!r}"
+            )
+        if self.episode_length < 1:
+            raise config_error(f"env.episode_length must be >= 1, got {self.episode_length}")
+        try:
+            self.conditions()
+        except ValueError as e:
+            raise config_error(str(e).replace("conditions: ", "env.")) from e
+        if self.scenes_file is not None:
+            try:  # at start-up, not at the first evaluation
+                load_scenes(self.scenes_file, SCENE_PRESETS[self.scene_preset])
+            except ValueError as e:
+                raise config_error(f"env.scenes_file: {e}") from e
+        if self.episode_metrics_path is not None:
+            try:  # at start-up: lerobot-train builds its eval envs only at the first evaluation
+                check_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
+            except (ValueError, FileExistsError) as e:
+                raise config_error(str(e)) from e
+        self.features["environment_state"] = PolicyFeature(
+            type=FeatureType.ENV, shape=(environment_state_dim(self.obstacle_encoding),)
+        )
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_formation.envs"
+
+    def get_env_processors(self):
+        """LeRobot's env processors (identity), after a start-up check: ``lerobot-train`` calls this once
+        it has built the policy and before the first training step (``lerobot-eval`` before the first
+        episode), so an env whose observation the policy cannot take (``--env.obstacle_encoding``) is
+        refused there, not at the first in-training evaluation (``check_policy_features``)."""
+        policy_cfg = caller_policy_config()
+        if policy_cfg is not None:
+            check_policy_features(self, policy_cfg)
+            report_resume_with_nothing_to_train()
+        return super().get_env_processors()
+
+    def conditions(self) -> Conditions:
+        """The realistic conditions of these fields (``core.conditions.Conditions``)."""
+        return Conditions(**{name: getattr(self, name) for name in CONDITION_FIELDS})
+
+    @property
+    def gym_id(self) -> str:
+        return f"gym_formation/{self.task}"
+
+    @property
+    def gym_kwargs(self) -> dict[str, Any]:
+        kwargs = {
+            "render_mode": self.render_mode,
+            "scenes_file": self.scenes_file,
+            "obstacle_encoding": self.obstacle_encoding,
+            "scene_config": SCENE_PRESETS[self.scene_preset],
+        }
+        conditions = self.conditions()
+        if conditions.enabled:
+            kwargs["conditions"] = conditions
+        return kwargs
+
+    def make_env_factory(self, run_id: str | None = None, env_index: int = 0) -> FormationEnvFactory:
+        """The picklable factory of one sub-env (see the module docstring for the wrapper stack)."""
+        return FormationEnvFactory(
+            env_kwargs=self.gym_kwargs,
+            episode_length=self.episode_length,
+            episode_metrics_path=self.episode_metrics_path,
+            run_id=run_id,
+            env_index=env_index,
+        )
+
+    def create_envs(
+        self, n_envs: int, use_async_envs: bool = False
+    ) -> dict[str, dict[int, gym.vector.VectorEnv]]:
+        """``{"formation": {0: VectorEnv}}`` of ``n_envs`` teams, SAME_STEP autoreset as LeRobot's default.
+
+        ``AsyncVectorEnv`` (``forkserver`` workers) if ``use_async_envs`` and ``n_envs > 1``, else
+        ``SyncVectorEnv``.
+        """
+        if n_envs < 1:
+            raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        if self.episode_metrics_path is not None:
+            start_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
+        keep_final_eval_frame(FINAL_FRAME_KEY)  # our run: lerobot-eval's videos end on the outcome frame
+        run_id = new_run_id()  # one per evaluation run, shared by its sub-envs and worker processes
+        fns = [self.make_env_factory(run_id, i) for i in range(n_envs)]
+        if use_async_envs and n_envs > 1:
+            vec = gym.vector.AsyncVectorEnv(fns, context="forkserver", autoreset_mode=AutoresetMode.SAME_STEP)
+        else:
+            vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=AutoresetMode.SAME_STEP)
+        return {self.type: {0: vec}}

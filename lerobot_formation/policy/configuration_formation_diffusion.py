@@ -1,0 +1,388 @@
+"""Config of the ``formation_diffusion`` policy: LeRobot's diffusion policy plus EMA, paper defaults."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+from lerobot.configs import FeatureType, NormalizationMode, PolicyFeature, PreTrainedConfig
+from lerobot.optim import AdamWConfig
+from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+
+from lerobot_formation.compat.run_checks import config_error, install_run_hooks
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.observation import STATE_DIM
+from lerobot_formation.core.obstacle_grid import (
+    ENCODINGS,
+    egocentric_encodings,
+    environment_state_dim,
+    get_encoding,
+)
+
+ACTION_DIM = 2  # [v, omega]
+SAFETY_FILTERS = ("none", "cbf")
+INFERENCE_BACKENDS = ("eager", "lean", "trace")
+TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
+_BOUNDS = FormationParams()
+
+
+def _non_finite_fields(config) -> list[str]:
+    """``name=value`` of every float field (or float in a tuple / list field) that is NaN or inf."""
+    bad = []
+    for f in fields(config):
+        value = getattr(config, f.name)
+        values = value if isinstance(value, tuple | list) else (value,)
+        if any(isinstance(v, float) and not math.isfinite(v) for v in values):
+            bad.append(f"{f.name}={value}")
+    return bad
+
+
+def _encoding_sizes() -> str:
+    return ", ".join(f"{e} {environment_state_dim(e)} values" for e in ENCODINGS)
+
+
+def _describe(features: dict[str, PolicyFeature] | None) -> str:
+    if not features:
+        return "none"
+    return ", ".join(f"'{k}' ({ft.type.name}, shape {tuple(ft.shape)})" for k, ft in features.items())
+
+
+@PreTrainedConfig.register_subclass("formation_diffusion")
+@dataclass
+class FormationDiffusionConfig(DiffusionConfig):
+    """LeRobot's ``DiffusionConfig`` with an EMA of the weights; defaults are the paper's hyperparameters.
+
+    Every ``DiffusionConfig`` field keeps its meaning (see its docstring). The defaults differ where
+    the paper's Table "Training and Model Hyperparameters" (SPEC "The policy") sets a value: U-Net
+    ``down_dims`` (256, 512, 1024), ``kernel_size`` 5, ``n_groups`` 8, ``diffusion_step_embed_dim``
+    256; DDPM with 100 steps, ``squaredcos_cap_v2``, epsilon prediction, ``clip_sample``; T_p =
+    ``horizon`` 64, T_o = ``n_obs_steps`` 2, T_a = ``n_action_steps`` 10; AdamW (the optimizer preset
+    is ``AdamWConfig``, where ``DiffusionConfig``'s is Adam) with ``optimizer_lr`` 1.05e-4,
+    ``optimizer_weight_decay`` 1e-6, cosine schedule with 1000 warm-up steps; EMA power 0.75. The
+    batch size (256) is ``lerobot-train``'s ``--batch_size``, not a policy field.
+
+    Features (checked by ``validate_features`` when the policy is built, i.e. at start-up):
+    ``observation.state`` (STATE, (7,)): the midpoint [x, y, cos phi, sin phi, x', y', omega];
+    ``observation.environment_state`` (ENV, (51,) "grid" or (66,) "grid+list"); ``action``
+    (ACTION, (2,)) = [v, omega]. No image features. Other inputs are ignored by the model.
+
+    Normalization: STATE and ACTION MIN_MAX (to [-1, 1]; ``clip_sample`` relies on the action range);
+    ENV IDENTITY. The environment state holds obstacle radii in [0, 0.8] m, the goal and (with
+    "grid+list") obstacle coordinates, all within a few metres already. The dataset's goal is constant
+    (5, 5), so MIN_MAX or MEAN_STD statistics would divide by ~0 and blow up any other goal, and a
+    cell that never held an obstacle in the data would do the same for an unseen scene.
+
+    Args:
+        egocentric_obstacles: give the network the goal and the obstacle list in the midpoint's frame,
+            nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
+            (the paper feeds world coordinates).
+        obstacle_encoding: name of the ``observation.environment_state`` encoding
+            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid" (default, the paper's), "grid+list",
+            "nearest", "nearest+route"); it must match the env's ``--env.obstacle_encoding``. Stored in
+            every checkpoint, never guessed from the feature's size.
+        max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
+            "grid+list", 12 for "nearest" and "nearest+route").
+        fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
+            ``action_high`` (v in [0, 0.6], omega in [-1.5, 1.5]) instead of the dataset's min/max, so
+            the policy itself knows the action in physical units (the safety layer needs it).
+        num_candidates: K action chunks drawn per replan in one batched call; with K > 1 the safety
+            layer keeps the best (``core.safety.select_chunk``: no predicted collision of the whole
+            formation's footprint, then progress toward the goal). 1: the standard policy.
+        safety_filter: "none", or "cbf": every executed action passes a control-barrier-function
+            filter on [v, omega] for all four agents (``core.safety.cbf_filter``). Needs an egocentric
+            encoding ("nearest") and ``fixed_action_bounds``; it uses only the observed obstacles.
+        safety_margin: clearance [m] the safety layer keeps between every agent disc and every
+            obstacle (followers lag their square slots by up to ~0.1 m).
+        cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
+        warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
+            j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
+            episode's previous chunk, noised to that level (SDEdit; the module docstring of
+            ``modeling_formation_diffusion``): the plan keeps its way round an obstacle from one replan
+            to the next, and costs j fewer denoiser calls. Must be below ``num_inference_steps``.
+        replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
+            replan at the next step (the plan assumed a motion the filter did not allow).
+        inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
+            the engine). "eager" (default): LeRobot's own ``DiffusionModel.conditional_sample``. "lean":
+            under ``torch.inference_mode``, with the DDIM steps' timesteps and coefficients precomputed
+            once per scheduler and step count (checked against diffusers' ``step``; other schedulers
+            keep diffusers' ``step``). "trace": "lean" with a ``torch.jit`` traced and frozen U-Net,
+            built on first use in eval mode, rebuilt when the weights change, never saved (the
+            ``state_dict`` is unchanged); falls back to the eager U-Net if tracing fails. Same noise,
+            same chunks within 1e-5 (modeling_formation_diffusion.py).
+        timestep_spacing: where a DDIM sampler of ``num_inference_steps`` steps puts its timesteps
+            (diffusers' ``DDIMScheduler`` ``timestep_spacing``). "leading" (default, diffusers' and so
+            LeRobot's): 0, T/S, 2T/S, ...; with S = 1 the only step is t = 0, which cannot denoise.
+            "trailing": T-1, T-1-T/S, ...; the first step starts from pure noise, as few-step samplers
+            need (Lin et al. 2024, "Common diffusion noise schedules and sample steps are flawed",
+            Table 2). A distilled student (``lerobot_formation.policy.distill``) is trained for "trailing".
+        drop_n_last_frames: frames at each episode's end the training sampler never starts a window
+            at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
+            Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
+            that differs raises ``ValueError``.
+        use_ema: keep an exponential moving average of the diffusion model (``ema_diffusion``) and
+            use it for inference in eval mode. ``--policy.use_ema=false`` at evaluation uses the live
+            weights of an EMA checkpoint.
+        ema_power: EMA warm-up power (paper: 0.75).
+        ema_inv_gamma: EMA warm-up inverse multiplicative factor.
+        ema_min_decay: lower bound on the EMA decay (after the first update).
+        ema_max_decay: upper bound on the EMA decay.
+        ema_update_after_step: optimizer steps during which the EMA just copies the live weights.
+
+    The EMA decay after the k-th optimizer step is diffusers' ``EMAModel.get_decay(k)`` with
+    ``use_ema_warmup=True``: with s = k - ema_update_after_step - 1, 0 if s <= 0, else
+    clamp(1 - (1 + s / ema_inv_gamma) ** -ema_power, ema_min_decay, ema_max_decay).
+    """
+
+    # Inputs / output structure.
+    n_obs_steps: int = 2
+    horizon: int = 64
+    n_action_steps: int = 10
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.MIN_MAX,
+            "ENV": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.MIN_MAX,
+        }
+    )
+    drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
+    # Goal and obstacle list in the midpoint's frame, nearest first (processor_formation_diffusion.py).
+    egocentric_obstacles: bool = False
+    obstacle_encoding: str = "grid"
+    max_obstacles: int | None = None
+    fixed_action_bounds: bool = False
+    action_low: tuple[float, float] = (0.0, -_BOUNDS.omega_max)
+    action_high: tuple[float, float] = (_BOUNDS.v_max, _BOUNDS.omega_max)
+
+    # Safety layer (inference only; see the Args above).
+    num_candidates: int = 1
+    safety_filter: str = "none"
+    safety_margin: float = 0.1
+    cbf_rate: float = 2.0
+    replan_on_intervention: bool = True
+    warm_start_step: int = 0
+    # Inference path (see the Args above; not a training setting).
+    inference_backend: str = "eager"
+    timestep_spacing: str = "leading"
+
+    # Unet.
+    down_dims: tuple[int, ...] = (256, 512, 1024)
+    kernel_size: int = 5
+    n_groups: int = 8
+    diffusion_step_embed_dim: int = 256
+
+    # Noise scheduler.
+    noise_scheduler_type: str = "DDPM"
+    num_train_timesteps: int = 100
+    beta_schedule: str = "squaredcos_cap_v2"
+    prediction_type: str = "epsilon"
+    clip_sample: bool = True
+
+    # Training presets.
+    optimizer_lr: float = 1.05e-4
+    optimizer_betas: tuple = (0.95, 0.999)
+    optimizer_eps: float = 1e-8
+    optimizer_weight_decay: float = 1e-6
+    scheduler_name: str = "cosine"
+    scheduler_warmup_steps: int = 1000
+
+    # EMA (diffusers EMAModel with use_ema_warmup=True, as in the original Diffusion Policy).
+    use_ema: bool = True
+    ema_power: float = 0.75
+    ema_inv_gamma: float = 1.0
+    ema_min_decay: float = 0.0
+    ema_max_decay: float = 0.9999
+    ema_update_after_step: int = 0
+
+    def __post_init__(self):
+        install_run_hooks()  # a formation run: one-line config errors, the training output lock
+        # Every number finite: a NaN passes every comparison below unnoticed.
+        non_finite = _non_finite_fields(self)
+        if non_finite:
+            raise config_error(f"config values must be finite numbers, got {', '.join(non_finite)}")
+        if self.num_train_timesteps < 1:
+            raise config_error(f"num_train_timesteps must be >= 1, got {self.num_train_timesteps}")
+        if (
+            self.num_inference_steps is not None
+            and not 1 <= self.num_inference_steps <= self.num_train_timesteps
+        ):
+            raise config_error(
+                f"num_inference_steps must be null (the training steps) or in [1, num_train_timesteps] = "
+                f"[1, {self.num_train_timesteps}], got {self.num_inference_steps}"
+            )
+        # Horizon first, so that this message (not DiffusionConfig's) explains a bad horizon.
+        if self.n_obs_steps < 1:
+            raise config_error(f"n_obs_steps must be >= 1, got {self.n_obs_steps}")
+        factor = 2 ** len(self.down_dims)
+        if self.horizon < factor or self.horizon % factor != 0:
+            below = self.horizon // factor * factor
+            nearest = [h for h in (below, below + factor) if h > 0]
+            raise config_error(
+                f"horizon={self.horizon} does not fit the U-Net: with down_dims={list(self.down_dims)} "
+                f"({len(self.down_dims)} stages) LeRobot's diffusion U-Net needs a horizon that is a "
+                f"positive multiple of 2**len(down_dims) = {factor}; nearest valid horizons: "
+                f"{nearest}. Change --policy.horizon or --policy.down_dims."
+            )
+        max_action_steps = self.horizon - self.n_obs_steps + 1
+        if not 1 <= self.n_action_steps <= max_action_steps:
+            raise config_error(
+                f"n_action_steps={self.n_action_steps} must be in [1, horizon - n_obs_steps + 1] = "
+                f"[1, {max_action_steps}] (horizon={self.horizon}, n_obs_steps={self.n_obs_steps})"
+            )
+        expected_drop = self.horizon - self.n_action_steps - self.n_obs_steps + 1
+        if self.drop_n_last_frames is None:
+            self.drop_n_last_frames = expected_drop
+        elif self.drop_n_last_frames != expected_drop:
+            raise config_error(
+                f"drop_n_last_frames={self.drop_n_last_frames} does not match horizon - n_action_steps - "
+                f"n_obs_steps + 1 = {self.horizon} - {self.n_action_steps} - {self.n_obs_steps} + 1 = "
+                f"{expected_drop}. Set it to {expected_drop}, or to null to derive it."
+            )
+        if self.ema_power <= 0 or self.ema_inv_gamma <= 0:
+            raise config_error(
+                "ema_power and ema_inv_gamma must be > 0, got "
+                f"ema_power={self.ema_power}, ema_inv_gamma={self.ema_inv_gamma}"
+            )
+        if not 0.0 <= self.ema_min_decay <= self.ema_max_decay <= 1.0:
+            raise config_error(
+                "need 0 <= ema_min_decay <= ema_max_decay <= 1, got "
+                f"ema_min_decay={self.ema_min_decay}, ema_max_decay={self.ema_max_decay}"
+            )
+        if self.ema_update_after_step < 0:
+            raise config_error(f"ema_update_after_step must be >= 0, got {self.ema_update_after_step}")
+        if self.obstacle_encoding not in ENCODINGS:
+            raise config_error(
+                f"obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
+            )
+        if self.inference_backend not in INFERENCE_BACKENDS:
+            raise config_error(
+                f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
+            )
+        steps = self.num_inference_steps or self.num_train_timesteps
+        if not 0 <= self.warm_start_step < steps:
+            raise config_error(
+                f"warm_start_step must be in [0, {steps}) (num_inference_steps {steps}), got {self.warm_start_step}"
+            )
+        if self.timestep_spacing not in TIMESTEP_SPACINGS:
+            raise config_error(
+                f"timestep_spacing must be one of {TIMESTEP_SPACINGS}, got {self.timestep_spacing!r}"
+            )
+        if self.num_candidates < 1:
+            raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
+        if self.safety_filter not in SAFETY_FILTERS:
+            raise config_error(f"safety_filter must be one of {SAFETY_FILTERS}, got {self.safety_filter!r}")
+        if self.safety_margin < 0 or self.cbf_rate <= 0:
+            raise config_error(
+                f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
+            )
+        if self.safety_layer and not (
+            get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
+        ):  # the layer reads body-frame obstacles and scores physical actions
+            raise config_error(
+                f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
+                f"needs an egocentric obstacle encoding ({' or '.join(map(repr, egocentric_encodings()))}) and "
+                "fixed_action_bounds=true; this policy "
+                f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
+            )
+        if not all(lo < hi for lo, hi in zip(self.action_low, self.action_high, strict=True)):
+            raise config_error(f"need action_low < action_high, got {self.action_low} and {self.action_high}")
+        super().__post_init__()
+
+    @property
+    def safety_layer(self) -> bool:
+        return self.num_candidates > 1 or self.safety_filter != "none"
+
+    @property
+    def plans_per_episode(self) -> bool:
+        """Whether ``select_action`` runs the ``Replanner`` (safety layer or warm starts) instead of
+        LeRobot's action queue."""
+        return self.safety_layer or self.warm_start_step > 0
+
+    def validate_features(self) -> None:
+        """Check the formation features; the error names the feature, its shape and what was found."""
+        inputs = self.input_features or {}
+        found = f"Input features found: {_describe(inputs)}."
+        state = inputs.get(OBS_STATE)
+        if state is None or state.type is not FeatureType.STATE:
+            raise ValueError(
+                f"formation_diffusion needs the input feature '{OBS_STATE}' (STATE, shape ({STATE_DIM},): "
+                f"midpoint [x, y, cos phi, sin phi, x', y', omega]). {found}"
+            )
+        if tuple(state.shape) != (STATE_DIM,):
+            raise ValueError(
+                f"'{OBS_STATE}' must have shape ({STATE_DIM},) (midpoint [x, y, cos phi, sin phi, x', y', "
+                f"omega]), got {tuple(state.shape)}"
+            )
+        env_state = inputs.get(OBS_ENV_STATE)
+        if env_state is None or env_state.type is not FeatureType.ENV:
+            raise ValueError(
+                f"formation_diffusion needs the input feature '{OBS_ENV_STATE}' (ENV, shape "
+                f"({environment_state_dim(self.obstacle_encoding, self.max_obstacles)},): obstacle_encoding "
+                f"{self.obstacle_encoding!r}). {found}"
+            )
+        expected = environment_state_dim(self.obstacle_encoding, self.max_obstacles)
+        if tuple(env_state.shape) != (expected,):
+            raise ValueError(
+                f"'{OBS_ENV_STATE}' has shape {tuple(env_state.shape)}, but obstacle_encoding="
+                f"{self.obstacle_encoding!r} with max_obstacles={self.max_obstacles} has ({expected},): set "
+                f"--policy.obstacle_encoding to the dataset's encoding ({_encoding_sizes()}), or use a "
+                f"dataset and env of --env.obstacle_encoding={self.obstacle_encoding}"
+            )
+        if self.egocentric_obstacles and get_encoding(self.obstacle_encoding).egocentric:
+            raise ValueError(
+                f"egocentric_obstacles=true rewrites a world-frame list; '{self.obstacle_encoding}' is already "
+                "egocentric: set --policy.egocentric_obstacles=false"
+            )
+        grid_list_dim = environment_state_dim("grid+list", self.max_obstacles)
+        if self.egocentric_obstacles and tuple(env_state.shape) != (grid_list_dim,):
+            raise ValueError(
+                f"egocentric_obstacles=true needs '{OBS_ENV_STATE}' in the 'grid+list' encoding "
+                f"({grid_list_dim} values), got {tuple(env_state.shape)}; "
+                "set --policy.egocentric_obstacles=false or --env.obstacle_encoding=grid+list"
+            )
+        if self.image_features:
+            raise ValueError(
+                f"formation_diffusion takes no image features, got {sorted(self.image_features)}. {found}"
+            )
+        action = self.action_feature
+        if action is None or tuple(action.shape) != (ACTION_DIM,):
+            raise ValueError(
+                f"formation_diffusion needs the output feature '{ACTION}' (ACTION, shape ({ACTION_DIM},): "
+                f"[v, omega]). Output features found: {_describe(self.output_features)}."
+            )
+        super().validate_features()
+
+    def set_dataset_feature_metadata(self, dataset_features: dict) -> None:
+        """Refuse a dataset whose observation sizes differ from this policy's (LeRobot's ``make_policy``
+        calls this with the dataset's ``meta.features`` before it builds the policy). Fine-tuning a
+        checkpoint (``--policy.path``) keeps the checkpoint's input features, so a dataset of another
+        obstacle encoding would otherwise fail at the first step with a matrix-shape error."""
+        for key, feature in (self.input_features or {}).items():
+            theirs = (
+                dataset_features.get(key, {}).get("shape") if isinstance(dataset_features, dict) else None
+            )
+            if theirs is None or tuple(theirs) == tuple(feature.shape):
+                continue
+            if key != OBS_ENV_STATE:
+                raise config_error(
+                    f"the dataset gives '{key}' shape {tuple(theirs)}, but the policy takes {tuple(feature.shape)}"
+                )
+            # the encoding is stored (never guessed); the dataset's is named when its size says which
+            dims = {environment_state_dim(e, self.max_obstacles): e for e in ENCODINGS}
+            ours = self.obstacle_encoding
+            named = f" ({dims[theirs[0]]!r})" if len(theirs) == 1 and theirs[0] in dims else ""
+            raise config_error(
+                f"the dataset gives '{key}' shape {tuple(theirs)}{named}, but the policy takes "
+                f"{tuple(feature.shape)} ({ours!r}): train on a dataset of the policy's encoding "
+                f"(lerobot-formation-generate --obstacle-encoding {ours})"
+            )
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        """AdamW, as the paper and the original Diffusion Policy train (DiffusionConfig's preset is Adam)."""
+        return AdamWConfig(
+            lr=self.optimizer_lr,
+            betas=self.optimizer_betas,
+            eps=self.optimizer_eps,
+            weight_decay=self.optimizer_weight_decay,
+        )

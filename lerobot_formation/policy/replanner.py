@@ -1,0 +1,330 @@
+"""The replan loop of a ``formation_diffusion`` policy: the one implementation that ``select_action``
+(so ``lerobot-eval``) and the engine's diffusion controller (``bench``) both run.
+
+A ``Replanner`` owns, per episode of a batch, the kept chunk (normalised, the whole predicted horizon
+from the step it was planned at), the position of the next action in it, the actions executed since
+that replan, the last executed action and the stats. ``act(rows, env_now, history)`` returns the next
+action (normalised) of the episodes ``rows``; an episode whose chunk is used up (``n_action_steps``
+actions ran) or whose last action the filter changed replans first:
+
+1. warm start (``warm_start_step`` j > 0): the unexecuted rest of the episode's last chunk, shifted to
+   the new window and padded with its last action (``warm_start_guess``), is the guess the sampler
+   starts from at its j-th timestep (``FormationDiffusionPolicy.sample_action_chunks``); an episode's
+   first replan samples from pure noise;
+2. K = ``num_candidates`` candidates in one batched denoiser call;
+3. blending (``ReplanExperiment.blend_steps``, experiments only): the new chunks' first actions are
+   blended from the last executed one (``core.replan_blend``);
+4. choice: with K > 1 the one scorer, ``core.safety.select_chunk`` (no predicted contact of the whole
+   formation's footprint with the observed obstacles, then cost-to-go progress; escape manoeuvres
+   when nothing sampled is safe); with K = 1 the sample;
+5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
+   ``replan_on_intervention`` an episode whose action it changed replans at its next step.
+
+K, the filter, its margin and rate, the warm start and ``replan_on_intervention`` come only from the
+policy config the replanner is given (the policy's own, or a copy made with ``dataclasses.replace``
+for a bench controller or an ablation row, which runs the config's checks). The settings of the
+ablation study that the shipped policy does not use are a ``ReplanExperiment``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from lerobot_formation.core import safety
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.obstacle_grid import get_encoding
+from lerobot_formation.core.replan_blend import blend_replan
+
+STAT_KEYS = ("replans", "replans_none_safe", "escapes", "stops", "steps", "filter_interventions")
+
+
+@dataclass(frozen=True)
+class ReplanExperiment:
+    """Replan settings of the ablation study (``scripts/ablation.py``), not of the shipped policy; the
+    defaults are what the policy runs.
+
+    Args:
+        blend_steps: m >= 0; a new chunk's first m actions are blended from the last executed action
+            (``core.replan_blend``) before best-of-K scores them. 0: plain chunk execution.
+        escape_advantage: None: the escape manoeuvres of best-of-K are used only when no sampled chunk
+            is safe. A number [m]: a safe manoeuvre is also kept when its cost-to-go progress beats
+            every safe sampled chunk's by that much.
+        blocked_fallback: "widest" (the sampled chunk with the largest predicted clearance) or "stop"
+            when nothing is safe (``core.safety.select_chunk``).
+        warm_all_candidates: warm-start all K candidates instead of the first only.
+    """
+
+    blend_steps: int = 0
+    escape_advantage: float | None = None
+    blocked_fallback: str = "widest"
+    warm_all_candidates: bool = False
+
+    def __post_init__(self):
+        if self.blend_steps < 0:
+            raise ValueError(f"blend_steps must be >= 0, got {self.blend_steps}")
+        if self.escape_advantage is not None and not self.escape_advantage >= 0:
+            raise ValueError(f"escape_advantage must be None or >= 0 [m], got {self.escape_advantage}")
+        if self.blocked_fallback not in safety.BLOCKED_FALLBACKS:
+            raise ValueError(
+                f"blocked_fallback must be one of {safety.BLOCKED_FALLBACKS}, got {self.blocked_fallback!r}"
+            )
+
+
+@functools.cache
+def safety_geometry() -> tuple[np.ndarray, float, float]:
+    """The formation template (N, 2), dt and agent radius the safety layer assumes: the env's defaults
+    (built once: ``FormationParams`` checks the graph's rigidity, ~0.7 ms, at every construction)."""
+    params = FormationParams()
+    template = np.asarray(params.graph.template)
+    template.flags.writeable = False
+    return template, params.dt, params.agent_radius
+
+
+def check_observation(batch: dict[str, Tensor], input_features: dict, dtype: torch.dtype) -> None:
+    """Refuse an observation the policy cannot use: each input feature in ``batch`` must be a tensor of
+    the model's floating dtype ``dtype`` holding finite numbers. One NaN would make every action NaN
+    (and, with warm starts, every later plan of the episode). The error names the key, the problem and
+    where. Called at the top of ``select_action`` and by the engine before each replan."""
+    for key in input_features:
+        value = batch.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, Tensor):
+            raise TypeError(f"observation '{key}' must be a torch.Tensor, got {type(value).__name__}")
+        if value.dtype != dtype:
+            raise TypeError(
+                f"observation '{key}' has dtype {value.dtype}, but the policy computes in {dtype}: pass it "
+                f"through the policy's preprocessor, or convert it (tensor.to({dtype}))"
+            )
+        finite = torch.isfinite(value)
+        if not bool(finite.all()):
+            where = torch.nonzero(~finite)[0].tolist()
+            raise ValueError(
+                f"observation '{key}' holds a non-finite value ({value[tuple(where)].item()} at index {where}); "
+                "the policy refuses NaN and inf observations (a broken sensor or env?)"
+            )
+
+
+def check_finite_chunks(chunks: Tensor) -> None:
+    """Refuse sampled action chunks with a NaN or inf before they are executed or kept as the warm
+    start of the next replan (where a NaN would poison every later plan of the episode)."""
+    finite = torch.isfinite(chunks)
+    if not bool(finite.all()):
+        rows = sorted({int(r) for r in torch.nonzero(~finite)[:, 0]})
+        raise FloatingPointError(
+            f"the policy sampled a non-finite action chunk (batch rows {rows[:8]}); it is neither executed nor "
+            "kept for warm starts. Non-finite weights or noise?"
+        )
+
+
+def warm_start_guess(previous: Tensor, executed: Tensor, n_obs_steps: int, horizon: int) -> Tensor:
+    """The warm start of a replan (B, horizon, A): the previous chunk ``previous`` (B, T, A), its
+    actions from the previous replan's step on, after ``executed`` (B,) of them ran, shifted to the new
+    sample's window (which starts ``n_obs_steps - 1`` steps before the current one) and padded with its
+    last action."""
+    offset = executed.to(torch.long) - (n_obs_steps - 1)  # index in ``previous`` of the window's start
+    idx = (offset[:, None] + torch.arange(horizon, device=previous.device)[None]).clamp(
+        0, previous.shape[1] - 1
+    )
+    return torch.gather(previous, 1, idx[..., None].expand(-1, -1, previous.shape[-1]))
+
+
+class Replanner:
+    """Per-episode chunks, best-of-K, the filter and replans of one batch of episodes (module docstring).
+
+    Args:
+        policy: a ``FormationDiffusionPolicy`` (samples the chunks, holds the action bounds).
+        config: the policy config to run (K, filter, margin, warm start); default the policy's own.
+        experiment: ablation settings (``ReplanExperiment``); default none.
+    """
+
+    def __init__(self, policy, config=None, experiment: ReplanExperiment | None = None):
+        self.policy = policy
+        self.config = policy.config if config is None else config
+        self.experiment = experiment or ReplanExperiment()
+        if self.experiment.blend_steps > self.chunk_length:
+            raise ValueError(
+                f"blend_steps must be in [0, {self.chunk_length}] (the chunk's length), "
+                f"got {self.experiment.blend_steps}"
+            )
+        self.stats = dict.fromkeys(STAT_KEYS, 0)
+        self.plan: Tensor | None = None
+
+    @property
+    def chunk_length(self) -> int:
+        return self.config.horizon - self.config.n_obs_steps + 1
+
+    def reset(self, batch_size: int | None = None, device: torch.device | str = "cpu") -> None:
+        """Forget every episode's plan (and with ``batch_size``, start ``batch_size`` episodes); the stats
+        start from zero."""
+        self.stats = dict.fromkeys(STAT_KEYS, 0)
+        self.plan = None
+        if batch_size is not None:
+            self.start(batch_size, device)
+
+    def start(self, B: int, device: torch.device | str = "cpu") -> None:
+        """Start ``B`` episodes with no plan (each replans at its first ``act``)."""
+        A = self.config.action_feature.shape[0]
+        self.plan = torch.zeros(B, self.chunk_length, A, device=device)  # normalised, whole chunk
+        self.plan_pos = torch.full((B,), self.config.n_action_steps, dtype=torch.long)  # next action
+        self.executed = torch.zeros(B, dtype=torch.long)  # actions run since the episode's last replan
+        self.last_action = torch.zeros(B, A, device=device)  # normalised
+        self.has_last = torch.zeros(B, dtype=torch.bool)
+
+    def needs_replan(self, rows: Tensor) -> Tensor:
+        """Which of ``rows`` replan at their next ``act`` (B,) bool."""
+        if self.plan is None:
+            return torch.ones(len(rows), dtype=torch.bool)
+        return self.plan_pos[rows] >= self.config.n_action_steps
+
+    @torch.no_grad()
+    def act(
+        self,
+        env_now: Tensor,
+        history: Callable[[Tensor], dict[str, Tensor]],
+        rows: Tensor | None = None,
+        noise: Tensor | Callable[[int], Tensor] | None = None,
+    ) -> Tensor:
+        """The next action (len(rows), A), normalised, of episodes ``rows`` (default: all of the batch).
+
+        ``env_now`` (len(rows), D): their current raw ``observation.environment_state`` (what the
+        safety layer reads); ``history(sub)`` the normalised observation histories (len(sub),
+        n_obs_steps, ...) of the episodes ``sub`` (indices into the batch) that replan; ``noise`` the
+        initial noise (n * K, horizon, A) of the n replanning episodes, or a function n * K -> noise,
+        or None (fresh ``torch.randn``).
+        """
+        cfg = self.config
+        if rows is None:
+            rows = torch.arange(len(env_now))
+        if self.plan is None:
+            self.start(len(rows), env_now.device)
+        need = rows[self.plan_pos[rows] >= cfg.n_action_steps]
+        if len(need):
+            at = torch.nonzero(self.plan_pos[rows] >= cfg.n_action_steps).flatten()
+            self._replan(need, env_now[at], history(need), noise)
+        action = self.plan[rows, self.plan_pos[rows]]
+        self.plan_pos[rows] += 1
+        self.executed[rows] += 1
+        self.stats["steps"] += len(rows)
+        if cfg.safety_filter == "cbf":
+            action, changed = self.filter(env_now, action)
+            self.stats["filter_interventions"] += int(changed.sum())
+            if cfg.replan_on_intervention:  # the plan met a barrier: replan at the next step
+                self.plan_pos[rows[torch.from_numpy(changed)]] = cfg.n_action_steps
+        self.last_action[rows] = action.to(self.last_action.dtype)
+        self.has_last[rows] = True
+        return action
+
+    def _replan(self, need: Tensor, env_now: Tensor, stacked: dict[str, Tensor], noise) -> None:
+        cfg, ex = self.config, self.experiment
+        K = cfg.num_candidates
+        warm = None
+        if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
+            guess = warm_start_guess(self.plan[need], self.executed[need], cfg.n_obs_steps, cfg.horizon)
+            warm = (guess, self.has_last[need])
+        if callable(noise):
+            noise = noise(len(need) * K)
+        chunks = self.policy.sample_action_chunks(
+            stacked,
+            K,
+            noise=noise,
+            warm_start=warm,
+            warm_start_step=cfg.warm_start_step,
+            warm_all=ex.warm_all_candidates,
+        )
+        last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
+        chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
+        if K > 1:
+            chosen, info = self.choose(env_now, chunks, last, has_last)
+            self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
+            self.stats["escapes"] += int(info["escaped"].sum())
+            self.stats["stops"] += int(info["stopped"].sum())
+        else:
+            chosen = chunks[:, 0]
+        self.stats["replans"] += len(need)
+        check_finite_chunks(chosen)  # never executed, never a warm start
+        self.plan[need] = chosen.to(self.plan.dtype)
+        self.plan_pos[need] = 0
+        self.executed[need] = 0
+
+    # -- the safety layer: the one scorer and the filter, on physical actions ------------------------
+    def observed_obstacles(self, env_state) -> tuple[np.ndarray, np.ndarray]:
+        """Goal (B, 2) and obstacles (B, M, 3) in the body frame from a raw egocentric observation."""
+        encoding = get_encoding(self.config.obstacle_encoding)
+        slots = encoding.slots(self.config.max_obstacles)
+        env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
+        # the nearest part only (e.g. "nearest+route" adds a route hint, "nearest+velocity" velocities)
+        env = env[:, : encoding.fixed + encoding.per_slot * slots]
+        goal, obstacles, _ = safety.decode_nearest(env, slots)
+        return goal, obstacles
+
+    def choose_raw(
+        self, env_state, chunks: np.ndarray, last_action: np.ndarray | None = None, has_last=None
+    ) -> tuple[np.ndarray, dict]:
+        """Best-of-K (``core.safety.select_chunk``) with this config: env_state (B, D) raw egocentric
+        observation, chunks (B, K, T, 2) in m/s and rad/s -> kept chunks (B, T, 2), info. With blending
+        and the last executed actions (B, 2) [m/s, rad/s], the escape manoeuvres are blended into them
+        as the sampled chunks were."""
+        goal, obstacles = self.observed_obstacles(env_state)
+        template, dt, agent_radius = safety_geometry()
+        ex = self.experiment
+        blend = None
+        if last_action is not None and ex.blend_steps:
+            blend = (np.asarray(last_action), np.asarray(has_last), ex.blend_steps)
+        return safety.select_chunk(
+            chunks,
+            obstacles,
+            goal,
+            template,
+            dt,
+            agent_radius,
+            self.config.safety_margin,
+            escape_advantage=ex.escape_advantage,
+            blend=blend,
+            blocked_fallback=ex.blocked_fallback,
+        )
+
+    def choose(
+        self, env_state: Tensor, chunks: Tensor, last_action: Tensor | None = None, has_last=None
+    ) -> tuple[Tensor, dict]:
+        """``choose_raw`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept chunks
+        (B, T, 2) normalised."""
+        policy = self.policy
+        raw = policy.unnormalize_action(chunks).numpy().astype(np.float64)
+        if last_action is not None:
+            last_action = policy.unnormalize_action(last_action).numpy().astype(np.float64)
+            has_last = has_last.cpu().numpy()
+        chosen, info = self.choose_raw(env_state, raw, last_action, has_last)
+        return policy.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
+
+    def filter_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """CBF filter (``core.safety.cbf_filter``) with this config on [v, omega] (B, 2) -> (filtered,
+        changed)."""
+        _, obstacles = self.observed_obstacles(env_state)
+        template, _, agent_radius = safety_geometry()
+        cfg = self.config
+        return safety.cbf_filter(
+            action,
+            obstacles,
+            template,
+            agent_radius,
+            cfg.safety_margin,
+            cfg.cbf_rate,
+            np.asarray(cfg.action_low),
+            np.asarray(cfg.action_high),
+        )
+
+    def filter(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
+        """``filter_raw`` on normalised actions (B, 2) -> (filtered normalised, changed)."""
+        policy = self.policy
+        out, changed = self.filter_raw(
+            env_state, policy.unnormalize_action(action).numpy().astype(np.float64)
+        )
+        filtered = policy.normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
+        return filtered, changed

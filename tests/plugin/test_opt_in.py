@@ -1,0 +1,129 @@
+"""The plugin is opt-in: importing it registers the env, the policy and its processor step and
+changes nothing else of LeRobot, and a LeRobot dataset of another project reads exactly as with stock
+LeRobot, bit for bit, even once our fast reads are switched on."""
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _python(code: str, tmp_path: Path) -> str:
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+def test_importing_the_plugin_registers_and_patches_nothing(tmp_path):
+    out = _python(
+        """
+        import json, os
+        import lerobot.scripts.lerobot_eval as lerobot_eval
+        from lerobot.datasets.dataset_reader import DatasetReader
+        before = (DatasetReader.get_item, DatasetReader._query_hf_dataset, lerobot_eval.rollout)
+        env = dict(os.environ)
+        import lerobot_env_formation  # what LeRobot's CLIs import: the plugin
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.envs.configs import EnvConfig
+        from lerobot.processor import ProcessorStepRegistry
+        after = (DatasetReader.get_item, DatasetReader._query_hf_dataset, lerobot_eval.rollout)
+        print(json.dumps({
+            "same": [a is b for a, b in zip(before, after)],
+            "getstate": "__getstate__" in vars(DatasetReader),
+            "env": dict(os.environ) == env,
+            "policy": "formation_diffusion" in PreTrainedConfig.get_known_choices(),
+            "env_config": "formation" in EnvConfig.get_known_choices(),
+            "step": "formation_egocentric_obstacles" in ProcessorStepRegistry.list(),
+        }))
+        """,
+        tmp_path,
+    )
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got == {
+        "same": [True, True, True],
+        "getstate": False,
+        "env": True,
+        "policy": True,
+        "env_config": True,
+        "step": True,
+    }
+
+
+WRITE_AND_READ = """
+import sys, torch
+import numpy as np
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+root, mode = sys.argv[1], sys.argv[2]
+if mode == "write":  # another project's dataset, written with LeRobot's own writer
+    features = {
+        "observation.joints": {"dtype": "float32", "shape": (6,), "names": None},
+        "observation.gripper": {"dtype": "float32", "shape": (1,), "names": None},
+        "action": {"dtype": "float32", "shape": (3,), "names": None},
+        "phase": {"dtype": "int64", "shape": (1,), "names": None},
+    }
+    ds = LeRobotDataset.create("other/arm", fps=15, root=root, features=features, use_videos=False)
+    rng = np.random.default_rng(0)
+    for ep in range(3):
+        for t in range(12 + 5 * ep):
+            ds.add_frame({
+                "observation.joints": rng.normal(size=6).astype(np.float32),
+                "observation.gripper": rng.uniform(size=1).astype(np.float32),
+                "action": rng.normal(size=3).astype(np.float32),
+                "phase": np.array([t % 4], dtype=np.int64),
+                "task": f"pick {ep % 2}",
+            })
+        ds.save_episode()
+    ds.finalize()
+    sys.exit(0)
+if mode == "plugin":  # our plugin imported and our fast reads switched on, as in a formation run
+    import lerobot_env_formation  # noqa: F401
+    from lerobot_formation.compat import fast_reads
+    assert fast_reads.install()
+delta = {"observation.joints": [-2 / 15, -1 / 15, 0.0], "action": [k / 15 for k in range(5)]}
+items = {}
+for name, kw in {"windows": {"delta_timestamps": delta}, "plain": {}, "some": {"episodes": [0, 2]}}.items():
+    ds = LeRobotDataset("other/arm", root=root, **kw)
+    items[name] = [ds[i] for i in range(len(ds))]
+torch.save(items, sys.argv[3])
+"""
+
+
+def test_another_projects_dataset_reads_as_with_stock_lerobot(tmp_path):
+    script = tmp_path / "rw.py"
+    script.write_text(WRITE_AND_READ)
+    root = tmp_path / "other_arm"
+
+    def run(*args):
+        out = subprocess.run(
+            [sys.executable, str(script), str(root), *args], capture_output=True, text=True, timeout=300
+        )
+        assert out.returncode == 0, out.stderr[-3000:]
+
+    run("write", "-")
+    run("stock", str(tmp_path / "stock.pt"))
+    run("plugin", str(tmp_path / "plugin.pt"))
+    stock = torch.load(tmp_path / "stock.pt", weights_only=False)
+    ours = torch.load(tmp_path / "plugin.pt", weights_only=False)
+    assert stock.keys() == ours.keys() and len(stock["windows"]) == 12 + 17 + 22
+    for name in stock:
+        assert len(stock[name]) == len(ours[name]) > 0
+        for a, b in zip(stock[name], ours[name], strict=True):
+            assert a.keys() == b.keys()
+            for k in a:
+                if isinstance(a[k], torch.Tensor):
+                    assert a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]), (name, k)
+                else:
+                    assert a[k] == b[k], (name, k)
+    assert stock["windows"][0]["action"].shape == (5, 3)  # not vacuous: windows were read
