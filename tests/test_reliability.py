@@ -494,39 +494,68 @@ def test_seed_past_the_end_of_a_scenes_file(tmp_path):
 
 
 # -- lerobot-train start-up checks -------------------------------------------------------------------
-def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up():
-    """lerobot-train calls make_env_pre_post_processors(env_cfg, policy_cfg) before its first step."""
+def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up(tmp_path):
+    """lerobot-train validates its config, builds the policy, then calls make_env_pre_post_processors(env_cfg,
+    policy_cfg) before its first step; lerobot-eval's config loads the policy config and the same call
+    comes before the first episode. Both pipeline configs hand our env config the policy config."""
+    from lerobot.configs.default import DatasetConfig
+    from lerobot.configs.eval import EvalPipelineConfig
+    from lerobot.configs.train import TrainPipelineConfig
     from lerobot.envs.factory import make_env_pre_post_processors
 
     from lerobot_formation.envs.env_config import FormationEnvConfig
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66), obstacle_encoding="grid+list")
-    make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid+list"), policy_cfg)
-    with pytest.raises(ValueError) as e:
-        make_env_pre_post_processors(FormationEnvConfig(obstacle_encoding="grid"), policy_cfg)
-    assert str(e.value) == (
-        "--env.obstacle_encoding=grid gives 'observation.environment_state' 51 values, but the policy takes 66 "
-        "(its dataset or checkpoint uses 'grid+list'): pass --env.obstacle_encoding=grid+list"
-    )
+
+    def train(encoding: str) -> TrainPipelineConfig:
+        env = FormationEnvConfig(obstacle_encoding=encoding)
+        cfg = TrainPipelineConfig(
+            dataset=DatasetConfig(repo_id="local/x", root=str(tmp_path)), env=env, policy=policy_cfg
+        )
+        cfg.validate()
+        return cfg
+
+    def evaluate(encoding: str) -> EvalPipelineConfig:
+        return EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding=encoding), policy=policy_cfg)
+
+    for pipeline in (train("grid+list"), evaluate("grid+list")):
+        assert pipeline.env.run_policy is policy_cfg
+        make_env_pre_post_processors(pipeline.env, pipeline.policy)
+    for pipeline in (train("grid"), evaluate("grid")):
+        with pytest.raises(ValueError) as e:
+            make_env_pre_post_processors(pipeline.env, pipeline.policy)
+        assert str(e.value) == (
+            "--env.obstacle_encoding=grid gives 'observation.environment_state' 51 values, but the policy takes "
+            "66 (its dataset or checkpoint uses 'grid+list'): pass --env.obstacle_encoding=grid+list"
+        )
 
 
 def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
+    """lerobot-train refuses it when it validates its config (our config installed the check)."""
     from huggingface_hub import constants
     from lerobot.configs.default import DatasetConfig
+    from lerobot.configs.train import TrainPipelineConfig
 
-    import lerobot_formation.envs.env_config  # noqa: F401  (installs the check, as the plugin import does)
+    from lerobot_formation.compat.run_checks import ConfigError
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+
+    def validate(root: Path) -> None:
+        policy = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66))
+        TrainPipelineConfig(
+            dataset=DatasetConfig(repo_id="local/x", root=str(root)), policy=policy
+        ).validate()
 
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
     missing = tmp_path / "no_dataset"
     with pytest.raises(
-        ValueError, match=f"--dataset.root {missing} does not exist, and HF_HUB_OFFLINE is set"
+        ConfigError, match=f"--dataset.root {missing} does not exist, and HF_HUB_OFFLINE is set"
     ):
-        DatasetConfig(repo_id="local/x", root=str(missing))
+        validate(missing)
     assert not missing.exists()
-    DatasetConfig(repo_id="local/x", root=str(tmp_path))  # an existing root is fine
+    validate(tmp_path)  # an existing root is fine
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", False)
-    DatasetConfig(repo_id="local/x", root=str(missing))  # online: LeRobot downloads there
+    validate(missing)  # online: LeRobot downloads there
 
 
 def test_env_scenes_file_is_checked_at_start_up(tmp_path):

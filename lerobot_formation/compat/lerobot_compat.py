@@ -11,12 +11,14 @@ names what changed. The uses:
   knows the weights file (the EMA check of ``formation_diffusion``);
 - ``denoiser_parts``: what ``DiffusionModel.conditional_sample`` loops over (the U-Net, the noise
   scheduler, the step count), for the lean inference path (``inference_backend``);
-- ``caller_policy_config``: the caller's frame of ``make_env_pre_post_processors``;
 - ``train_dataloader_worker_kwargs``: ``lerobot_train._dataloader_worker_kwargs`` (the training
   throughput benchmark builds lerobot-train's DataLoader);
-- ``install_offline_dataset_root_check``: wraps ``DatasetConfig.__post_init__``;
-- ``install_train_output_lock``: wraps ``TrainPipelineConfig.validate`` (``train_lock``);
-- ``config_errors_in_draccus_messages``: wraps draccus's ``DecodingError.__str__``, the message that
+- ``run_checks.install_train_checks``: wraps ``TrainPipelineConfig.validate`` (the offline
+  ``--dataset.root`` check, the output lock, the resume report; it reads the checkpoint's step with
+  ``lerobot.common.train_utils.load_training_step``);
+- ``run_checks.install_eval_checks``: wraps ``EvalPipelineConfig.__post_init__`` (hands our env config
+  the policy config it loads);
+- ``run_checks.config_errors_in_draccus_messages``: wraps draccus's ``DecodingError.__str__``, the message that
   LeRobot's parser prints as ``error: ...``;
 - ``patch_dataset_reader``: replaces ``DatasetReader.get_item`` / ``_query_hf_dataset`` with the fast
   low-dimensional reads of ``fast_reads.py``, which read the reader's private state through
@@ -38,8 +40,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from lerobot_formation.compat.run_checks import config_error
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -158,56 +158,6 @@ def denoiser_parts(model):
     return model.unet, model.noise_scheduler, model.num_inference_steps, sample_shape
 
 
-def caller_policy_config():
-    """The ``policy_cfg`` argument of LeRobot's ``make_env_pre_post_processors(env_cfg, policy_cfg)``
-    when that function is what called the caller (an ``EnvConfig.get_env_processors``), else None.
-
-    ``lerobot-train`` (after it builds the policy, before the first training step) and ``lerobot-eval``
-    (before the first episode) call it, and ``get_env_processors()`` takes no argument: this is the one
-    place at start-up where the env config and the policy config meet.
-    """
-
-    try:
-        frame = sys._getframe(2)
-    except ValueError:  # called from the top of the stack
-        return None
-    if frame.f_code.co_name != "make_env_pre_post_processors":
-        return None
-    return frame.f_locals.get("policy_cfg")
-
-
-def report_resume_with_nothing_to_train() -> str | None:
-    """When ``lerobot-train --resume=true`` resumes a run that has already reached its ``--steps``,
-    log why it will train 0 steps and return that line (else None).
-
-    LeRobot then just saves nothing and ends ("End of training") without saying why. Called from
-    ``FormationEnvConfig.get_env_processors``: LeRobot's ``train`` calls
-    ``make_env_pre_post_processors`` after it has loaded the checkpoint's step (``step``, ``cfg`` in
-    its frame); elsewhere this does nothing.
-    """
-
-    try:
-        frame = sys._getframe(3)  # this <- get_env_processors <- make_env_pre_post_processors <- train
-    except ValueError:
-        return None
-    if frame.f_code.co_name != "train":
-        return None
-    cfg, step = frame.f_locals.get("cfg"), frame.f_locals.get("step")
-    if (
-        not isinstance(step, int)
-        or not getattr(cfg, "resume", False)
-        or step < getattr(cfg, "steps", step + 1)
-    ):
-        return None
-    line = (
-        f"resume: the checkpoint {getattr(cfg, 'checkpoint_path', '')} is at step {step} and the run's "
-        f"--steps is {cfg.steps}, so there is nothing to train (0 steps); pass --steps=N with N > {step} "
-        "to train on"
-    )
-    logging.getLogger("lerobot_formation").warning(line)
-    return line
-
-
 def train_dataloader_worker_kwargs(cfg) -> dict:
     """The DataLoader worker options ``lerobot-train`` passes for a ``TrainPipelineConfig`` (its private
     ``_dataloader_worker_kwargs``: prefetch factor, persistent workers, multiprocessing context)."""
@@ -215,39 +165,6 @@ def train_dataloader_worker_kwargs(cfg) -> dict:
 
     fn = _private(lerobot_train, "_dataloader_worker_kwargs", "lerobot_train", "the throughput benchmark")
     return fn(cfg)
-
-
-def install_offline_dataset_root_check() -> None:
-    """Make ``DatasetConfig`` refuse a ``root`` folder that does not exist while the hub is offline.
-
-    LeRobot looks a missing root up on the hub, which offline (``HF_HUB_OFFLINE=1``) surfaces as a
-    ~60-line ``OfflineModeIsEnabled`` traceback from deep inside ``lerobot-train``. LeRobot has no hook
-    for a plugin here, so ``DatasetConfig.__post_init__`` is wrapped (idempotent): the original runs
-    first, then the check. Online, a missing root is where LeRobot downloads to, and stays allowed.
-    """
-    from pathlib import Path
-
-    from lerobot.configs.default import DatasetConfig
-
-    original = DatasetConfig.__post_init__
-    if getattr(original, "_formation_root_check", False):
-        return
-
-    def post_init(self) -> None:
-        original(self)
-        root = getattr(self, "root", None)
-        if root is None or Path(root).exists():
-            return
-        from huggingface_hub import constants
-
-        if constants.HF_HUB_OFFLINE:
-            raise config_error(
-                f"--dataset.root {root} does not exist, and HF_HUB_OFFLINE is set, so LeRobot cannot download "
-                f"it; check the path, or write the dataset there with lerobot-formation-generate --root {root}"
-            )
-
-    post_init._formation_root_check = True  # type: ignore[attr-defined]
-    DatasetConfig.__post_init__ = post_init
 
 
 # -- DatasetReader: fast low-dimensional reads (fast_reads.py) -------------------------------------

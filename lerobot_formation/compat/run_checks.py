@@ -4,8 +4,11 @@
   refuses; the message names the value and what to do. draccus wraps a ``ValueError`` raised while it
   builds a config in ``ParsingError("Couldn't instantiate class ...")``; ``one_line_config_errors`` and
   ``config_errors_in_draccus_messages`` make LeRobot's CLIs print it as one ``error:`` line.
-- The training output lock: ``lerobot-train`` takes an exclusive lock beside its ``--output_dir``
-  (``acquire_output_lock``), so a second run into the same folder refuses with the first one's pid.
+- ``lerobot-train``'s start (``install_train_checks``): a missing ``--dataset.root`` offline is one
+  clear error, the output folder is locked (below), and a resumed run with nothing left to train says so.
+- The env config meets the policy config (``hand_env_its_policy``): ``lerobot-train`` and
+  ``lerobot-eval``'s pipeline configs hand ``FormationEnvConfig`` the run's policy config, which its
+  ``get_env_processors`` checks against the env's observation.
 
 ``install_run_hooks`` switches these on; our configs call it when they are built, so a LeRobot run of
 another project is untouched. This module imports nothing else of ours: every config imports it.
@@ -14,7 +17,7 @@ One ``lerobot-train`` run per output folder: a lock file beside it, ``.NAME.trai
 
 LeRobot refuses an existing ``--output_dir`` only when a run starts and creates the folder at its
 first checkpoint, so two runs started into the same new folder (or two resumes of one run) both
-train and overwrite each other's checkpoints. With the plugin loaded, ``TrainPipelineConfig.validate``
+train and overwrite each other's checkpoints. In a formation run ``TrainPipelineConfig.validate``
 (the first thing ``lerobot-train`` does) takes an exclusive ``flock`` on ``.NAME.train-lock`` beside
 an explicitly given ``--output_dir`` and writes its pid into it; a second run finds the lock held and
 refuses with a ``ConfigError`` naming that pid. The lock belongs to the open file, so it ends with
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import logging
 import os
 import sys
 from pathlib import Path
@@ -129,21 +133,84 @@ def _release_all() -> None:
         release_output_lock(output_dir)
 
 
-def install_train_output_lock() -> None:
-    """Make ``TrainPipelineConfig.validate`` (the start of ``lerobot-train``) lock an explicitly given
-    ``--output_dir`` for the run (``train_lock.acquire_output_lock``): a second run into the same
-    folder refuses with the first one's pid. The lock is taken before LeRobot's own checks and dropped
-    if they fail. LeRobot has no hook for a plugin here, so ``validate`` is wrapped (idempotent)."""
-    from pathlib import Path
+def check_dataset_root_offline(root) -> None:
+    """Refuse a ``--dataset.root`` folder that does not exist while the hub is offline.
 
+    LeRobot looks a missing root up on the hub, which offline (``HF_HUB_OFFLINE=1``) surfaces as a
+    ~60-line ``OfflineModeIsEnabled`` traceback from deep inside ``lerobot-train``. Online, a missing
+    root is where LeRobot downloads to, and stays allowed.
+
+    Raises:
+        ConfigError: ``root`` is set, does not exist, and the hub is offline.
+    """
+    if root is None or Path(root).exists():
+        return
+    from huggingface_hub import constants
+
+    if constants.HF_HUB_OFFLINE:
+        raise ConfigError(
+            f"--dataset.root {root} does not exist, and HF_HUB_OFFLINE is set, so LeRobot cannot download "
+            f"it; check the path, or write the dataset there with lerobot-formation-generate --root {root}"
+        )
+
+
+def hand_env_its_policy(pipeline) -> None:
+    """Give the run's env config its policy config: ``pipeline.env.run_policy = pipeline.policy`` when
+    the env config declares ``run_policy`` (``FormationEnvConfig``; other env configs are left alone).
+
+    LeRobot's ``make_env_pre_post_processors(env_cfg, policy_cfg)`` calls ``env_cfg.get_env_processors()``
+    with no argument, and our env checks there that the policy takes its observation; the policy's
+    input features are known only then (``make_policy`` fills them in place), so the env keeps the
+    config object, not a copy."""
+    env = getattr(pipeline, "env", None)
+    if env is not None and hasattr(type(env), "run_policy"):
+        env.run_policy = pipeline.policy
+
+
+def report_resume_with_nothing_to_train(resume: bool, steps: int, checkpoint_path, step: int) -> str | None:
+    """When ``lerobot-train --resume=true`` resumes a run whose checkpoint is at ``step`` >= its
+    ``--steps``, log why it will train 0 steps and return that line (else None). LeRobot then just
+    saves nothing and ends ("End of training") without saying why."""
+    if not resume or step < steps:
+        return None
+    line = (
+        f"resume: the checkpoint {checkpoint_path} is at step {step} and the run's --steps is {steps}, so "
+        f"there is nothing to train (0 steps); pass --steps=N with N > {step} to train on"
+    )
+    logging.getLogger("lerobot_formation").warning(line)
+    return line
+
+
+def _checkpoint_step(checkpoint_path) -> int | None:
+    """The training step of a ``lerobot-train`` checkpoint folder (``training_state/training_step.json``,
+    read as LeRobot reads it when it resumes); None if that file is missing."""
+    from lerobot.common.train_utils import load_training_step
+    from lerobot.utils.constants import TRAINING_STATE_DIR, TRAINING_STEP
+
+    state_dir = Path(checkpoint_path) / TRAINING_STATE_DIR
+    if not (state_dir / TRAINING_STEP).is_file():
+        return None  # LeRobot reports it when it loads the checkpoint
+    return load_training_step(state_dir)
+
+
+def install_train_checks() -> None:
+    """Wrap ``TrainPipelineConfig.validate`` (the start of ``lerobot-train``; idempotent). LeRobot has
+    no hook for a plugin here. Around LeRobot's own checks, in this order:
+
+    - a missing ``--dataset.root`` while offline is one ``ConfigError`` (``check_dataset_root_offline``);
+    - an explicitly given ``--output_dir`` is locked for the run (``acquire_output_lock``): a second run
+      into the same folder refuses with the first one's pid; the lock is dropped if LeRobot's checks fail;
+    - then the env config gets the resolved policy config (``hand_env_its_policy``), and a resumed run
+      that has nothing left to train says so (``report_resume_with_nothing_to_train``).
+    """
     from lerobot.configs.train import TrainPipelineConfig
 
     original = TrainPipelineConfig.validate
-    if getattr(original, "_formation_output_lock", False):
+    if getattr(original, "_formation_train_checks", False):
         return
 
     def validate(self) -> None:
-
+        check_dataset_root_offline(getattr(self.dataset, "root", None))
         given = Path(self.output_dir) if self.output_dir and is_main_process() else None
         if given is not None:
             acquire_output_lock(given)
@@ -153,9 +220,33 @@ def install_train_output_lock() -> None:
             if given is not None:
                 release_output_lock(given)
             raise
+        hand_env_its_policy(self)
+        if self.resume and self.checkpoint_path is not None and is_main_process():
+            step = _checkpoint_step(self.checkpoint_path)
+            if step is not None:
+                report_resume_with_nothing_to_train(True, self.steps, self.checkpoint_path, step)
 
-    validate._formation_output_lock = True  # type: ignore[attr-defined]
+    validate._formation_train_checks = True  # type: ignore[attr-defined]
     TrainPipelineConfig.validate = validate
+
+
+def install_eval_checks() -> None:
+    """Wrap ``EvalPipelineConfig.__post_init__`` (``lerobot-eval``'s config, which loads the policy
+    config of ``--policy.path``; idempotent) so that the env config gets that policy config
+    (``hand_env_its_policy``). Our env config, built first by draccus, installs this before the
+    pipeline config is made."""
+    from lerobot.configs.eval import EvalPipelineConfig
+
+    original = EvalPipelineConfig.__post_init__
+    if getattr(original, "_formation_eval_checks", False):
+        return
+
+    def post_init(self) -> None:
+        original(self)
+        hand_env_its_policy(self)
+
+    post_init._formation_eval_checks = True  # type: ignore[attr-defined]
+    EvalPipelineConfig.__post_init__ = post_init
 
 
 def config_errors_in_draccus_messages() -> None:
@@ -207,8 +298,11 @@ def one_line_config_errors() -> None:
 def install_run_hooks() -> None:
     """The start-up checks of a formation run, switched on when one of our configs is built (so a
     LeRobot run of another project is untouched): an uncaught ``ConfigError`` is one ``error:`` line
-    (``one_line_config_errors``, ``config_errors_in_draccus_messages``) and ``lerobot-train`` locks
-    its ``--output_dir`` (``install_train_output_lock``). Idempotent."""
+    (``one_line_config_errors``, ``config_errors_in_draccus_messages``), ``lerobot-train`` checks its
+    ``--dataset.root`` and locks its ``--output_dir`` (``install_train_checks``), and ``lerobot-train``
+    / ``lerobot-eval`` hand our env config the run's policy config (``install_train_checks``,
+    ``install_eval_checks``). Idempotent."""
     one_line_config_errors()
     config_errors_in_draccus_messages()
-    install_train_output_lock()
+    install_train_checks()
+    install_eval_checks()

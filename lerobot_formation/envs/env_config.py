@@ -17,7 +17,7 @@ formation metrics (see ``lerobot_formation.envs.episode_metrics``: ``info["final
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 from gymnasium.vector import AutoresetMode
@@ -27,12 +27,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import FreezeAfterEpisodeEnd
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.compat.lerobot_compat import (
-    caller_policy_config,
-    install_offline_dataset_root_check,
-    keep_final_eval_frame,
-    report_resume_with_nothing_to_train,
-)
+from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame
 from lerobot_formation.compat.run_checks import config_error, install_run_hooks
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.observation import STATE_DIM
@@ -48,8 +43,6 @@ from lerobot_formation.envs.episode_metrics import (
 from lerobot_formation.envs.render import FINAL_FRAME_KEY, EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
-# A --dataset.root that does not exist, offline: one clear error at start-up, not a hub traceback.
-install_offline_dataset_root_check()
 
 
 def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
@@ -201,6 +194,10 @@ class FormationEnvConfig(EnvConfig):
         }
     )
 
+    # The run's policy config, handed over by lerobot-train's / lerobot-eval's pipeline config once it
+    # has resolved it (compat.run_checks.hand_env_its_policy); None elsewhere. Not a config field.
+    run_policy: ClassVar[Any] = None
+
     def __post_init__(self) -> None:
         install_run_hooks()  # a formation run: one-line config errors, the training output lock
         if self.obstacle_encoding not in ENCODINGS:
@@ -239,11 +236,10 @@ class FormationEnvConfig(EnvConfig):
         """LeRobot's env processors (identity), after a start-up check: ``lerobot-train`` calls this once
         it has built the policy and before the first training step (``lerobot-eval`` before the first
         episode), so an env whose observation the policy cannot take (``--env.obstacle_encoding``) is
-        refused there, not at the first in-training evaluation (``check_policy_features``)."""
-        policy_cfg = caller_policy_config()
-        if policy_cfg is not None:
-            check_policy_features(self, policy_cfg)
-            report_resume_with_nothing_to_train()
+        refused there, not at the first in-training evaluation (``check_policy_features``). The policy
+        config is ``run_policy``, which their pipeline configs hand over (``compat.run_checks``)."""
+        if self.run_policy is not None:
+            check_policy_features(self, self.run_policy)
         return super().get_env_processors()
 
     def conditions(self) -> Conditions:

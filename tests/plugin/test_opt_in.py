@@ -60,6 +60,56 @@ def test_importing_the_plugin_registers_and_patches_nothing(tmp_path):
     }
 
 
+def test_other_projects_configs_leave_lerobot_untouched_ours_switch_the_run_checks_on(tmp_path):
+    """Importing the plugin and building another project's configs (even a dataset root that does
+    not exist, offline) changes none of the LeRobot functions our run checks wrap; building one of
+    our configs wraps only lerobot-train's and lerobot-eval's pipeline configs."""
+    out = _python(
+        f"""
+        import json, os, sys
+        os.environ["HF_HUB_OFFLINE"] = "1"
+        from draccus.utils import DecodingError
+        from lerobot.configs.default import DatasetConfig
+        from lerobot.configs.eval import EvalPipelineConfig
+        from lerobot.configs.train import TrainPipelineConfig
+        import lerobot.envs.factory as env_factory
+
+        def functions():
+            return {{
+                "DatasetConfig.__post_init__": DatasetConfig.__post_init__,
+                "TrainPipelineConfig.validate": TrainPipelineConfig.validate,
+                "EvalPipelineConfig.__post_init__": EvalPipelineConfig.__post_init__,
+                "DecodingError.__str__": DecodingError.__str__,
+                "sys.excepthook": sys.excepthook,
+                "make_env_pre_post_processors": env_factory.make_env_pre_post_processors,
+            }}
+
+        stock = functions()
+        import lerobot_env_formation  # noqa: F401  (the plugin, as LeRobot's CLIs import it)
+        from lerobot.envs.configs import PushtEnv
+        from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+        dataset = DatasetConfig(repo_id="other/arm", root={str(tmp_path / "missing")!r})
+        train = TrainPipelineConfig(dataset=dataset, env=PushtEnv(), policy=DiffusionConfig(device="cpu"))
+        others = [k for k, f in functions().items() if f is not stock[k]]
+        from lerobot_formation.envs.env_config import FormationEnvConfig
+        FormationEnvConfig()
+        ours = [k for k, f in functions().items() if f is not stock[k]]
+        print(json.dumps({{"others": others, "ours": ours}}))
+        """,
+        tmp_path,
+    )
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got == {
+        "others": [],
+        "ours": [
+            "TrainPipelineConfig.validate",
+            "EvalPipelineConfig.__post_init__",
+            "DecodingError.__str__",
+            "sys.excepthook",
+        ],
+    }
+
+
 WRITE_AND_READ = """
 import sys, torch
 import numpy as np
