@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import last_error_line, stock_diffusion_checkpoint, tiny_diffusion_kwargs
 
 from datasets_scripts import generate_pac_dataset as gen_mod
 from lerobot_formation.bench.cli import main as bench_main
@@ -42,12 +43,6 @@ SEVEN.append([-1.5, 2.0, 0.3])
 def write_scenes(path: Path, scenes: list[dict]) -> Path:
     path.write_text(json.dumps({"scenes": scenes}))
     return path
-
-
-def last_error_line(err: str) -> str:
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert "Traceback" not in err, err
-    return lines[-1]
 
 
 # -- lerobot-formation-generate: killed runs, concurrent runs ----------------------------------------
@@ -332,43 +327,11 @@ def test_walled_off_goal_is_refused_by_the_env_too():
 
 
 # -- the bench: checkpoints and arguments ------------------------------------------------------------
-def _tiny_diffusion_kwargs(env_dim: int = 66) -> dict:
-    """Config fields of a tiny diffusion policy on the formation features (a grid+list dataset)."""
-    from lerobot.configs import FeatureType, PolicyFeature
-    from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
-
-    return dict(
-        device="cpu",
-        push_to_hub=False,
-        input_features={
-            OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
-            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(env_dim,)),
-        },
-        output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))},
-        horizon=16,
-        n_action_steps=8,
-        down_dims=(16, 32),
-        kernel_size=3,
-        n_groups=4,
-        diffusion_step_embed_dim=16,
-    )
-
-
-def _stock_diffusion_checkpoint(path: Path) -> Path:
-    import torch
-    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
-
-    torch.manual_seed(0)
-    DiffusionPolicy(DiffusionConfig(**_tiny_diffusion_kwargs())).save_pretrained(path)
-    return path
-
-
 def _broken_checkpoint(tmp_path: Path, kind: str) -> Path:
     if kind == "missing":
         return tmp_path / "no_such_checkpoint"
     if kind == "stock":
-        return _stock_diffusion_checkpoint(tmp_path / "stock")
+        return stock_diffusion_checkpoint(tmp_path / "stock")
     if not CHECKPOINT.is_dir():
         pytest.skip("no pretrained checkpoint")
     path = tmp_path / kind
@@ -506,7 +469,7 @@ def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up(tmp_path):
     from lerobot_formation.envs.env_config import FormationEnvConfig
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
-    policy_cfg = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66), obstacle_encoding="grid+list")
+    policy_cfg = FormationDiffusionConfig(**tiny_diffusion_kwargs(66), obstacle_encoding="grid+list")
 
     def train(encoding: str) -> TrainPipelineConfig:
         env = FormationEnvConfig(obstacle_encoding=encoding)
@@ -541,7 +504,7 @@ def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     def validate(root: Path) -> None:
-        policy = FormationDiffusionConfig(**_tiny_diffusion_kwargs(66))
+        policy = FormationDiffusionConfig(**tiny_diffusion_kwargs(66))
         TrainPipelineConfig(
             dataset=DatasetConfig(repo_id="local/x", root=str(root)), policy=policy
         ).validate()
@@ -599,7 +562,7 @@ def _tiny_policy(**overrides):
 
     torch.manual_seed(0)
     kwargs = {
-        **_tiny_diffusion_kwargs(51),
+        **tiny_diffusion_kwargs(51),
         "noise_scheduler_type": "DDIM",
         "num_inference_steps": 4,
         **overrides,
@@ -799,7 +762,7 @@ def test_config_values_are_checked(field, value, message):
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     with pytest.raises(ValueError, match=message):
-        FormationDiffusionConfig(**{**_tiny_diffusion_kwargs(51), field: value})
+        FormationDiffusionConfig(**{**tiny_diffusion_kwargs(51), field: value})
 
 
 @pytest.mark.parametrize(

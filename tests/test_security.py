@@ -16,15 +16,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import last_error_line, tiny_formation_checkpoint
 
 from datasets_scripts import generate_pac_dataset as gen_mod
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.hub_folder import push_to_folder
-
-
-def last_error_line(err: str) -> str:
-    assert "Traceback" not in err, err
-    return [ln for ln in err.strip().splitlines() if ln.strip()][-1]
 
 
 @pytest.fixture(scope="module")
@@ -133,48 +129,6 @@ class _Payload:
         return (subprocess.call, (["touch", str(self.marker)],))
 
 
-def _tiny_checkpoint(path: Path, env_dim: int = 66) -> Path:
-    """A tiny untrained grid+list formation_diffusion policy saved with its processors."""
-    import torch
-    from lerobot.configs import FeatureType, PolicyFeature
-    from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
-
-    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
-    from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
-    from lerobot_formation.policy.processor_formation_diffusion import (
-        make_formation_diffusion_pre_post_processors,
-    )
-
-    torch.manual_seed(0)
-    cfg = FormationDiffusionConfig(
-        device="cpu",
-        obstacle_encoding={66: "grid+list", 51: "grid"}[env_dim],
-        push_to_hub=False,
-        input_features={
-            OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(7,)),
-            OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(env_dim,)),
-        },
-        output_features={ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(2,))},
-        horizon=16,
-        n_action_steps=8,
-        down_dims=(16, 32),
-        kernel_size=3,
-        n_groups=4,
-        diffusion_step_embed_dim=16,
-        noise_scheduler_type="DDIM",
-        num_inference_steps=2,
-    )
-    stats = {
-        OBS_STATE: {"min": torch.full((7,), -5.0), "max": torch.full((7,), 5.0)},
-        ACTION: {"min": torch.tensor([0.0, -1.5]), "max": torch.tensor([0.6, 1.5])},
-    }
-    pre, post = make_formation_diffusion_pre_post_processors(cfg, stats)
-    FormationDiffusionPolicy(cfg).save_pretrained(path)
-    pre.save_pretrained(path)
-    post.save_pretrained(path)
-    return path
-
-
 def _plant_popen_step(checkpoint: Path, marker: Path) -> None:
     """Make the preprocessor's first step ``subprocess.Popen(["touch", marker])``."""
     f = checkpoint / "policy_preprocessor.json"
@@ -185,13 +139,13 @@ def _plant_popen_step(checkpoint: Path, marker: Path) -> None:
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory) -> Path:
-    return _tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "pretrained_model")
+    return tiny_formation_checkpoint(tmp_path_factory.mktemp("ckpt") / "pretrained_model")
 
 
 def test_distill_resume_never_unpickles_code(tmp_path, capsys):
     from lerobot_formation.policy.distill import main as distill_main
 
-    teacher = _tiny_checkpoint(tmp_path / "teacher", env_dim=51)
+    teacher = tiny_formation_checkpoint(tmp_path / "teacher", env_dim=51)
     data = tmp_path / "data"
     lerobot_writer.generate(data, "local/grid", 2, workers=0, progress=False)  # 'grid': 51 values
     out = tmp_path / "out"

@@ -2,9 +2,8 @@
 
 import pytest
 import torch
+from helpers import stock_diffusion_checkpoint
 from lerobot.configs import FeatureType, PolicyFeature
-from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from plugin_helpers import formation_features, tiny_config
@@ -93,23 +92,7 @@ def test_bad_horizon_is_explained(overrides, pattern):
 
 
 def test_checkpoint_of_another_policy_type_is_refused(tmp_path):
-    inputs, outputs = formation_features()
-    torch.manual_seed(0)
-    plain = DiffusionPolicy(
-        DiffusionConfig(
-            device="cpu",
-            push_to_hub=False,
-            input_features=inputs,
-            output_features=outputs,
-            horizon=16,
-            n_action_steps=8,
-            down_dims=(16, 32),
-            kernel_size=3,
-            n_groups=4,
-            diffusion_step_embed_dim=16,
-        )
-    )
-    plain.save_pretrained(tmp_path)
+    stock_diffusion_checkpoint(tmp_path)  # LeRobot's own diffusion policy
     with pytest.raises(TypeError, match=r"type 'formation_diffusion'.*DiffusionConfig \(type 'diffusion'\)"):
         FormationDiffusionPolicy.from_pretrained(tmp_path)
 
