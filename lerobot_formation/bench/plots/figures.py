@@ -209,11 +209,19 @@ def _panels(rows: int, cols: int):
 
 
 def _finish_panels(
-    fig, graph: FormationGraph, title: str, extra: Sequence = (), goal_tolerance: float | None = None
+    fig,
+    graph: FormationGraph,
+    params: FormationParams,
+    title: str,
+    caption: str,
+    records: Sequence[EpisodeRecords],
+    indices: Sequence[int],
+    outcomes: np.ndarray,
 ) -> None:
-    """Shared legend (agents, snapshots, obstacle, goal, the goal tolerance disc, ``extra`` markers)
-    below the panels, title above."""
-    goal_tolerance = FormationParams().goal_tolerance if goal_tolerance is None else goal_tolerance
+    """Title ``"{title}: {caption}"`` (``caption`` alone without a title) above the scene panels and one
+    shared legend below them: agents, snapshots, obstacle, goal, the goal tolerance disc, then the
+    markers of what the panels show: failures among ``outcomes`` (``_marks``) and the realistic
+    conditions of ``records`` on scenes ``indices`` (``_condition_marks``)."""
     handles = [
         Line2D([], [], color=AGENT_COLORS[a % len(AGENT_COLORS)], label=name)
         for a, name in enumerate(graph.agents)
@@ -222,15 +230,16 @@ def _finish_panels(
         Line2D([], [], color="k", lw=0.6, marker=".", label="formation snapshot"),
         Patch(color="0.6", label="obstacle"),
         Line2D([], [], color="tab:green", marker="*", ls="", ms=10, label="goal"),
-        Patch(color="tab:green", alpha=0.25, label=f"goal tolerance ({goal_tolerance:g} m)"),
-        *extra,
+        Patch(color="tab:green", alpha=0.25, label=f"goal tolerance ({params.goal_tolerance:g} m)"),
+        *_marks(outcomes),
+        *_condition_marks(records, indices),
     ]
     width, height = fig.get_size_inches()
     per_line = max(2, int(width / 1.3))
     lines = int(np.ceil(len(handles) / per_line))
     ncol = int(np.ceil(len(handles) / lines))
     fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
-    _suptitle(fig, title, fontsize=11)
+    _suptitle(fig, f"{title}: {caption}" if title else caption, fontsize=11)
     fig.tight_layout(rect=(0, 0.25 * lines / height, 1, 1))
 
 
@@ -271,9 +280,8 @@ def plot_trajectories(
             _draw_episode(ax, rec, scenes, indices[k], graph, params=params, presets=presets)
         else:
             ax.axis("off")
-    head = f"{title}: " if title else ""
-    marks = _marks(rec.outcome[indices]) + _condition_marks([rec], indices)
-    _finish_panels(fig, graph, f"{head}{_plural(len(indices), 'episode')}", marks, params.goal_tolerance)
+    caption = _plural(len(indices), "episode")
+    _finish_panels(fig, graph, params, title, caption, [rec], indices, rec.outcome[indices])
     return _save(fig, path)
 
 
@@ -383,15 +391,11 @@ def plot_failures(
     if not len(bad):
         axs[0][0].text(0.5, 0.5, "no failures", ha="center", va="center", transform=axs[0][0].transAxes)
     n_coll = int(np.sum(rec.outcome[all_bad] == COLLISION))
-    head = f"{title}: " if title else ""
-    _finish_panels(
-        fig,
-        graph,
-        f"{head}{len(bad)} of {_plural(len(all_bad), 'failure')} shown ({_plural(n_coll, 'collision')}, "
-        f"{_plural(len(all_bad) - n_coll, 'timeout')}; {len(rec)} episodes)",
-        _marks(rec.outcome[bad]) + _condition_marks([rec], bad),
-        params.goal_tolerance,
+    caption = (
+        f"{len(bad)} of {_plural(len(all_bad), 'failure')} shown ({_plural(n_coll, 'collision')}, "
+        f"{_plural(len(all_bad) - n_coll, 'timeout')}; {len(rec)} episodes)"
     )
+    _finish_panels(fig, graph, params, title, caption, [rec], bad, rec.outcome[bad])
     return _save(fig, path, dpi=100)
 
 
@@ -433,15 +437,8 @@ def plot_controller_comparison(
                 title=f"{name}, {scene_label(scenes, b, presets)}",
             )
     shown = np.concatenate([records[n].outcome[indices] for n in names])
-    head = f"{title}: " if title else ""
-    marks = _marks(shown) + _condition_marks(list(records.values()), indices)
-    _finish_panels(
-        fig,
-        graph,
-        f"{head}{len(names)} controllers on the same {len(indices)} scenes",
-        marks,
-        params.goal_tolerance,
-    )
+    caption = f"{len(names)} controllers on the same {len(indices)} scenes"
+    _finish_panels(fig, graph, params, title, caption, list(records.values()), indices, shown)
     return _save(fig, path, dpi=100)
 
 
