@@ -16,8 +16,8 @@ shared libraries, every ``DatasetConfig`` / ``LeRobotDataset`` LeRobot makes tri
 torchcodec`` and logs the whole ~35-line loading traceback, twice per ``lerobot-train`` run. This
 project's datasets have no videos, so the decoder never matters; the warning becomes one line (a
 logging filter; what LeRobot does is unchanged). The start-up checks of a formation run (one-line
-config errors, the training output lock) switch on only when one of our configs is built
-(``lerobot_compat.install_run_hooks``).
+config errors, lerobot-train's dataset-root check and output lock, the env config meeting the policy
+config) switch on only when one of our configs is built (``compat.run_checks.install_run_hooks``).
 """
 
 import logging
