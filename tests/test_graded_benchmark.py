@@ -9,11 +9,11 @@ import pytest
 from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
-from lerobot_formation.bench.levels import LEVELS, get_level, level_env_fields
 from lerobot_formation.bench.merge import main as merge_main
 from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.levels import LEVELS, get_level, level_env_fields
 from lerobot_formation.core.rollout import SUCCESS, Teams, rollout
 from lerobot_formation.core.route_pursuit import RoutePursuitConfig, RoutePursuitController
 from lerobot_formation.core.scene import (

@@ -28,7 +28,7 @@ and exit code 2. If a controller fails after others finished, ``results.json`` a
 still written with the finished ones (``meta.incomplete``, ``meta.error``) before the error.
 Clearance metrics are null (n/a in the tables) for scenes with no obstacle.
 
-Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.bench.levels``)
+Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.core.levels``)
 under the level's conditions, from the level's first seed unless ``--seed`` is given.
 
 Sharding: ``--shard I/N`` runs the scenes whose index i in the scene set has i % N == I (each keeps
@@ -54,12 +54,12 @@ import numpy as np
 from lerobot_formation.bench.controllers import controller_names, make_controller, needs_policy
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import draw_bench_figures
-from lerobot_formation.bench.levels import get_level
 from lerobot_formation.bench.results import controller_results, safety_rates, write_results
 from lerobot_formation.bench.scene_sets import parse_scenes
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.levels import get_level
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
 from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.threads import add_threads_argument, apply_threads

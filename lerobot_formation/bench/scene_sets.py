@@ -2,7 +2,7 @@
 ``dataset:N`` or a scenes file.
 
 ``<mix>:N`` (``core.scene.SCENE_MIXES``: ``structures``, ``mixed-hard``) draws seed s from preset
-``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.bench.levels``),
+``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.core.levels``),
 from the level's own first seed unless a seed is given.
 """
 
@@ -82,7 +82,7 @@ def parse_scenes(
     else ``UNSEEN_SEED_START``). ``report`` counts rejected draws."""
     kind, _, count = spec.partition(":")
     if kind.startswith("level") and count:
-        from lerobot_formation.bench.levels import get_level
+        from lerobot_formation.core.levels import get_level
 
         try:
             n = int(count)
@@ -130,7 +130,7 @@ def parse_scenes(
 
 def level_scenes(name: str, n: int, seed: int | None = None) -> Scenes:
     """The first ``n`` scenes of level ``name`` (from ``seed`` instead of the level's own if given)."""
-    from lerobot_formation.bench.levels import get_level
+    from lerobot_formation.core.levels import get_level
 
     level = get_level(name)
     if n < 1:
