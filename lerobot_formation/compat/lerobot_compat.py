@@ -176,6 +176,20 @@ def caller_policy_config():
     return frame.f_locals.get("policy_cfg")
 
 
+def caller_eval_seed() -> int | None:
+    """``lerobot-eval``'s ``--seed`` (the first episode's reset seed) when its ``eval_main`` called
+    ``make_env_pre_post_processors``, which called the caller (an ``EnvConfig.get_env_processors``);
+    else None (``lerobot-train``, a script, or ``--seed=null``)."""
+    try:
+        frame = sys._getframe(3)  # this <- get_env_processors <- make_env_pre_post_processors <- eval_main
+    except ValueError:
+        return None
+    if frame.f_code.co_name != "eval_main":
+        return None
+    seed = getattr(frame.f_locals.get("cfg"), "seed", None)
+    return seed if isinstance(seed, int) else None
+
+
 def report_resume_with_nothing_to_train() -> str | None:
     """When ``lerobot-train --resume=true`` resumes a run that has already reached its ``--steps``,
     log why it will train 0 steps and return that line (else None).
