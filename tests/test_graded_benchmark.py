@@ -10,7 +10,7 @@ from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.merge import main as merge_main
-from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes
+from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes, scene_set_conditions
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.levels import LEVELS, get_level, level_env_fields
@@ -251,6 +251,65 @@ def test_lerobot_eval_of_a_level_warns_about_another_seed(caplog):
         eval_main(SimpleNamespace(env=cfg, seed=1000))
     assert "--env.level=2 with --seed=1000: episode i plays the scene of seed 1000 + i" in caplog.text
     assert "pass --seed=1000000" in caplog.text
+
+
+def test_each_scene_set_runs_under_its_own_conditions():
+    level5 = get_level("5").conditions
+    assert scene_set_conditions("level5:3", Conditions()) == level5
+    assert scene_set_conditions("random:3", Conditions(action_delay=2)) == Conditions(action_delay=2)
+    with pytest.raises(
+        ValueError, match=r"level5:3 fixes its own conditions .* drop --env flags \{'action_delay': 2\}"
+    ):
+        scene_set_conditions("level5:3", Conditions(action_delay=2))
+
+
+def test_bench_unseen_level_runs_under_its_levels_conditions(tmp_path, monkeypatch, capsys):
+    """``--unseen level4:N`` runs under level 4's conditions, the --scenes set under its own."""
+    from types import SimpleNamespace
+
+    import lerobot_formation.bench.cli as cli
+    import lerobot_formation.policy.checkpoint as checkpoint
+
+    ran = {}
+    monkeypatch.setattr(cli, "run_set", lambda *a: ran.__setitem__(a[4], a[8]))  # label -> conditions
+    monkeypatch.setattr(cli, "needs_policy", lambda name: True)  # the unseen set runs policy controllers
+    policy = SimpleNamespace(config=SimpleNamespace(num_train_timesteps=100))
+    monkeypatch.setattr(checkpoint, "load_policy", lambda path: (policy, None))
+    argv = ["--controllers", "pac", "--policy.path", "p", "--no-figures", "--out", str(tmp_path)]
+    assert cli.main([*argv, "--scenes", "random:1", "--unseen", "level4:1"]) == 0
+    assert ran == {"random": Conditions(), "unseen": get_level("4").conditions}
+    meta = json.loads((tmp_path / "results.json").read_text())["meta"]
+    assert meta["conditions"] == {} and meta["unseen_conditions"] == get_level("4").conditions.changed()
+    ran.clear()
+    assert cli.main([*argv, "--scenes", "level5:1", "--unseen", "random:1"]) == 0
+    assert ran == {"level5": get_level("5").conditions, "unseen": Conditions()}
+    with pytest.raises(SystemExit):
+        cli.main([*argv, "--scenes", "random:1", "--unseen", "level4:1", "--env.action_delay", "2"])
+    assert "level4:1 fixes its own conditions" in capsys.readouterr().err
+
+
+def _ablation():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "ablation.py"
+    spec = importlib.util.spec_from_file_location("_test_ablation", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_ablation_runs_a_level_under_its_conditions_and_other_sets_under_the_flags(capsys):
+    ablation = _ablation()
+    runs = ablation.scene_set_runs(["level5:2", "random:1"], 1_000_000, Conditions())
+    _same_scenes(runs["level5:2"][0], level_scenes("level5", 2))
+    assert runs["level5:2"][1] == get_level("5").conditions and runs["random:1"][1] == Conditions()
+    flagged = ablation.scene_set_runs(["random:1"], 1_000_000, Conditions(action_delay=2))
+    assert flagged["random:1"][1] == Conditions(action_delay=2)
+    # the CLI: --env flags like the bench's, refused with a level before anything is loaded
+    with pytest.raises(SystemExit) as exit_info:
+        ablation.main(["--new", "none", "--sets", "level5:1", "--env.action_delay", "2"])
+    assert exit_info.value.code == 2 and "level5:1 fixes its own conditions" in capsys.readouterr().err
 
 
 def test_route_pursuit_runs_under_conditions():
