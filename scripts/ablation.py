@@ -9,6 +9,10 @@ default holds at most 5 obstacles) say so instead of a number.
     python scripts/ablation.py --new pretrained/formation_diffusion_safe --old pretrained/formation_diffusion_cpu \\
         --sets random:100,hard:100 --out outputs/ablation
 
+Conditions: a graded level's set (``--sets level5:500``) runs under that level's conditions; the other
+sets under the ``--env.<field> VALUE`` flags of the bench (docs/conditions.md), which a level refuses
+(``bench.scene_sets.scene_set_conditions``). ``ablation.md`` names each set's conditions.
+
 Rows: PAC; MPPI; route pursuit (``core/route_pursuit.py``, no learning); the old default (paper data, egocentric grid+list list) standard; the
 new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escapes, CBF filter,
 both, both + escapes ("escapes": ``ReplanExperiment.escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
@@ -37,10 +41,12 @@ from pathlib import Path
 from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.results import controller_results, safety_rates
-from lerobot_formation.bench.scene_sets import parse_scenes
+from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions
 from lerobot_formation.bench.settings import ControllerOptions
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import UNSEEN_SEED_START
+from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes
+from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.policy.replanner import ReplanExperiment
 
 EXPERIMENT_FIELDS = {f.name for f in fields(ReplanExperiment)}
@@ -151,6 +157,12 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
     return rows
 
 
+def scene_set_runs(sets: list[str], seed: int, flags: Conditions) -> dict[str, tuple[Scenes, Conditions]]:
+    """Each scene set's scenes (from first seed ``seed``) and the conditions it runs under: a level's
+    own, else ``flags``; ValueError for a bad set or flags given with a level."""
+    return {s: (parse_scenes(s, seed), scene_set_conditions(s, flags)) for s in sets}
+
+
 def _mean(entry: dict, key: str, digits: int = 3) -> str:
     m = entry.get(key) or {}
     return "—" if m.get("mean") is None else f"{m['mean']:.{digits}g}"
@@ -195,12 +207,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-action-steps", type=int, default=None)
     ap.add_argument("--rows", default=None, help="only these rows: exact labels separated by ';'")
     ap.add_argument("--out", default="outputs/ablation")
+    add_condition_arguments(ap)
     args = ap.parse_args(argv)
+    sets = [s for s in args.sets.split(",") if s]
+    try:
+        runs = scene_set_runs(sets, args.seed, conditions_from_flags(args))
+    except ValueError as e:
+        ap.error(str(e).replace("conditions: ", "--env."))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     params = FormationParams()
-    sets = [s for s in args.sets.split(",") if s]
-    scenes = {s: parse_scenes(s, args.seed) for s in sets}
     from lerobot_formation.policy.checkpoint import load_policy
 
     bundles: dict[str, tuple] = {}
@@ -232,11 +248,11 @@ def main(argv: list[str] | None = None) -> int:
             experiment=experiment,
         )
         for s in sets:
-            sc = scenes[s]
+            sc, conditions = runs[s]
             t0 = time.perf_counter()
             try:
                 ctrl = make_controller(name, params, options, bundle)
-                rec = evaluate(ctrl, sc, params, progress=False)
+                rec = evaluate(ctrl, sc, params, progress=False, conditions=conditions)
             except ValueError as e:  # e.g. more obstacles than a "grid+list" policy can observe
                 results[label][s] = {"error": str(e).split(";")[0]}
                 print(f"[{s}] {label}: cannot run: {e}", flush=True)
@@ -258,8 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     (out / "ablation.json").write_text(json.dumps(results, indent=1))
     lines = []
     for s in sets:
+        changed = runs[s][1].changed()
         lines += [
-            f"#### {s} (seeds from {args.seed})",
+            f"#### {s} (seeds from {args.seed}; conditions: {changed or 'none'})",
             "",
             "| controller | success % [95 % CI] | collisions | timeouts | smoothness | jerk | path (m) | time (s) "
             "| filter interventions | replans with no safe candidate | replans with an escape manoeuvre "

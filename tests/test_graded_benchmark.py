@@ -9,15 +9,16 @@ import pytest
 from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
-from lerobot_formation.bench.levels import LEVELS, get_level, level_env_fields
 from lerobot_formation.bench.merge import main as merge_main
-from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes
+from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes, scene_set_conditions
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.levels import LEVELS, get_level, level_env_fields
 from lerobot_formation.core.rollout import SUCCESS, Teams, rollout
 from lerobot_formation.core.route_pursuit import RoutePursuitConfig, RoutePursuitController
 from lerobot_formation.core.scene import (
     FAR,
+    SCENE_MIXES,
     SCENE_PRESETS,
     STRUCTURE_PRESETS,
     Scenes,
@@ -27,6 +28,8 @@ from lerobot_formation.core.scene import (
     scene_preset,
     scene_validity,
 )
+from lerobot_formation.envs.env_config import FormationEnvConfig, report_level_seed
+from lerobot_formation.envs.vector_env import FormationVectorEnv
 
 
 def _scene(obstacles, goal, start=(0.0, 0.0, np.pi / 2)) -> Scenes:
@@ -161,6 +164,145 @@ def test_level_errors_and_env_fields():
     assert fields["scene_preset"] == "structures" and fields["sensing_range"] == 3.0
     assert set(fields) == {"scene_preset", *CONDITION_FIELDS}
     assert level_env_fields("level0")["scene_preset"] == "paper" and "paper" in SCENE_PRESETS
+
+
+def _same_scenes(a: Scenes, b: Scenes) -> None:
+    for name in ("obstacles", "mask", "goal", "start", "seeds"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+# -- levels in lerobot-eval (--env.level) and mixtures as --env.scene_preset -------------------
+
+
+@pytest.mark.parametrize("level", ["3", "level5"])
+def test_env_level_plays_the_benchs_level_scenes_under_its_conditions(level):
+    """``lerobot-eval --env.level=K --seed=1000000``: episode i resets with seed 1,000,000 + i, which
+    is scene i of the bench's ``levelK:N``; the env has the level's conditions."""
+    import draccus
+
+    cfg = draccus.parse(FormationEnvConfig, args=[f"--level={level}"])
+    want = get_level(level)
+    assert cfg.conditions() == want.conditions and cfg.effective_scene_preset == "structures"
+    env = cfg.make_env_factory()()
+    bench = level_scenes(level, 2)
+    for i in range(2):  # two scenes: two presets of the mixture (seed % 5)
+        env.reset(seed=want.seed + i)
+        _same_scenes(env.unwrapped.scene, bench[i : i + 1])
+    assert env.unwrapped.conditions == (want.conditions if want.conditions.enabled else None)
+    env.close()
+
+
+def test_env_without_a_level_is_unchanged_and_level0_is_the_paper_layout():
+    plain = FormationEnvConfig().gym_kwargs
+    assert FormationEnvConfig().level is None and set(plain) == {
+        "render_mode",
+        "scenes_file",
+        "obstacle_encoding",
+        "scene_config",
+    }
+    assert plain["scene_config"] == SCENE_PRESETS["paper"]
+    assert FormationEnvConfig(level="0").gym_kwargs == plain
+    assert FormationEnvConfig(level="1").gym_kwargs["scene_config"] == SCENE_PRESETS["wide"]
+
+
+def test_env_level_refuses_other_scene_or_condition_values():
+    with pytest.raises(
+        ValueError, match=r"env.level=5 fixes the scenes \(structures\).*drop --env.sensing_range=2.0,"
+    ):
+        FormationEnvConfig(level="5", sensing_range=2.0)
+    with pytest.raises(ValueError, match="drop --env.scene_preset=wide --env.action_delay=3"):
+        FormationEnvConfig(level="4", scene_preset="wide", action_delay=3)
+    with pytest.raises(ValueError, match="drop --env.scenes_file=s.json"):
+        FormationEnvConfig(level="3", scenes_file="s.json")
+    with pytest.raises(ValueError, match=r"env.level: unknown level '9'; choose from \('level0'"):
+        FormationEnvConfig(level="9")
+    # the level's own values are no clash
+    same = FormationEnvConfig(level="5", sensing_range=3.0, scene_preset="structures")
+    assert same.conditions() == get_level("5").conditions
+
+
+def test_env_scene_preset_takes_the_levels_mixtures():
+    env = FormationEnvConfig(scene_preset="mixed-hard").make_env_factory()()
+    env.reset(seed=1_000_003)
+    _same_scenes(env.unwrapped.scene, parse_scenes("mixed-hard:4", 1_000_000)[3:4])
+    env.close()
+    venv = FormationVectorEnv(2, scene_mix=SCENE_MIXES["structures"])
+    venv.reset(seed=1_000_000)
+    _same_scenes(venv.scenes, parse_scenes("structures:2", 1_000_000))
+    with pytest.raises(ValueError, match="env.scene_preset must be one of .*'structures', 'mixed-hard'"):
+        FormationEnvConfig(scene_preset="mixed")
+    with pytest.raises(ValueError, match="scene_mix must be a non-empty sequence"):
+        FormationVectorEnv(1, scene_mix="structures")
+
+
+def test_lerobot_eval_of_a_level_warns_about_another_seed(caplog):
+    cfg = FormationEnvConfig(level="2")
+    assert report_level_seed(cfg, 1_000_000) is None and report_level_seed(FormationEnvConfig(), 1000) is None
+
+    with caplog.at_level("WARNING", logger="lerobot_formation"):
+        cfg.run_eval_seed = 1000  # what lerobot-eval's pipeline config hands over (compat.run_checks)
+        cfg.get_env_processors()
+    assert "--env.level=2 with --seed=1000: episode i plays the scene of seed 1000 + i" in caplog.text
+    assert "pass --seed=1000000" in caplog.text
+
+
+def test_each_scene_set_runs_under_its_own_conditions():
+    level5 = get_level("5").conditions
+    assert scene_set_conditions("level5:3", Conditions()) == level5
+    assert scene_set_conditions("random:3", Conditions(action_delay=2)) == Conditions(action_delay=2)
+    with pytest.raises(
+        ValueError, match=r"level5:3 fixes its own conditions .* drop --env flags \{'action_delay': 2\}"
+    ):
+        scene_set_conditions("level5:3", Conditions(action_delay=2))
+
+
+def test_bench_unseen_level_runs_under_its_levels_conditions(tmp_path, monkeypatch, capsys):
+    """``--unseen level4:N`` runs under level 4's conditions, the --scenes set under its own."""
+    from types import SimpleNamespace
+
+    import lerobot_formation.bench.cli as cli
+    import lerobot_formation.policy.checkpoint as checkpoint
+
+    ran = {}
+    monkeypatch.setattr(cli, "run_set", lambda *a: ran.__setitem__(a[4], a[8]))  # label -> conditions
+    monkeypatch.setattr(cli, "needs_policy", lambda name: True)  # the unseen set runs policy controllers
+    policy = SimpleNamespace(config=SimpleNamespace(num_train_timesteps=100))
+    monkeypatch.setattr(checkpoint, "load_policy", lambda path: (policy, None))
+    argv = ["--controllers", "pac", "--policy.path", "p", "--no-figures", "--out", str(tmp_path)]
+    assert cli.main([*argv, "--scenes", "random:1", "--unseen", "level4:1"]) == 0
+    assert ran == {"random": Conditions(), "unseen": get_level("4").conditions}
+    meta = json.loads((tmp_path / "results.json").read_text())["meta"]
+    assert meta["conditions"] == {} and meta["unseen_conditions"] == get_level("4").conditions.changed()
+    ran.clear()
+    assert cli.main([*argv, "--scenes", "level5:1", "--unseen", "random:1"]) == 0
+    assert ran == {"level5": get_level("5").conditions, "unseen": Conditions()}
+    with pytest.raises(SystemExit):
+        cli.main([*argv, "--scenes", "random:1", "--unseen", "level4:1", "--env.action_delay", "2"])
+    assert "level4:1 fixes its own conditions" in capsys.readouterr().err
+
+
+def _ablation():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "ablation.py"
+    spec = importlib.util.spec_from_file_location("_test_ablation", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_ablation_runs_a_level_under_its_conditions_and_other_sets_under_the_flags(capsys):
+    ablation = _ablation()
+    runs = ablation.scene_set_runs(["level5:2", "random:1"], 1_000_000, Conditions())
+    _same_scenes(runs["level5:2"][0], level_scenes("level5", 2))
+    assert runs["level5:2"][1] == get_level("5").conditions and runs["random:1"][1] == Conditions()
+    flagged = ablation.scene_set_runs(["random:1"], 1_000_000, Conditions(action_delay=2))
+    assert flagged["random:1"][1] == Conditions(action_delay=2)
+    # the CLI: --env flags like the bench's, refused with a level before anything is loaded
+    with pytest.raises(SystemExit) as exit_info:
+        ablation.main(["--new", "none", "--sets", "level5:1", "--env.action_delay", "2"])
+    assert exit_info.value.code == 2 and "level5:1 fixes its own conditions" in capsys.readouterr().err
 
 
 def test_route_pursuit_runs_under_conditions():

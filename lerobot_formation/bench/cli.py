@@ -28,8 +28,11 @@ and exit code 2. If a controller fails after others finished, ``results.json`` a
 still written with the finished ones (``meta.incomplete``, ``meta.error``) before the error.
 Clearance metrics are null (n/a in the tables) for scenes with no obstacle.
 
-Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.bench.levels``)
-under the level's conditions, from the level's first seed unless ``--seed`` is given.
+Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.core.levels``)
+under the level's conditions, from the level's first seed unless ``--seed`` is given. Each scene set
+runs under its own conditions: ``--scenes`` and ``--unseen`` a level's if it is a level, else the
+``--env`` flags (``scene_sets.scene_set_conditions``; ``--env`` flags with a level are an error);
+``results.json`` records them in ``meta.conditions`` and ``meta.unseen_conditions``.
 
 Sharding: ``--shard I/N`` runs the scenes whose index i in the scene set has i % N == I (each keeps
 its seed and index); ``lerobot-formation-bench-merge`` (``python -m lerobot_formation.bench.merge``)
@@ -54,9 +57,8 @@ import numpy as np
 from lerobot_formation.bench.controllers import controller_names, make_controller, needs_policy
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import draw_bench_figures
-from lerobot_formation.bench.levels import get_level
 from lerobot_formation.bench.results import controller_results, safety_rates, write_results
-from lerobot_formation.bench.scene_sets import parse_scenes
+from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
@@ -130,7 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
         "behind), hard:N, structures:N, mixed-hard:N, levelK:N (K = 0..5), dataset:N or FILE.json",
     )
     ap.add_argument(
-        "--unseen", default=None, help="also run the diffusion controllers on these scenes (random:N)"
+        "--unseen",
+        default=None,
+        help="also run the diffusion controllers on these scenes (random:N; levelK:N under its conditions)",
     )
     ap.add_argument(
         "--seed",
@@ -198,8 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         shard = parse_shard(args.shard)
-        kind, colon, _ = args.scenes.partition(":")
-        level = get_level(kind) if colon and kind.startswith("level") else None
+        level = scene_set_level(args.scenes)
     except ValueError as e:
         _fail(str(e))
     if args.seed is None:  # resolved here, so results.json records the seed used
@@ -220,11 +223,12 @@ def main(argv: list[str] | None = None) -> int:
         flags = conditions_from_flags(args)
     except ValueError as e:
         _fail(str(e).replace("conditions: ", "--env."))
-    if level is not None and flags.enabled:
-        _fail(
-            f"{args.scenes} fixes its own conditions ({level.conditions.changed() or 'none'}); drop --env flags {flags.changed()}"
-        )
-    conditions = level.conditions if level is not None else flags
+    try:  # each set its own: a level's conditions, else the --env flags
+        conditions = scene_set_conditions(args.scenes, flags)
+        unseen_conditions = scene_set_conditions(args.unseen, flags) if args.unseen else Conditions()
+    except ValueError as e:
+        _fail(str(e))
+    recorded = {"conditions": conditions.changed(), "unseen_conditions": unseen_conditions.changed()}
     report = SamplingReport()
     try:
         scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
@@ -293,16 +297,14 @@ def main(argv: list[str] | None = None) -> int:
                 bundle,
                 results["unseen"],
                 kept,
-                conditions,
+                unseen_conditions,
                 unseen_indices,
             )
     except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
         done = [f"{k}/{c}" for k, v in results.items() for c in v]
         message = str(e) if isinstance(e, BenchInputError) else f"{type(e).__name__}: {e}"
         if done:
-            _write_or_fail(
-                out, results, label, settings, report, error=message, conditions=conditions.changed()
-            )
+            _write_or_fail(out, results, label, settings, report, error=message, **recorded)
             print(f"wrote {out / 'results.json'} with the finished controllers {done}", file=sys.stderr)
         if isinstance(e, BenchInputError):
             _fail(message)
@@ -313,16 +315,14 @@ def main(argv: list[str] | None = None) -> int:
             f"(start covered {report.rejected_start}, obstacle near goal {report.rejected_goal}, "
             f"no passage {report.rejected_passage})"
         )
-    _write_or_fail(
-        out, results, label, settings, report, conditions=conditions.changed()
-    )  # the results first, the figures after them
+    _write_or_fail(out, results, label, settings, report, **recorded)  # the results first, the figures after
     print(f"wrote {out / 'results.json'}, {out / 'tables.md'}", flush=True)
     if records is not None:
         specs = {label: args.scenes, "unseen": args.unseen or ""}
         scene_sets = {label: scenes, "unseen": unseen}
         figures, failed = draw_bench_figures(out, results, records, scene_sets, specs, args.seed)
         _write_or_fail(
-            out, results, label, settings, report, conditions=conditions.changed(), figure_errors=failed
+            out, results, label, settings, report, figure_errors=failed, **recorded
         )  # with the figures' names
         print(f"figures in {out}: {', '.join(figures)}")
     return 0

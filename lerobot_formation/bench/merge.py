@@ -33,7 +33,16 @@ from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS, summarize
 from lerobot_formation.core.scene import SamplingReport
 
 # meta entries every shard must share (the run's settings)
-SETTINGS = ("scenes", "unseen", "seed", "policy_path", "candidates", "num_inference_steps", "conditions")
+SETTINGS = (
+    "scenes",
+    "unseen",
+    "seed",
+    "policy_path",
+    "candidates",
+    "num_inference_steps",
+    "conditions",
+    "unseen_conditions",
+)
 
 
 def read_shard(folder: Path) -> dict:
@@ -163,9 +172,13 @@ def main(argv: list[str] | None = None) -> int:
     report.rejected_start = sampling.get("rejected_start_covered", 0)
     report.rejected_goal = sampling.get("rejected_obstacle_near_goal", 0)
     report.rejected_passage = sampling.get("rejected_no_passage", 0)
-    conditions = Conditions(**(meta.get("conditions") or {})).changed()  # checked, as the shards ran
+    # checked, as the shards ran
+    conditions = Conditions(**(meta.get("conditions") or {})).changed()
+    unseen_conditions = Conditions(**(meta.get("unseen_conditions") or {})).changed()
     label = next(iter(results))
-    write_results(out, results, label, run, report, conditions=conditions)
+    write_results(
+        out, results, label, run, report, conditions=conditions, unseen_conditions=unseen_conditions
+    )
     for set_label, entries in results.items():
         for ctrl, entry in entries.items():
             lo, hi = entry["success_ci95"]

@@ -85,12 +85,13 @@ def write_results(
     error: str | None = None,
     conditions: dict | None = None,
     figure_errors: list[str] | None = None,
+    unseen_conditions: dict | None = None,
 ):
     """results.json and tables.md of the controllers in ``results`` (each written atomically,
     ``atomic_write_text``); ``error`` marks a run that stopped early (``meta.incomplete``,
     ``meta.error``), with what finished before it; ``conditions``: the realistic conditions that were
-    on (``Conditions.changed()``), kept as ``meta.conditions``; ``figure_errors`` lists figures that
-    failed."""
+    on (``Conditions.changed()``), kept as ``meta.conditions``, and those of the unseen set as
+    ``meta.unseen_conditions``; ``figure_errors`` lists figures that failed."""
     # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
     # other scene sets under "by_scenes".
     payload = dict(results.get(label, {}))
@@ -110,6 +111,7 @@ def write_results(
         "figure_errors": figure_errors or [],
     }
     payload["meta"]["conditions"] = conditions or {}  # the fields not at their default
+    payload["meta"]["unseen_conditions"] = unseen_conditions or {}  # a level's own when --unseen is a level
     atomic_write_text(out / "results.json", json.dumps(payload, indent=1, default=_clean))
     tables = [three_way_table(results.get(label, {}), f"{label} scenes ({settings.scenes})", settings.order)]
     sets = {k: v for k, v in results.items() if any(c in settings.policy_controllers for c in v)}

@@ -2,8 +2,9 @@
 ``dataset:N`` or a scenes file.
 
 ``<mix>:N`` (``core.scene.SCENE_MIXES``: ``structures``, ``mixed-hard``) draws seed s from preset
-``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.bench.levels``),
-from the level's own first seed unless a seed is given.
+``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.core.levels``),
+from the level's own first seed unless a seed is given. A scene set runs under its own conditions
+(``scene_set_conditions``): a level's, else the ``--env.<field>`` flags.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.levels import Level, get_level
 from lerobot_formation.core.scene import (
     HARD_PRESETS,
     SCENE_MIXES,
@@ -25,6 +28,27 @@ from lerobot_formation.core.scene import (
     scene_preset,
     scenes_from_frames,
 )
+
+
+def scene_set_level(spec: str) -> Level | None:
+    """The level of a ``levelK:N`` spec, else None; ValueError naming an unknown level."""
+    kind, colon, _ = spec.partition(":")
+    return get_level(kind) if colon and kind.startswith("level") else None
+
+
+def scene_set_conditions(spec: str, flags: Conditions) -> Conditions:
+    """The conditions scene set ``spec`` runs under: a level's own (``levelK:N``), else ``flags`` (the
+    ``--env.<field>`` flags). ValueError if ``flags`` turns any condition on for a level, which fixes
+    its conditions."""
+    level = scene_set_level(spec)
+    if level is None:
+        return flags
+    if flags.enabled:
+        raise ValueError(
+            f"{spec} fixes its own conditions ({level.conditions.changed() or 'none'}); drop --env flags "
+            f"{flags.changed()}"
+        )
+    return level.conditions
 
 
 def dataset_scenes(root: str | Path, n: int) -> Scenes:
@@ -81,14 +105,12 @@ def parse_scenes(
     """The scenes of ``spec`` (module docstring) from first seed ``seed`` (None: a level's own seed,
     else ``UNSEEN_SEED_START``). ``report`` counts rejected draws."""
     kind, _, count = spec.partition(":")
-    if kind.startswith("level") and count:
-        from lerobot_formation.bench.levels import get_level
-
+    level = scene_set_level(spec)
+    if level is not None:
         try:
             n = int(count)
         except ValueError as e:
             raise ValueError(f"--scenes {kind}:N needs an integer N, got {spec!r}") from e
-        level = get_level(kind)
         return parse_scenes(f"{level.scenes}:{n}", level.seed if seed is None else seed, report=report)
     seed = UNSEEN_SEED_START if seed is None else seed
     if kind in ("random", "dataset", "hard") or kind in SCENE_PRESETS or kind in SCENE_MIXES:
@@ -130,8 +152,6 @@ def parse_scenes(
 
 def level_scenes(name: str, n: int, seed: int | None = None) -> Scenes:
     """The first ``n`` scenes of level ``name`` (from ``seed`` instead of the level's own if given)."""
-    from lerobot_formation.bench.levels import get_level
-
     level = get_level(name)
     if n < 1:
         raise ValueError(f"a level needs n >= 1 scenes, got {n}")

@@ -244,6 +244,9 @@ def install_eval_checks() -> None:
     def post_init(self) -> None:
         original(self)
         hand_env_its_policy(self)
+        env = getattr(self, "env", None)
+        if env is not None and hasattr(type(env), "run_eval_seed"):
+            env.run_eval_seed = self.seed if isinstance(self.seed, int) else None
 
     post_init._formation_eval_checks = True  # type: ignore[attr-defined]
     EvalPipelineConfig.__post_init__ = post_init

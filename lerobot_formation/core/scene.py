@@ -212,6 +212,11 @@ def scene_preset(name: str) -> SceneConfig:
     return SCENE_PRESETS[name]
 
 
+def mix_max_obstacles(presets: tuple[str, ...]) -> int:
+    """Obstacle slots of a mixture's scenes: its largest preset's (``sample_mixed`` pads to it)."""
+    return max(scene_preset(name).max_obstacles for name in presets)
+
+
 @dataclass(frozen=True)
 class Scenes:
     """A batch of B scenes.
@@ -847,7 +852,7 @@ def sample_mixed(seeds, presets: tuple[str, ...], report: SamplingReport | None 
         if len(rows):
             parts.append(sample_scenes(seeds[rows], scene_preset(name), report=report))
             order.append(rows)
-    M = max(scene_preset(name).max_obstacles for name in presets)
+    M = mix_max_obstacles(presets)
     merged = Scenes.concat([p.padded(M) for p in parts])
     return merged[np.argsort(np.concatenate(order), kind="stable")]
 

@@ -32,7 +32,9 @@ Terminated on success (midpoint within 0.3 m of the goal) or collision (any agen
 obstacle). Truncated after 600 steps (60 s) by the ``TimeLimit`` of the registration.
 
 ## Scenes
-``reset(seed=s)`` gives the scene of seed s (``sample_scenes``); ``reset(options={"scene": {...}})``
+``reset(seed=s)`` gives the scene of seed s (``sample_scenes``; with ``scene_mix``, a mixture of presets
+such as ``core.scene.SCENE_MIXES["structures"]``, seed s is drawn from preset ``scene_mix[s % k]``,
+``sample_mixed``: the bench's ``<mix>:N`` scene of that seed); ``reset(options={"scene": {...}})``
 uses a given scene (scenes-file format); with ``scenes_file=...`` seed s is scene s of that file
 (0 <= s < number of scenes; a seed past the end raises ``ValueError``, it does not wrap around),
 and ``reset()`` without a seed picks one of its scenes at random.
@@ -56,7 +58,7 @@ the team perceives, the action is executed late, noisy and rate limited, and obs
 
 ## Arguments
 ``gym.make("gym_formation/FormationNav-v0", render_mode="rgb_array", scenes_file=None,
-obstacle_encoding="grid", conditions=None)``
+obstacle_encoding="grid", conditions=None, scene_mix=None)``
 
 ## Version History
 - v0: initial version.
@@ -76,7 +78,15 @@ from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import environment_state_dim
 from lerobot_formation.core.rollout import SUCCESS, Teams
-from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes, scenes_from_list
+from lerobot_formation.core.scene import (
+    SceneConfig,
+    Scenes,
+    load_scenes,
+    sample_mixed,
+    sample_scenes,
+    scene_preset,
+    scenes_from_list,
+)
 from lerobot_formation.envs.render import Renderer
 
 TASK = "Navigate the four-robot formation to the goal without collisions."
@@ -123,6 +133,23 @@ def scene_index(seed: int, n_scenes: int, scenes_file=None) -> int:
     return seed
 
 
+def check_scene_mix(scene_mix) -> tuple[str, ...] | None:
+    """``scene_mix`` as a tuple of preset names (None stays None); ValueError naming a bad one."""
+    if scene_mix is None:
+        return None
+    if isinstance(scene_mix, str) or not len(scene_mix):
+        raise ValueError(f"scene_mix must be a non-empty sequence of scene preset names, got {scene_mix!r}")
+    for name in scene_mix:
+        scene_preset(name)
+    return tuple(scene_mix)
+
+
+def seeded_scenes(seeds, config: SceneConfig, scene_mix: tuple[str, ...] | None) -> Scenes:
+    """The scenes of seeded resets, (B,) seeds -> Scenes of B: from ``scene_mix`` (seed s from preset
+    ``scene_mix[s % k]``, ``sample_mixed``) if given, else from ``config`` (``sample_scenes``)."""
+    return sample_mixed(seeds, scene_mix) if scene_mix else sample_scenes(seeds, config)
+
+
 def _finite_or_none(x) -> float | None:
     x = float(x)
     return x if np.isfinite(x) else None
@@ -144,6 +171,7 @@ class FormationEnv(gym.Env):
         max_obstacles: int | None = None,
         render_size: int = 256,
         conditions: Conditions | None = None,
+        scene_mix: tuple[str, ...] | None = None,
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -162,6 +190,7 @@ class FormationEnv(gym.Env):
         self.obstacle_encoding = obstacle_encoding
         self.max_obstacles = max_obstacles
         self.conditions = conditions
+        self.scene_mix = check_scene_mix(scene_mix)  # seeded resets draw from it instead of scene_config
         self.scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.observation_space = observation_spaces(obstacle_encoding, max_obstacles)
         self.action_space = action_space(self.params)
@@ -195,7 +224,7 @@ class FormationEnv(gym.Env):
             self.scene = self.scenes[self.scene_index]
         else:
             s = seed if seed is not None else int(self.np_random.integers(0, 2**31 - 1))
-            self.scene = sample_scenes([s], self.scene_config)
+            self.scene = seeded_scenes([s], self.scene_config, self.scene_mix)
         self.teams = Teams(
             self.scene, self.params, self.obstacle_encoding, self.max_obstacles, self.conditions
         )

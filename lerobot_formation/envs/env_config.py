@@ -16,7 +16,8 @@ formation metrics (see ``lerobot_formation.envs.episode_metrics``: ``info["final
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import logging
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -30,9 +31,10 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame
 from lerobot_formation.compat.run_checks import config_error, install_run_hooks
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
+from lerobot_formation.core.levels import get_level, level_env_fields
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
-from lerobot_formation.core.scene import SCENE_PRESETS, load_scenes
+from lerobot_formation.core.scene import SCENE_MIXES, SCENE_PRESETS, SceneConfig, load_scenes
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.episode_metrics import (
     FormationEpisodeMetrics,
@@ -43,6 +45,7 @@ from lerobot_formation.envs.episode_metrics import (
 from lerobot_formation.envs.render import FINAL_FRAME_KEY, EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
+SCENE_CHOICES = (*SCENE_PRESETS, *SCENE_MIXES)  # what env.scene_preset takes: a preset or a mixture
 
 
 def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
@@ -63,6 +66,23 @@ def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
         f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' {ours} values, but the "
         f"policy takes {size} (its dataset or checkpoint{f' uses {wanted!r}' if wanted else ''}): {hint}"
     )
+
+
+def report_level_seed(env_cfg: FormationEnvConfig, eval_seed: int | None) -> str | None:
+    """Log (and return) a warning when ``lerobot-eval --env.level=K`` starts from another seed than the
+    level's: its episodes then play other scenes of the level's distribution, not the level's."""
+    if env_cfg.level is None or eval_seed is None:
+        return None
+    level = get_level(env_cfg.level)
+    if eval_seed == level.seed:
+        return None
+    line = (
+        f"--env.level={env_cfg.level} with --seed={eval_seed}: episode i plays the scene of seed {eval_seed} + i, "
+        f"not {level.name}'s scenes (seeds {level.seed:,} + i, the bench's --scenes {level.name}:N); pass "
+        f"--seed={level.seed} to evaluate the level"
+    )
+    logging.getLogger("lerobot_formation").warning(line)
+    return line
 
 
 @dataclass
@@ -108,8 +128,17 @@ class FormationEnvConfig(EnvConfig):
             the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count) or
             ``"nearest+route"`` (the same plus PAC's cost-to-go route hint from those obstacles, 55
             values). Must match the policy's ``obstacle_encoding``.
-        scene_preset: scene distribution of seeded resets (``core.scene.SCENE_PRESETS``: "paper",
-            "wide", "gates", "blockers", "dense", "goals").
+        level: a graded level (``core.levels``: "0".."5" or "level0".."level5"), or None. When set, the
+            level's scene preset and all its conditions apply (``level_env_fields``); ``scene_preset``,
+            ``scenes_file`` and the condition fields must then be left at their defaults (or equal the
+            level's): any other value is a config error, as in the bench, since a level is a fixed
+            benchmark (a field at its default cannot be told from one not given, so it is the level's).
+            Episode i of ``lerobot-eval --seed=S`` plays the scene of seed S + i, so ``--seed=1000000``
+            (the level's ``seed``) evaluates the bench's ``levelK:N`` scenes.
+        scene_preset: scene distribution of seeded resets: a preset (``core.scene.SCENE_PRESETS``:
+            "paper", "wide", "gates", "blockers", "dense", "goals", "bend", "trap", "crowd", "long",
+            "behind") or a mixture (``core.scene.SCENE_MIXES``: "structures", "mixed-hard"; seed s
+            from preset ``mix[s % k]``, the bench's ``<mix>:N`` scene of seed s).
         scenes_file: JSON scenes file (``core.scene.save_scenes``); reset seed s picks scene s of the
             file (a seed past its end is an error: run lerobot-eval with ``--seed=0`` and at most as many
             episodes as the file holds). None: the scene of seed s is sampled (``sample_scenes``).
@@ -139,7 +168,11 @@ class FormationEnvConfig(EnvConfig):
     # obstacles [x, y, r], 66 values), nearest (goal + 12 nearest obstacles in the team's frame, 50
     # values) or nearest+route (plus a route hint, 55). Must match the policy's observation.environment_state.
     obstacle_encoding: str = "grid"
-    # Scene distribution of seeded resets: paper, or a wider preset (core/scene.py SCENE_PRESETS).
+    # A graded level (core/levels.py: 0..5): its scene preset and conditions, fixed; the condition fields
+    # and scene_preset below must then stay at their defaults. lerobot-eval --seed=1000000 plays its scenes.
+    level: str | None = None
+    # Scene distribution of seeded resets: paper, a wider preset (core/scene.py SCENE_PRESETS) or a
+    # mixture of presets (SCENE_MIXES: structures, mixed-hard).
     scene_preset: str = "paper"
     # JSON scenes file (core.scene.save_scenes); reset seed s plays scene s of the file (a seed past its
     # end is an error, no wrap-around: use --seed=0). None: the scene of seed s is sampled.
@@ -197,6 +230,7 @@ class FormationEnvConfig(EnvConfig):
     # The run's policy config, handed over by lerobot-train's / lerobot-eval's pipeline config once it
     # has resolved it (compat.run_checks.hand_env_its_policy); None elsewhere. Not a config field.
     run_policy: ClassVar[Any] = None
+    run_eval_seed: ClassVar[int | None] = None  # lerobot-eval's --seed, handed over like run_policy
 
     def __post_init__(self) -> None:
         install_run_hooks()  # a formation run: one-line config errors, the training output lock
@@ -204,19 +238,19 @@ class FormationEnvConfig(EnvConfig):
             raise config_error(
                 f"env.obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
             )
-        if self.scene_preset not in SCENE_PRESETS:
-            raise config_error(
-                f"env.scene_preset must be one of {tuple(SCENE_PRESETS)}, got {self.scene_preset!r}"
-            )
+        if self.scene_preset not in SCENE_CHOICES:
+            raise config_error(f"env.scene_preset must be one of {SCENE_CHOICES}, got {self.scene_preset!r}")
         if self.episode_length < 1:
             raise config_error(f"env.episode_length must be >= 1, got {self.episode_length}")
         try:
-            self.conditions()
+            self._field_conditions()
         except ValueError as e:
             raise config_error(str(e).replace("conditions: ", "env.")) from e
+        if self.level is not None:
+            self._check_level()
         if self.scenes_file is not None:
             try:  # at start-up, not at the first evaluation
-                load_scenes(self.scenes_file, SCENE_PRESETS[self.scene_preset])
+                load_scenes(self.scenes_file, self._scene_config())
             except ValueError as e:
                 raise config_error(f"env.scenes_file: {e}") from e
         if self.episode_metrics_path is not None:
@@ -237,14 +271,51 @@ class FormationEnvConfig(EnvConfig):
         it has built the policy and before the first training step (``lerobot-eval`` before the first
         episode), so an env whose observation the policy cannot take (``--env.obstacle_encoding``) is
         refused there, not at the first in-training evaluation (``check_policy_features``). The policy
-        config is ``run_policy``, which their pipeline configs hand over (``compat.run_checks``)."""
+        config is ``run_policy``, which their pipeline configs hand over (``compat.run_checks``); ``lerobot-eval --env.level=K`` with another
+        ``--seed`` than the level's (``run_eval_seed``) is a warning (``report_level_seed``)."""
         if self.run_policy is not None:
             check_policy_features(self, self.run_policy)
+        report_level_seed(self, self.run_eval_seed)  # lerobot-eval --env.level=K without the level's --seed
         return super().get_env_processors()
 
-    def conditions(self) -> Conditions:
-        """The realistic conditions of these fields (``core.conditions.Conditions``)."""
+    def _check_level(self) -> None:
+        """A config error for an unknown ``level``, or a scene or condition field that a level fixes
+        given another value than its default and the level's."""
+        try:
+            level = get_level(self.level)
+        except ValueError as e:
+            raise config_error(f"env.level: {e}") from e
+        defaults = {f.name: f.default for f in fields(self)}
+        fixed = {**level_env_fields(self.level), "scenes_file": None}
+        clash = [
+            f"--env.{name}={getattr(self, name)}"
+            for name, value in fixed.items()
+            if getattr(self, name) not in (value, defaults[name])
+        ]
+        if clash:
+            raise config_error(
+                f"env.level={self.level} fixes the scenes ({fixed['scene_preset']}) and the conditions "
+                f"({level.conditions.changed() or 'none'}) of {level.name}; drop {' '.join(clash)}, or drop "
+                "--env.level and set the fields yourself"
+            )
+
+    def _field_conditions(self) -> Conditions:
         return Conditions(**{name: getattr(self, name) for name in CONDITION_FIELDS})
+
+    def conditions(self) -> Conditions:
+        """The realistic conditions (``core.conditions.Conditions``): the level's if ``level`` is set,
+        else those of the condition fields."""
+        return get_level(self.level).conditions if self.level is not None else self._field_conditions()
+
+    @property
+    def effective_scene_preset(self) -> str:
+        """The scene preset or mixture that seeded resets draw from: the level's if ``level`` is set."""
+        return level_env_fields(self.level)["scene_preset"] if self.level is not None else self.scene_preset
+
+    def _scene_config(self) -> SceneConfig:
+        """The ``SceneConfig`` of the env: the preset's; a mixture's scenes are drawn by ``scene_mix``,
+        and the default config checks scenes of a file or an option (its checks are every preset's)."""
+        return SCENE_PRESETS.get(self.effective_scene_preset, SceneConfig())
 
     @property
     def gym_id(self) -> str:
@@ -256,8 +327,10 @@ class FormationEnvConfig(EnvConfig):
             "render_mode": self.render_mode,
             "scenes_file": self.scenes_file,
             "obstacle_encoding": self.obstacle_encoding,
-            "scene_config": SCENE_PRESETS[self.scene_preset],
+            "scene_config": self._scene_config(),
         }
+        if self.effective_scene_preset in SCENE_MIXES:
+            kwargs["scene_mix"] = SCENE_MIXES[self.effective_scene_preset]
         conditions = self.conditions()
         if conditions.enabled:
             kwargs["conditions"] = conditions

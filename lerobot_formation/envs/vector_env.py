@@ -3,7 +3,8 @@
 A gymnasium face over the engine's batched episodes (``core.rollout.Teams``, which ``FormationEnv``
 steps too): the same physics, observations, rewards and termination, with gymnasium's vector API and SAME_STEP autoreset: when a team's episode ends,
 the returned observation already belongs to its next episode and ``infos["final_obs"]`` /
-``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i;
+``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i
+(with ``scene_mix``, drawn from preset ``scene_mix[(s + i) % k]``, as ``FormationEnv``);
 with ``scenes_file``, scene s + i of the file (a seed past its end raises ``ValueError``, as in
 ``FormationEnv``), and an autoreset picks a scene of the file at random. Info ``clearance`` and
 ``midpoint_clearance`` are NaN in a scene with no obstacle, ``scene_index`` (the scene's index in
@@ -19,8 +20,15 @@ from gymnasium.vector.utils import batch_space
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams, FormationState
 from lerobot_formation.core.rollout import Teams
-from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, sample_scenes
-from lerobot_formation.envs.env import TASK, action_space, observation_spaces, scene_index
+from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, mix_max_obstacles
+from lerobot_formation.envs.env import (
+    TASK,
+    action_space,
+    check_scene_mix,
+    observation_spaces,
+    scene_index,
+    seeded_scenes,
+)
 
 
 class FormationVectorEnv(VectorEnv):
@@ -36,6 +44,7 @@ class FormationVectorEnv(VectorEnv):
         max_obstacles: int | None = None,
         max_episode_steps: int = 600,
         conditions: Conditions | None = None,
+        scene_mix: tuple[str, ...] | None = None,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -46,6 +55,7 @@ class FormationVectorEnv(VectorEnv):
         self.max_obstacles = max_obstacles
         self.max_episode_steps = max_episode_steps
         self.conditions = conditions
+        self.scene_mix = check_scene_mix(scene_mix)  # seeded resets draw from it instead of scene_config
         self.scenes_file = scenes_file
         self.file_scenes = load_scenes(scenes_file, self.scene_config) if scenes_file else None
         self.single_observation_space = observation_spaces(obstacle_encoding, max_obstacles)
@@ -53,7 +63,7 @@ class FormationVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.task = TASK
-        M = max(self.scene_config.max_obstacles, 1)
+        M = max(mix_max_obstacles(self.scene_mix) if self.scene_mix else self.scene_config.max_obstacles, 1)
         if self.file_scenes is not None:
             M = max(M, self.file_scenes.obstacles.shape[1])
         self._M = M
@@ -77,7 +87,8 @@ class FormationVectorEnv(VectorEnv):
             n = len(self.file_scenes)
             idx = [scene_index(s, n, self.scenes_file) for s in np.asarray(seeds).ravel()]
             return self.file_scenes[idx], np.asarray(idx, dtype=np.float64)
-        return sample_scenes(seeds, self.scene_config), np.full(len(np.atleast_1d(seeds)), np.nan)
+        scenes = seeded_scenes(seeds, self.scene_config, self.scene_mix)
+        return scenes, np.full(len(np.atleast_1d(seeds)), np.nan)
 
     def reset(self, *, seed=None, options: dict | None = None):
         B = self.num_envs

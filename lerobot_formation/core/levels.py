@@ -18,6 +18,9 @@ Every level's scenes are a pure function of the seed (a mixture draws seed s fro
 ``s % k``), so ``levelK:N`` is the first N scenes of level K whatever N, and levels 3-5 share their
 scenes: the difference between them is the conditions alone. Evaluation seeds start at the level's
 ``seed`` (1,000,000, the project's unseen range); tune on seeds 5,000,000+ (``--seed 5000000``).
+
+The bench runs a level as ``--scenes levelK:N``, ``lerobot-eval`` as ``--env.level=K --seed=1000000``
+(the env config takes ``level_env_fields``; hence this module is in ``core``, below both).
 """
 
 from __future__ import annotations
