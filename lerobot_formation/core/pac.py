@@ -191,7 +191,9 @@ class PathAwareController:
         B, C, T, _ = poses.shape
         cols = np.flatnonzero(moving.any(axis=0))
         ahead = np.repeat(self.obstacles[:, None, cols], T, axis=1)  # (B, T, m, 3)
-        ahead[..., :2] += velocity[:, None, cols] * (self.params.dt * np.arange(1, T + 1))[None, :, None, None]
+        ahead[..., :2] += (
+            velocity[:, None, cols] * (self.params.dt * np.arange(1, T + 1))[None, :, None, None]
+        )
         ahead = np.where(moving[:, None, cols, None], ahead, pad)
         at_step = template_clearance(  # one batch row per (team, step): the footprints of that step
             poses.transpose(0, 2, 1, 3).reshape(B * T, C, 3), ahead.reshape(B * T, -1, 3), self.template, r

@@ -100,7 +100,9 @@ class PACController:
         delay: int = 0,
     ):
         if not isinstance(predict, int | float) or not np.isfinite(predict) or predict < 0:
-            raise ValueError(f"PACController: predict must be a finite number of seconds >= 0, got {predict!r}")
+            raise ValueError(
+                f"PACController: predict must be a finite number of seconds >= 0, got {predict!r}"
+            )
         if not isinstance(delay, int | np.integer) or isinstance(delay, bool) or delay < 0:
             raise ValueError(f"PACController: delay must be an integer number of steps >= 0, got {delay!r}")
         self.pac = PathAwareController(config, params)

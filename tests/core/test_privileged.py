@@ -44,7 +44,9 @@ def test_privileged_expert_sees_what_the_recorded_observation_does_not():
     scenes = scenes_from_list([BESIDE])
     cond = Conditions(sensing_range=1.0, pose_noise=0.05)
     spy = Spy(PACController())
-    rec = rollout(scenes, spy, max_steps=5, conditions=cond, record_observations=("nearest", None), privileged=True)
+    rec = rollout(
+        scenes, spy, max_steps=5, conditions=cond, record_observations=("nearest", None), privileged=True
+    )
     assert (rec.seen_step == -1).all()  # never sensed in these 5 steps
     for t, view in enumerate(spy.views[1:]):
         assert view.mask[0, 0] and view.map_version[0] == 0
@@ -55,8 +57,13 @@ def test_privileged_expert_sees_what_the_recorded_observation_does_not():
     # obstacle in range would have one
     assert not np.allclose(rec.observations["agent_pos"][0, 0, :2], scenes.start[0, :2])
     assert not rec.observations["environment_state"][0, : rec.steps[0] + 1, 2:].any()
-    near = rollout(scenes, PACController(), max_steps=1, conditions=Conditions(sensing_range=9.0),
-                   record_observations=("nearest", None))
+    near = rollout(
+        scenes,
+        PACController(),
+        max_steps=1,
+        conditions=Conditions(sensing_range=9.0),
+        record_observations=("nearest", None),
+    )
     assert near.observations["environment_state"][0, 0, 2:].any()
     perceived = Spy(PACController())
     rollout(scenes, perceived, max_steps=5, conditions=cond)
@@ -64,7 +71,11 @@ def test_privileged_expert_sees_what_the_recorded_observation_does_not():
 
 
 def test_privileged_map_keeps_moving_obstacles_off():
-    item = {**BESIDE, "obstacles": [[2.0, 5.0, 0.5], [-2.0, 5.0, 0.4]], "velocities": [[0.0, 0.0], [0.3, 0.0]]}
+    item = {
+        **BESIDE,
+        "obstacles": [[2.0, 5.0, 0.5], [-2.0, 5.0, 0.4]],
+        "velocities": [[0.0, 0.0], [0.3, 0.0]],
+    }
     teams = Teams(scenes_from_list([item]), conditions=Conditions(sensing_range=1.0))
     for _ in range(3):
         truth = teams.truth()
@@ -141,7 +152,15 @@ def test_randomized_conditions_repeat_per_key_vary_across_keys_and_stay_under_th
     draws = [randomized_conditions(ceiling, k) for k in range(60)]
     assert draws == [randomized_conditions(ceiling, k) for k in range(60)]
     assert len(set(draws)) == 60
-    on = np.array([[getattr(d, f) not in (None, 0, 0.0) for f in ("sensing_range", "pose_noise", "action_delay", "moving_obstacles")] for d in draws])
+    on = np.array(
+        [
+            [
+                getattr(d, f) not in (None, 0, 0.0)
+                for f in ("sensing_range", "pose_noise", "action_delay", "moving_obstacles")
+            ]
+            for d in draws
+        ]
+    )
     assert 0.4 < on.mean() < 0.8  # each on with probability 0.6
     for d in draws:
         assert d.sensing_range is None or 3.0 <= d.sensing_range <= 6.0
@@ -159,7 +178,8 @@ def test_scene_distributions_mixtures_and_lists():
     mixed = sample_distribution(seeds, "structures")
     np.testing.assert_array_equal(mixed.obstacles, sample_mixed(seeds, STRUCTURE_PRESETS).obstacles)
     np.testing.assert_array_equal(
-        sample_distribution(seeds[:3], "wide").obstacles, sample_scenes(seeds[:3], scene_preset("wide")).obstacles
+        sample_distribution(seeds[:3], "wide").obstacles,
+        sample_scenes(seeds[:3], scene_preset("wide")).obstacles,
     )
     both = sample_distribution(seeds, "paper,structures")
     np.testing.assert_array_equal(both[[0]].goal, sample_scenes(seeds[:1]).goal)  # seed 100: entry 0
