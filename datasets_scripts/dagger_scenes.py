@@ -19,6 +19,20 @@ demonstrations and training resumes from the checkpoint::
 (``--episodes`` larger than the file: the generator keeps every branch PAC completes.) The policy
 observes only the midpoint and the obstacles, so a branch restarts the followers at their usual
 offsets from the visited pose; PAC's labels depend on the pose only.
+
+Under realistic conditions (docs/conditions.md): ``--level level5`` runs the policy on the level's
+scenes under its conditions, ``--env.<field> VALUE`` sets (or overrides) single conditions. A branch
+scene then holds the obstacles where they were at the branch point, moving ones with their velocity
+then (``"velocities"``, estimated from the step after; they move on when relabelled); what the team
+had sensed so far is not kept (the relabelled episode senses afresh). Label the branches under the
+same conditions with the privileged expert::
+
+    python -m datasets_scripts.dagger_scenes --policy.path CKPT --level level5 --rollouts 400 \
+        --out data/dagger_l5.json
+    lerobot-formation-generate --scenes data/dagger_l5.json --episodes 100000 --expert privileged \
+        --obstacle-encoding nearest --root data/formation_dagger_l5 --repo-id local/formation_dagger_l5 \
+        --env.sensing_range 3 --env.obstacle_noise 0.05 --env.pose_noise 0.05 --env.action_noise 0.05 \
+        --env.action_delay 1 --env.max_linear_accel 0.5 --env.max_angular_accel 2.0
 """
 
 from __future__ import annotations
@@ -26,22 +40,27 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
+from lerobot_formation.bench.levels import get_level
+from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.footprint import sequence_clearance
 from lerobot_formation.core.rollout import COLLISION, rollout
 from lerobot_formation.core.scene import (
+    SCENE_MIXES,
     SCENE_PRESETS,
     SceneConfig,
     Scenes,
+    distribution_entries,
     passage_exists,
-    sample_scenes,
+    sample_distribution,
     save_scenes,
-    scene_preset,
 )
+from lerobot_formation.envs.condition_flags import add_condition_arguments
 from lerobot_formation.threads import add_threads_argument, apply_threads
 
 DAGGER_SEED_START = 3_000_000  # disjoint from the dataset (0...) and the evaluation seeds (1_000_000...)
@@ -75,19 +94,23 @@ def dagger_scenes(
     per_episode: int = 4,
     num_inference_steps: int | None = None,
     min_clearance: float = 0.05,
+    conditions: Conditions | None = None,
 ) -> tuple[Scenes, dict]:
+    """Branch scenes of ``rollouts`` policy episodes on scenes of ``preset`` (a
+    ``core.scene.sample_distribution`` spec) under ``conditions`` (None: none), and a summary."""
     from lerobot_formation.bench.diffusion_controller import DiffusionController
 
     params = FormationParams()
-    scenes = sample_scenes(seed + np.arange(rollouts), scene_preset(preset))
+    scenes = sample_distribution(seed + np.arange(rollouts), preset)
     ctrl = DiffusionController(policy_path, num_inference_steps=num_inference_steps, seed=seed, params=params)
-    rec = rollout(scenes, ctrl, params)
+    rec = rollout(scenes, ctrl, params, conditions=conditions)
     rng = np.random.default_rng(seed)
     pts = branch_points(rec.poses, rec.steps, rec.outcome, rng, per_episode)
     b = np.array([p[0] for p in pts], dtype=np.int64)
     t = np.array([p[1] for p in pts], dtype=np.int64)
     start = rec.poses[b, t]
-    branch = Scenes(scenes.obstacles[b], scenes.mask[b], scenes.goal[b], start, scenes.seeds[b])
+    obstacles, velocities = branch_obstacles(scenes, rec.obstacle_paths, b, t, params.dt)
+    branch = Scenes(obstacles, scenes.mask[b], scenes.goal[b], start, scenes.seeds[b], velocities)
     # keep starts whose formation footprint is clear (a state inside an obstacle cannot be relabelled)
     tmpl = np.asarray(params.graph.template)
     clear, _ = sequence_clearance(
@@ -108,7 +131,28 @@ def dagger_scenes(
         "preset": preset,
         "seed": seed,
     }
+    if conditions is not None and conditions.enabled:
+        summary["conditions"] = conditions.changed()
     return branch, summary
+
+
+def branch_obstacles(
+    scenes: Scenes, paths: np.ndarray | None, b: np.ndarray, t: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The obstacles (K, M, 3) of the branch points (episode ``b``, step ``t``) where they were at
+    that step (``EpisodeRecords.obstacle_paths`` (B, T+1, M, 2); None: static, the scenes' own), and
+    their velocities (K, M, 2) over the step after (None when none moves)."""
+    obstacles = scenes.obstacles[b].copy()
+    if paths is None:
+        return obstacles, None
+    now = paths[b, t]
+    after = paths[b, np.minimum(t + 1, paths.shape[1] - 1)]
+    velocities = np.where(np.isfinite(after), (after - now) / dt, 0.0)
+    velocities[~scenes.mask[b]] = 0.0
+    obstacles[..., :2] = np.where(scenes.mask[b][..., None], now, obstacles[..., :2])
+    if not np.any(velocities):
+        return obstacles, None
+    return obstacles, velocities
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,7 +162,17 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     ap.add_argument("--policy.path", dest="policy_path", required=True, help="checkpoint folder")
-    ap.add_argument("--scene-preset", default="wide", choices=tuple(SCENE_PRESETS), help="scene distribution")
+    ap.add_argument(
+        "--scene-preset",
+        default=None,
+        help=f"scene distribution: a preset {tuple(SCENE_PRESETS)}, a mixture {tuple(SCENE_MIXES)} or a "
+        "comma list (default: the --level's scenes, else wide)",
+    )
+    ap.add_argument(
+        "--level",
+        default=None,
+        help="a graded level (level0 .. level5): its scenes and conditions (--env.* flags override single fields)",
+    )
     ap.add_argument("--rollouts", type=int, default=400, help="policy episodes to run")
     ap.add_argument("--seed", type=int, default=DAGGER_SEED_START, help="first scene seed of the rollouts")
     ap.add_argument("--per-episode", type=int, default=4, help="branch points per episode")
@@ -127,10 +181,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--out", required=True, help="scenes JSON file to write")
     add_threads_argument(ap, "torch threads of the policy")
+    add_condition_arguments(ap)
     args = ap.parse_args(argv)
     apply_threads(args.threads)
     if args.rollouts < 1 or args.per_episode < 1:
         ap.error("--rollouts and --per-episode must be >= 1")
+    try:
+        given = {
+            f: getattr(args, f"env_{f}") for f in CONDITION_FIELDS if getattr(args, f"env_{f}") is not None
+        }
+        preset, conditions = rollout_setting(args.level, args.scene_preset, given)
+    except ValueError as e:
+        ap.error(str(e))
     if not (Path(args.policy_path) / "config.json").is_file():
         print(
             f"error: --policy.path {args.policy_path} is not a checkpoint folder (no config.json)",
@@ -139,15 +201,29 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     branch, summary = dagger_scenes(
         args.policy_path,
-        args.scene_preset,
+        preset,
         args.rollouts,
         args.seed,
         args.per_episode,
         args.num_inference_steps,
+        conditions=conditions,
     )
     save_scenes(branch, args.out)
     print(json.dumps(summary))
     return 0
+
+
+def rollout_setting(level: str | None, preset: str | None, given: dict) -> tuple[str, Conditions]:
+    """The scene distribution and conditions of the rollouts: the ``level``'s scenes and conditions
+    (None: ``wide`` and none), the ``preset`` if given, and the conditions ``given`` by name (the
+    ``--env.<field>`` flags) over the level's; ValueError naming a bad level, preset or field."""
+    base, scenes = Conditions(), "wide"
+    if level is not None:
+        lv = get_level(level)
+        base, scenes = lv.conditions, ("paper" if lv.scenes == "random" else lv.scenes)
+    preset = scenes if preset is None else preset
+    distribution_entries(preset)
+    return preset, Conditions(**{**asdict(base), **given})
 
 
 if __name__ == "__main__":

@@ -27,6 +27,13 @@ Features (all float32 with names, fps 10, task string ``TASK``):
 Realistic conditions (docs/conditions.md): ``--env.<field> VALUE`` with the env config's names, e.g.
 ``--env.sensing_range 3 --env.obstacle_noise 0.02``: PAC then drives on what the team perceives, the
 frames hold the team's observations and PAC's commands, and ``meta/generation.json`` records them.
+``--expert privileged``: PAC acts on the true world instead (every obstacle, moving ones predicted,
+the delay compensated) while the frames still hold what the team perceived. ``--conditions-randomize
+level5``: each group of 16 seeds gets its own draw of conditions up to level 5's
+(``core.conditions.randomized_conditions``)::
+
+    lerobot-formation-generate --episodes 1500 --root data/formation_priv --obstacle-encoding nearest \
+        --scene-preset paper,wide,mixed-hard,structures --expert privileged --conditions-randomize level5
 
 Reliability: the dataset is written to a temporary sibling folder ``.NAME.tmp-PID`` and renamed into
 place at the end, so an interrupted run leaves nothing at the destination. On any exit (an error,
@@ -49,10 +56,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from lerobot_formation.bench.levels import get_level
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.obstacle_grid import ENCODINGS
-from lerobot_formation.core.scene import SCENE_PRESETS
+from lerobot_formation.core.scene import SCENE_MIXES, SCENE_PRESETS, distribution_entries
 from lerobot_formation.data.hub_folder import hub_destinations, push_to_folder
 from lerobot_formation.data.lerobot_writer import generate
+from lerobot_formation.data.pac_episodes import EXPERTS
 from lerobot_formation.data.safe_destination import (
     check_inside,
     check_replaceable,
@@ -100,8 +110,24 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument(
         "--scene-preset",
         default="paper",
-        choices=tuple(SCENE_PRESETS),
-        help="scene distribution: 'paper' (SPEC's), or wider ones (core/scene.py SCENE_PRESETS)",
+        help=f"scene distribution: a preset {tuple(SCENE_PRESETS)}, a mixture {tuple(SCENE_MIXES)}, or a "
+        "comma list of those, e.g. 'paper,wide,mixed-hard,structures' (seed s draws entry s %% k; "
+        "core/scene.py sample_distribution)",
+    )
+    ap.add_argument(
+        "--expert",
+        default="pac",
+        choices=EXPERTS,
+        help="who drives: 'pac' on what the team perceives, or 'privileged': PAC on the true world "
+        "(every obstacle, its velocity, moving ones predicted, the action delay compensated) while the "
+        "frames hold what the team perceived (docs/conditions.md)",
+    )
+    ap.add_argument(
+        "--conditions-randomize",
+        default=None,
+        metavar="LEVEL",
+        help="draw each group of 16 seeds' conditions up to this graded level's (level4, level5): each "
+        "condition on with probability 0.6 at a random severity (not with --env.* flags)",
     )
     ap.add_argument(
         "--push-to", default=None, help="also lay the dataset out as a hub repo under this folder"
@@ -147,10 +173,32 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.scenes and not Path(args.scenes).is_file():
         ap.error(f"--scenes file {args.scenes} does not exist")
     try:
-        conditions_from_flags(args)
+        conditions = conditions_from_flags(args)
     except ValueError as e:
         ap.error(str(e).replace("conditions: ", "--env."))
+    try:
+        distribution_entries(args.scene_preset)
+    except ValueError as e:
+        ap.error(f"--scene-preset: {e}")
+    if args.conditions_randomize is not None:
+        try:
+            randomize_ceiling(args.conditions_randomize)
+        except ValueError as e:
+            ap.error(f"--conditions-randomize: {e}")
+        if conditions.enabled:
+            ap.error(f"--conditions-randomize excludes --env.* flags, got {conditions.changed()}")
     return args
+
+
+def randomize_ceiling(level: str | None) -> Conditions | None:
+    """The ceiling of ``--conditions-randomize LEVEL``: that graded level's conditions (None: no
+    randomizing); ValueError for an unknown level or one without conditions."""
+    if level is None:
+        return None
+    ceiling = get_level(level).conditions
+    if not ceiling.enabled:
+        raise ValueError(f"level {level!r} has no conditions to randomize; choose level4 or level5")
+    return ceiling
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,6 +238,8 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             scene_preset=args.scene_preset,
             min_scene_slots=args.scene_slots,
             conditions=conditions_from_flags(args),
+            expert=args.expert,
+            randomize=randomize_ceiling(args.conditions_randomize),
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

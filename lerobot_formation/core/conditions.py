@@ -135,6 +135,45 @@ class Conditions:
 
 CONDITION_FIELDS = tuple(f.name for f in fields(Conditions))
 
+RANDOMIZE_TAG = 0x72616E64  # "rand": the draw of randomized conditions (``randomized_conditions``)
+RANDOMIZE_ON = 0.6  # probability that each condition is on in a randomized draw
+
+
+def randomized_conditions(ceiling: Conditions, key: int, p_on: float = RANDOMIZE_ON) -> Conditions:
+    """One draw of conditions up to ``ceiling``'s severity, a pure function of (``ceiling``, ``key``,
+    ``p_on``) (the stream ``episode_rng(key, RANDOMIZE_TAG)``).
+
+    Each condition the ceiling has on is on with probability ``p_on``, independently, at a severity
+    f ~ U(0, 1) of its own: noises (obstacle, pose, action) f x the ceiling's std; the sensing range
+    and the rate limits (both limits together) (2 - f) x the ceiling's value (from twice as lax up
+    to the ceiling's); the action delay 1 .. the ceiling's steps, uniform; moving obstacles 1 .. the
+    ceiling's count, uniform, at (0.5 + 0.5 f) x its speed. ``obstacle_memory`` is the ceiling's.
+    Every draw is made whatever the ceiling, so a field's draw does not depend on the others."""
+    if not 0.0 <= p_on <= 1.0:
+        raise ValueError(f"randomized conditions: p_on must be in [0, 1], got {p_on!r}")
+    rng = episode_rng(int(key), RANDOMIZE_TAG)
+    groups = ("sensing", "obstacle_noise", "pose_noise", "action_noise", "delay", "rate", "moving")
+    on = dict(zip(groups, rng.uniform(size=len(groups)) < p_on, strict=True))
+    f = dict(zip(groups, rng.uniform(size=len(groups)), strict=True))
+    pick = dict(zip(groups, rng.uniform(size=len(groups)), strict=True))  # integer draws
+    c = ceiling
+    out: dict = {"obstacle_memory": c.obstacle_memory}
+    if c.sensing_range is not None and on["sensing"]:
+        out["sensing_range"] = c.sensing_range * (2.0 - f["sensing"])
+    for name in ("obstacle_noise", "pose_noise", "action_noise"):
+        if getattr(c, name) and on[name]:
+            out[name] = getattr(c, name) * f[name]
+    if c.action_delay and on["delay"]:
+        out["action_delay"] = 1 + int(pick["delay"] * c.action_delay)
+    if on["rate"]:
+        for name in ("max_linear_accel", "max_angular_accel"):
+            if getattr(c, name) is not None:
+                out[name] = getattr(c, name) * (2.0 - f["rate"])
+    if c.moving_obstacles and on["moving"]:
+        out["moving_obstacles"] = 1 + int(pick["moving"] * c.moving_obstacles)
+        out["obstacle_speed"] = c.obstacle_speed * (0.5 + 0.5 * f["moving"])
+    return Conditions(**out)
+
 
 @dataclass
 class Perception:
@@ -398,6 +437,26 @@ class ConditionedWorld:
     def move(self, obstacles: np.ndarray) -> None:
         """Move the teams' true obstacles (B, M, 3) one control step, in place."""
         move_obstacles(obstacles, self.velocity, self.params.dt, self.bounds, self.zones)
+
+    def privileged(self, state: FormationState, scenes: Scenes) -> Perception:
+        """The true world of the teams (what a privileged expert acts on; ``Perception.exact`` without
+        conditions): the true pose and velocity, every real obstacle at its true current position
+        (mask: the real ones) with its true velocity, and a static map of the true static obstacles
+        (moving ones are padding: avoided by position and velocity, not by a stale wall) whose
+        ``map_version`` stays 0, so a controller builds its cost-to-go once. Static obstacles never
+        move and a moving one never stops (a bounce flips its velocity), so the map is constant."""
+        static = self.real & ~np.any(self.velocity != 0, axis=-1)  # (B, M)
+        pad = np.array([FAR, FAR, 0.0])
+        return Perception(
+            state.pose,
+            state.velocity,
+            np.where(self.real[..., None], scenes.obstacles, pad),
+            self.real.copy(),
+            self.velocity.copy(),
+            scenes.goal,
+            np.zeros(len(self.real), dtype=np.int64),
+            np.where(static[..., None], scenes.obstacles, pad),
+        )
 
     def perceive(self, state: FormationState, scenes: Scenes) -> Perception:
         """What the teams perceive now (``Perception``), from their true state and scenes. A team whose

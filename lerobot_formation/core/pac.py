@@ -27,6 +27,7 @@ import numpy as np
 from lerobot_formation.core.dynamics import FormationParams, constant_action_poses
 from lerobot_formation.core.footprint import template_clearance
 from lerobot_formation.core.navigation import SceneFields
+from lerobot_formation.core.scene import FAR
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,31 @@ def path_blocked(
     return ((t > 0) & (t < seg + R) & (closest < R) & (obstacles[..., 2] > 0)).any(axis=1)
 
 
+def swept_obstacles(
+    obstacles: np.ndarray, velocity: np.ndarray, lead: float, lookahead: float, spacing: float = 0.2
+) -> np.ndarray:
+    """The obstacles a predicting PAC avoids, obstacles (B, M, 3) with velocities (B, M, 2) [m/s] ->
+    (B, M + K m, 3): every obstacle moved ``lead`` seconds along its velocity (static ones stay), then
+    for the m slots that move in some row, K = ceil(lookahead / spacing) discs of the same radius at
+    lead + j lookahead / K, j = 1..K, seconds ahead: the capsule a moving obstacle sweeps over the
+    next ``lookahead`` seconds, as discs (straight on: a bounce is not predicted). Rows where such a
+    slot does not move get padding (far away, radius 0). No moving obstacle: ``obstacles`` itself."""
+    moving = np.any(velocity != 0, axis=-1)  # (B, M)
+    if not moving.any():
+        return obstacles
+    now = np.array(obstacles, dtype=np.float64)
+    now[..., :2] += velocity * lead
+    k = int(np.ceil(lookahead / spacing)) if lookahead > 0 else 0
+    if k == 0:
+        return now
+    cols = np.flatnonzero(moving.any(axis=0))
+    times = lookahead * np.arange(1, k + 1) / k  # (K,)
+    ahead = np.repeat(now[:, None, cols], k, axis=1)  # (B, K, m, 3)
+    ahead[..., :2] += velocity[:, None, cols] * times[None, :, None, None]
+    ahead = np.where(moving[:, None, cols, None], ahead, np.array([FAR, FAR, 0.0]))
+    return np.concatenate([now, ahead.reshape(len(now), -1, 3)], axis=1)
+
+
 class PathAwareController:
     """Batched PAC. ``reset(obstacles, goal)`` once per batch of episodes, then
     ``command(pose) -> (B, 2)`` every control step."""
@@ -101,11 +127,17 @@ class PathAwareController:
         sub.obstacles, sub.goal, sub.ctg = self.obstacles[idx], self.goal[idx], self.ctg[idx]
         return sub
 
-    def field_command(self, pose: np.ndarray) -> np.ndarray:
-        """Potential-field command (B, 2) before the footprint governor."""
+    def field_command(
+        self, pose: np.ndarray, velocity: np.ndarray | None = None, lookahead: float = 0.0
+    ) -> np.ndarray:
+        """Potential-field command (B, 2) before the footprint governor; with the obstacles'
+        ``velocity`` (B, M, 2), moving ones are avoided along the capsule they sweep over the next
+        ``lookahead`` seconds (``swept_obstacles``)."""
         c = self.config
         p, phi = pose[:, :2], pose[:, 2]
         obs = self.obstacles
+        if velocity is not None and lookahead > 0:
+            obs = swept_obstacles(obs, velocity, 0.0, lookahead)
         to_goal = self.goal - p
         dist_goal = np.linalg.norm(to_goal, axis=-1)
         u = to_goal / np.maximum(dist_goal, 1e-9)[:, None]  # (B, 2)
@@ -133,19 +165,53 @@ class PathAwareController:
         v = v * np.clip(dist_goal / c.goal_slow_radius, 0.3, 1.0)
         return np.stack([v, omega], axis=-1)
 
-    def footprint_clearance(self, pose: np.ndarray, cand: np.ndarray) -> np.ndarray:
-        """Minimum predicted agent clearance over the horizon for candidates cand (B, C, 2) -> (B, C)."""
-        poses = constant_action_poses(pose, cand, self.params.dt, self.config.horizon)  # (B, C, T, 3)
-        clear = template_clearance(poses, self.obstacles, self.template, self.params.agent_radius)
-        return clear.min(axis=-1)
+    def footprint_clearance(
+        self,
+        pose: np.ndarray,
+        cand: np.ndarray,
+        velocity: np.ndarray | None = None,
+        lookahead: float = 0.0,
+    ) -> np.ndarray:
+        """Minimum predicted agent clearance over the horizon for candidates cand (B, C, 2) -> (B, C).
+        With the obstacles' ``velocity`` (B, M, 2), a moving obstacle is checked where it will be at
+        each predicted step k (its position + k dt velocity), the footprint at that same step, over
+        the horizon or ``lookahead`` seconds if longer (one that will arrive in 1.5 s is not escaped
+        by waiting)."""
+        c = self.config
+        r = self.params.agent_radius
+        moving = None if velocity is None else np.any(velocity != 0, axis=-1)  # (B, M)
+        if moving is None or not moving.any():
+            poses = constant_action_poses(pose, cand, self.params.dt, c.horizon)  # (B, C, T, 3)
+            return template_clearance(poses, self.obstacles, self.template, r).min(axis=-1)
+        steps = max(c.horizon, int(np.ceil(lookahead / self.params.dt - 1e-9)))
+        poses = constant_action_poses(pose, cand, self.params.dt, steps)
+        pad = np.array([FAR, FAR, 0.0])
+        static = np.where(moving[..., None], pad, self.obstacles)
+        clear = template_clearance(poses[:, :, : c.horizon], static, self.template, r)
+        B, C, T, _ = poses.shape
+        cols = np.flatnonzero(moving.any(axis=0))
+        ahead = np.repeat(self.obstacles[:, None, cols], T, axis=1)  # (B, T, m, 3)
+        ahead[..., :2] += (
+            velocity[:, None, cols] * (self.params.dt * np.arange(1, T + 1))[None, :, None, None]
+        )
+        ahead = np.where(moving[:, None, cols, None], ahead, pad)
+        at_step = template_clearance(  # one batch row per (team, step): the footprints of that step
+            poses.transpose(0, 2, 1, 3).reshape(B * T, C, 3), ahead.reshape(B * T, -1, 3), self.template, r
+        )
+        return np.minimum(clear.min(axis=-1), at_step.reshape(B, T, C).min(axis=1))
 
-    def command(self, pose: np.ndarray) -> np.ndarray:
-        """[v, omega] for B midpoint poses (B, 3) -> (B, 2)."""
-        desired = self.field_command(pose)
+    def command(
+        self, pose: np.ndarray, velocity: np.ndarray | None = None, lookahead: float = 0.0
+    ) -> np.ndarray:
+        """[v, omega] for B midpoint poses (B, 3) -> (B, 2). With the obstacles' ``velocity``
+        (B, M, 2) the field avoids the moving ones' swept capsules over ``lookahead`` seconds and the
+        governor checks them where they will be at each step (``footprint_clearance``); None: every
+        obstacle is taken as static where it is."""
+        desired = self.field_command(pose, velocity, lookahead)
         v = desired[:, None, 0] * self._vs_rel + self.config.v_cruise * self._vs_abs
         w = desired[:, None, 1] * self._ws_rel + self._ws_abs
         cand = np.stack([v, np.clip(w, -self.params.omega_max, self.params.omega_max)], axis=-1)  # (B, C, 2)
-        clear = self.footprint_clearance(pose, cand)
+        clear = self.footprint_clearance(pose, cand, velocity, lookahead)
         safe = clear >= self.config.safety_margin
         dev = (cand[..., 0] - desired[:, None, 0]) ** 2 + 0.1 * (cand[..., 1] - desired[:, None, 1]) ** 2
         score = np.where(safe, dev, np.inf)

@@ -40,13 +40,14 @@ from lerobot_formation.core.dynamics import (
     desired_follower_positions,
     formation_error,
     initial_state,
+    rollout_poses,
     step,
 )
 from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
 from lerobot_formation.core.navigation import SceneFields
 from lerobot_formation.core.observation import observe
 from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
-from lerobot_formation.core.pac import PACConfig, PathAwareController
+from lerobot_formation.core.pac import PACConfig, PathAwareController, swept_obstacles
 from lerobot_formation.core.scene import Scenes
 
 RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
@@ -78,16 +79,40 @@ class PACController:
     when the episode starts and rebuilt for a team only when its ``map_version`` changes (a new
     obstacle sensed, or one forgotten): with noise it is the noisy snapshot of that moment, the same
     map the route hint (``core.route_encoding``) plans on. The repulsion, the path check and the
-    footprint governor use the current (noisy, moving) observed obstacles at every step."""
+    footprint governor use the current (noisy, moving) observed obstacles at every step.
+
+    Args:
+        predict: [s] lookahead for moving obstacles: each one is also avoided at its positions over
+            the next ``predict`` seconds along its observed velocity (``pac.swept_obstacles``); 0: at
+            its current position only.
+        delay: [control steps] command delay to compensate: PAC acts for the pose its last ``delay``
+            commands (still queued, ``Conditions.action_delay``) will reach, and for the moving
+            obstacles ``delay`` steps ahead; 0: none. The two defaults leave PAC as it was.
+    """
 
     name = "pac"
 
-    def __init__(self, config: PACConfig | None = None, params: FormationParams | None = None):
+    def __init__(
+        self,
+        config: PACConfig | None = None,
+        params: FormationParams | None = None,
+        predict: float = 0.0,
+        delay: int = 0,
+    ):
+        if not isinstance(predict, int | float) or not np.isfinite(predict) or predict < 0:
+            raise ValueError(
+                f"PACController: predict must be a finite number of seconds >= 0, got {predict!r}"
+            )
+        if not isinstance(delay, int | np.integer) or isinstance(delay, bool) or delay < 0:
+            raise ValueError(f"PACController: delay must be an integer number of steps >= 0, got {delay!r}")
         self.pac = PathAwareController(config, params)
+        self.predict = float(predict)
+        self.delay = int(delay)
 
     def reset(self, view: Perception) -> None:
         self.pac.reset(map_obstacles(view), view.goal)
         self.version = np.array(view.map_version, copy=True)
+        self.sent = np.zeros((len(view), self.delay, 2))  # queued commands, oldest first (delay)
 
     def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
         idx = np.asarray(idx)
@@ -101,8 +126,20 @@ class PACController:
                 self.pac.ctg.fields[i] = field
             self.version[rows] = view.map_version[changed]
         sub = self.pac.select(idx)
-        sub.obstacles = view.obstacles
-        return sub.command(view.pose)
+        pose, obstacles = view.pose, view.obstacles
+        dt = self.pac.params.dt
+        if self.delay:  # the pose once the queued commands have run
+            pose = rollout_poses(pose, self.sent[idx][:, None], dt)[:, 0, -1]
+        if self.delay:  # the moving obstacles where they will be then
+            obstacles = swept_obstacles(obstacles, view.obstacle_velocity, self.delay * dt, 0.0)
+        sub.obstacles = obstacles
+        if self.predict:
+            command = sub.command(pose, view.obstacle_velocity, self.predict)
+        else:
+            command = sub.command(pose)
+        if self.delay:
+            self.sent[idx] = np.concatenate([self.sent[idx][:, 1:], command[:, None]], axis=1)
+        return command
 
 
 def step_outcome(
@@ -208,6 +245,14 @@ class Teams:
         if self._perception is None:
             self._perception = self.world.perceive(self.state, self.scenes)
         return self._perception
+
+    def truth(self) -> Perception:
+        """The true world (a privileged expert's view, ``ConditionedWorld.privileged``): every real
+        obstacle where it is, with its velocity, the true pose, a constant map of the static ones;
+        ``perceive`` without conditions."""
+        if self.world is None:
+            return Perception.exact(self.scenes, self.state)
+        return self.world.privileged(self.state, self.scenes)
 
     def __len__(self) -> int:
         return len(self.scenes)
@@ -414,10 +459,14 @@ def rollout(
     progress=None,
     conditions: Conditions | None = None,
     record_observations: tuple[str, int | None] | None = None,
+    privileged: bool = False,
 ) -> EpisodeRecords:
     """Run ``controller`` on every scene until each episode ends, under ``conditions`` (None: none).
     ``progress(n_done)`` is called after each step if given. ``record_observations`` (encoding,
-    max_obstacles): also record what the teams observe at every frame (``EpisodeRecords.observations``)."""
+    max_obstacles): also record what the teams observe at every frame (``EpisodeRecords.observations``).
+    ``privileged``: the controller acts on the true world (``Teams.truth``: a privileged expert) while
+    the conditions still act on its commands and the recorded observations stay what the teams
+    perceive; without conditions it changes nothing."""
     params = params or FormationParams()
     T = max_steps or params.max_steps
     B = len(scenes)
@@ -449,11 +498,12 @@ def rollout(
         rec.observations = {k: np.full((B, T + 1, v.shape[1]), nan, v.dtype) for k, v in first.items()}
         for k, v in first.items():
             rec.observations[k][:, 0] = v
-    controller.reset(teams.perceive())
+    view = teams.truth if privileged else teams.perceive
+    controller.reset(view())
     rec.put(slice(None), 0, frame_record(teams.state, scenes.obstacles, params))
     live = np.arange(B)  # the teams' episodes (global indices)
     for t in range(T):
-        transition = teams.step(controller.act(teams.perceive(), live))
+        transition = teams.step(controller.act(view(), live))
         rec.put(live, t, step_record(transition.prev_pose, teams.state, transition.action, params))
         rec.put(live, t + 1, frame_record(teams.state, teams.scenes.obstacles, params))
         if world is not None:

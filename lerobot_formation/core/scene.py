@@ -845,7 +845,61 @@ def sample_mixed(seeds, presets: tuple[str, ...], report: SamplingReport | None 
     seeds = np.atleast_1d(np.asarray(seeds, dtype=np.int64))
     if seeds.ndim != 1 or len(seeds) == 0:
         raise ValueError(f"seeds must be a non-empty 1-D sequence, got shape {seeds.shape}")
-    which = seeds % len(presets)
+    return _sample_assigned(seeds, seeds % len(presets), presets, report)
+
+
+def distribution_entries(spec: str) -> tuple[str, ...]:
+    """The entries of a scene distribution ``spec`` (the generator's ``--scene-preset``): a preset of
+    ``SCENE_PRESETS``, a mixture of ``SCENE_MIXES``, or a comma-separated list of those; ValueError
+    naming an unknown entry."""
+    entries = tuple(e.strip() for e in str(spec).split(","))
+    for e in entries:
+        if e not in SCENE_PRESETS and e not in SCENE_MIXES:
+            raise ValueError(
+                f"scene preset {e!r} of {spec!r} is neither a preset {tuple(SCENE_PRESETS)} "
+                f"nor a mixture {tuple(SCENE_MIXES)}"
+            )
+    return entries
+
+
+def distribution_presets(spec: str) -> tuple[str, ...]:
+    """Every preset a scene distribution ``spec`` can draw from (``distribution_entries``)."""
+    names = [p for e in distribution_entries(spec) for p in SCENE_MIXES.get(e, (e,))]
+    return tuple(dict.fromkeys(names))
+
+
+def distribution_slots(spec: str) -> int:
+    """Obstacle slots a scene of the distribution ``spec`` can need."""
+    return max(scene_preset(p).max_obstacles for p in distribution_presets(spec))
+
+
+def sample_distribution(seeds, spec: str, report: SamplingReport | None = None) -> Scenes:
+    """The scene of each seed s of the distribution ``spec`` (``distribution_entries``, k entries):
+    entry ``s % k``; an entry that is a mixture draws its preset ``mix[(s // k) % len(mix)]`` (so a
+    lone mixture is ``sample_mixed``, and every preset of a mixture in a list is drawn). A single
+    preset is ``sample_scenes`` with that preset's config."""
+    entries = distribution_entries(spec)
+    if len(entries) == 1 and entries[0] in SCENE_PRESETS:
+        return sample_scenes(seeds, scene_preset(entries[0]), report)
+    seeds = np.atleast_1d(np.asarray(seeds, dtype=np.int64))
+    if seeds.ndim != 1 or len(seeds) == 0:
+        raise ValueError(f"seeds must be a non-empty 1-D sequence, got shape {seeds.shape}")
+    k = len(entries)
+    presets = distribution_presets(spec)
+    names = []
+    for s in seeds.tolist():
+        entry = entries[s % k]
+        mix = SCENE_MIXES.get(entry)
+        names.append(entry if mix is None else mix[(s // k) % len(mix)])
+    which = np.array([presets.index(n) for n in names], dtype=np.int64)
+    return _sample_assigned(seeds, which, presets, report)
+
+
+def _sample_assigned(
+    seeds: np.ndarray, which: np.ndarray, presets: tuple[str, ...], report: SamplingReport | None
+) -> Scenes:
+    """The scene of each seed ``seeds[i]`` from preset ``presets[which[i]]``, in the order of
+    ``seeds`` (obstacle rows padded to the largest preset's)."""
     parts, order = [], []
     for k, name in enumerate(presets):
         rows = np.flatnonzero(which == k)

@@ -13,12 +13,17 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.compat.lerobot_compat import save_episode_buffer, skip_noop_image_embedding
-from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.conditions import RANDOMIZE_ON, Conditions
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import load_scenes
-from lerobot_formation.core.scene import scene_preset as scene_preset_config
+from lerobot_formation.core.scene import distribution_slots, load_scenes
 from lerobot_formation.data.dataset_frames import ACTION, FPS, MAX_OBSTACLES, dataset_features
-from lerobot_formation.data.pac_episodes import Generator, seed_stream, shard_episodes
+from lerobot_formation.data.pac_episodes import (
+    CONDITION_GROUP,
+    Generator,
+    check_expert,
+    seed_stream,
+    shard_episodes,
+)
 from lerobot_formation.data.safe_destination import (
     check_replaceable,
     remove_stale_temporaries,
@@ -57,9 +62,15 @@ def generate(
     scene_preset: str = "paper",
     min_scene_slots: int = 0,
     conditions: Conditions | None = None,
+    expert: str = "pac",
+    randomize: Conditions | None = None,
 ) -> dict:
-    """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: PAC's
-    episodes under realistic conditions (``core.conditions``; None or all off: none).
+    """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: the
+    episodes under realistic conditions (``core.conditions``; None or all off: none); ``expert``:
+    "pac" (on the perception) or "privileged" (on the true world), ``pac_episodes.EXPERTS``;
+    ``randomize``: each group of seeds under its own draw of conditions up to these
+    (``pac_episodes``; not with ``conditions``). ``scene_preset``: a
+    ``core.scene.sample_distribution`` spec (a preset, a mixture or a comma list).
 
     Raises:
         FileExistsError: ``root`` exists and not ``overwrite``, or ``overwrite`` but ``root`` is not a
@@ -76,6 +87,12 @@ def generate(
         raise FileExistsError(f"destination {root} already exists; pass --overwrite to replace it")
     if overwrite:
         check_replaceable(root)  # before any work: only a dataset this project wrote is replaced
+    if randomize is not None and conditions is not None and conditions.enabled:
+        raise ValueError("randomized conditions and fixed conditions exclude each other: give one")
+    if randomize is not None and not randomize.enabled:
+        raise ValueError("randomized conditions need a ceiling with some condition on")
+    check_expert(expert)
+    distribution_slots(scene_preset)  # a ValueError naming a bad preset, before any work
     n = shard_episodes(episodes, num_shards, shard_index)
     root.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(root)  # of killed runs; refuses if a live generation writes root
@@ -83,7 +100,6 @@ def generate(
     if tmp.exists():
         shutil.rmtree(tmp)
     params = FormationParams()
-    scene_config = scene_preset_config(scene_preset)
     scenes_file = load_scenes(scenes_path) if scenes_path else None
     if scenes_file is not None:
         held = len(range(shard_index, len(scenes_file), num_shards))  # this shard's scenes of the file
@@ -93,7 +109,7 @@ def generate(
                 f"({len(scenes_file)} scenes{f', {held} of them in shard {shard_index}' if num_shards > 1 else ''})"
             )
     # scene.obstacles keeps every obstacle of every scene: as many rows as the distribution can need
-    scene_slots = scene_config.max_obstacles if scenes_file is None else scenes_file.obstacles.shape[1]
+    scene_slots = distribution_slots(scene_preset) if scenes_file is None else scenes_file.obstacles.shape[1]
     scene_slots = max(scene_slots, MAX_OBSTACLES, min_scene_slots)
     t0 = time.perf_counter()
     bar = None
@@ -107,9 +123,11 @@ def generate(
         min(batch_size, int(np.ceil(n * 1.05)) + 2),
         obstacle_encoding,
         workers,
-        scene_config,
+        scene_preset,
         scene_slots,
         conditions,
+        expert,
+        randomize,
     )
     frames_total = 0
     ds = None
@@ -146,6 +164,14 @@ def generate(
         }
         if conditions is not None and conditions.enabled:
             extra["conditions"] = conditions.changed()
+        if expert != "pac":
+            extra["expert"] = expert
+        if randomize is not None:
+            extra["conditions_randomize"] = {
+                "ceiling": randomize.changed(),
+                "p_on": RANDOMIZE_ON,
+                "group": CONDITION_GROUP,
+            }
         return _publish(tmp, root, ds, gen, t0, overwrite, extra, repo_id)
     except BaseException:  # any exit, SystemExit of SIGTERM included (main()): leave nothing behind
         if (

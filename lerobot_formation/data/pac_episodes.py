@@ -1,6 +1,19 @@
 """PAC episodes for the dataset: scenes by seed, simulated batch by batch on the NumPy core
 (optionally in worker processes that die with the generating process), successful ones kept in
-seed order; and the seeds and episode counts of each shard."""
+seed order; and the seeds and episode counts of each shard.
+
+The expert (``EXPERTS``): "pac" drives on what the team perceives (``core.conditions.Perception``);
+"privileged" acts on the true world (``rollout(privileged=True)``: every obstacle where it is, with
+its velocity), avoids the moving obstacles over the next ``EXPERT_PREDICT`` seconds and compensates
+the action delay (``PACController(predict=, delay=)``), while the frames still hold what the team
+perceived. Without conditions both are PAC on the true scene.
+
+Randomized conditions (``randomize``: the ceiling, e.g. a level's conditions): episode seed s gets
+``core.conditions.randomized_conditions(ceiling, s // CONDITION_GROUP)``. The engine takes one
+``Conditions`` per rollout, so the episodes of a batch that share a group are rolled out together,
+one rollout per group; an episode's conditions are a pure function of its seed, whatever the batch
+size, the workers or the shards.
+"""
 
 from __future__ import annotations
 
@@ -11,11 +24,47 @@ import time
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.conditions import Conditions, randomized_conditions
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import SUCCESS, PACController, rollout
-from lerobot_formation.core.scene import SceneConfig, Scenes, sample_scenes
+from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACController, rollout
+from lerobot_formation.core.scene import Scenes, sample_distribution
 from lerobot_formation.data.dataset_frames import MAX_OBSTACLES, episode_frames
+
+EXPERTS = ("pac", "privileged")
+EXPERT_PREDICT = 1.5  # [s] the privileged expert's lookahead for moving obstacles
+CONDITION_GROUP = 16  # consecutive seeds sharing one draw of randomized conditions
+
+
+def check_expert(expert: str) -> None:
+    if expert not in EXPERTS:
+        raise ValueError(f"expert must be one of {EXPERTS}, got {expert!r}")
+
+
+def expert_rollout(
+    scenes: Scenes,
+    params: FormationParams,
+    obstacle_encoding: str,
+    conditions: Conditions | None,
+    expert: str = "pac",
+) -> EpisodeRecords:
+    """The ``expert``'s episodes on ``scenes`` under ``conditions`` (module docstring); under
+    conditions the records hold what the team observed (``EpisodeRecords.observations``)."""
+    check_expert(expert)
+    on = conditions is not None and conditions.enabled
+    privileged = expert == "privileged"
+    if privileged:
+        delay = conditions.action_delay if on else 0
+        controller = PACController(params=params, predict=EXPERT_PREDICT, delay=delay)
+    else:
+        controller = PACController(params=params)
+    return rollout(
+        scenes,
+        controller,
+        params,
+        conditions=conditions if on else None,
+        record_observations=(obstacle_encoding, None) if on else None,
+        privileged=privileged,
+    )
 
 
 def simulate_batch(
@@ -23,29 +72,38 @@ def simulate_batch(
     scenes: Scenes | None,
     params: FormationParams,
     obstacle_encoding: str,
-    scene_config: SceneConfig | None = None,
+    scene_preset: str = "paper",
     scene_slots: int = MAX_OBSTACLES,
     conditions: Conditions | None = None,
+    expert: str = "pac",
+    randomize: Conditions | None = None,
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
-    """PAC on one batch of scenes (the seeds' scenes, or the given ones), under ``conditions`` (then
-    the frames hold what the team observed): (attempted, frames of the successful episodes in seed
-    order). Runs in a worker process when generation is pipelined."""
+    """The expert on one batch of scenes (the seeds' scenes of ``scene_preset``, a
+    ``core.scene.sample_distribution`` spec, or the given ones), under ``conditions``, or under
+    randomized conditions up to ``randomize`` drawn per group of seeds (module docstring):
+    (attempted, frames of the successful episodes in seed order). Runs in a worker process when
+    generation is pipelined."""
     if scenes is None:
-        scenes = sample_scenes(seeds, scene_config)
-    on = conditions is not None and conditions.enabled
-    rec = rollout(
-        scenes,
-        PACController(params=params),
-        params,
-        conditions=conditions if on else None,
-        record_observations=(obstacle_encoding, None) if on else None,
-    )
-    ok = np.flatnonzero(rec.outcome == SUCCESS)
-    return len(scenes), [episode_frames(rec, scenes, b, obstacle_encoding, scene_slots) for b in ok]
+        scenes = sample_distribution(seeds, scene_preset)
+    if randomize is None:
+        groups = [(np.arange(len(scenes)), conditions)]
+    else:
+        keys = np.asarray(seeds) // CONDITION_GROUP
+        groups = [
+            (np.flatnonzero(keys == k), randomized_conditions(randomize, int(k))) for k in np.unique(keys)
+        ]
+    kept = []
+    for rows, group_conditions in groups:
+        part = scenes if len(groups) == 1 else scenes[rows]
+        rec = expert_rollout(part, params, obstacle_encoding, group_conditions, expert)
+        for b in np.flatnonzero(rec.outcome == SUCCESS):
+            kept.append((rows[b], episode_frames(rec, part, b, obstacle_encoding, scene_slots)))
+    kept.sort(key=lambda row_frames: row_frames[0])
+    return len(scenes), [frames for _, frames in kept]
 
 
 class Generator:
-    """Collects successful PAC episodes in seed order, batch by batch.
+    """Collects successful expert episodes in seed order, batch by batch.
 
     With ``workers > 0`` the batches are simulated in worker processes, ``workers`` batches ahead,
     while the caller writes: on 2 cores simulation and LeRobot's writer then overlap. The episodes
@@ -58,23 +116,36 @@ class Generator:
         batch_size: int = 256,
         obstacle_encoding: str = "grid",
         workers=0,
-        scene_config: SceneConfig | None = None,
+        scene_preset: str = "paper",
         scene_slots: int = MAX_OBSTACLES,
         conditions: Conditions | None = None,
+        expert: str = "pac",
+        randomize: Conditions | None = None,
     ):
+        check_expert(expert)
         self.conditions = conditions
-        self.scene_config = scene_config
+        self.scene_preset = scene_preset
         self.scene_slots = scene_slots
         self.params = params
         self.batch_size = batch_size
         self.obstacle_encoding = obstacle_encoding
         self.workers = workers
+        self.expert = expert
+        self.randomize = randomize
         self.attempted = 0
         self.succeeded = 0
 
     @property
     def _sim_args(self) -> tuple:
-        return self.params, self.obstacle_encoding, self.scene_config, self.scene_slots, self.conditions
+        return (
+            self.params,
+            self.obstacle_encoding,
+            self.scene_preset,
+            self.scene_slots,
+            self.conditions,
+            self.expert,
+            self.randomize,
+        )
 
     def _batches(self, seeds_iter, scenes_file: Scenes | None):
         while True:

@@ -1,0 +1,87 @@
+"""The generator's privileged expert and randomized conditions (``data.pac_episodes``)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datasets_scripts import generate_pac_dataset as gen
+from lerobot_formation.bench.levels import get_level
+from lerobot_formation.core.conditions import randomized_conditions
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.data import lerobot_writer
+from lerobot_formation.data.dataset_frames import episode_frames
+from lerobot_formation.data.pac_episodes import CONDITION_GROUP, expert_rollout, simulate_batch
+
+REPO = "local/formation_priv"
+CEILING = get_level("level5").conditions
+
+
+def _hashes(root: Path) -> dict[str, str]:
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "generation.json"
+    }
+
+
+def test_randomized_conditions_follow_the_seed_and_vary_across_groups():
+    assert CONDITION_GROUP == 16  # seeds 15 and 16 are in different groups
+    params = FormationParams()
+    first = randomized_conditions(CEILING, 15 // CONDITION_GROUP)
+    assert first != randomized_conditions(CEILING, 16 // CONDITION_GROUP)
+    both = simulate_batch(np.array([15, 16]), None, params, "nearest", expert="privileged", randomize=CEILING)
+    alone = simulate_batch(np.array([16]), None, params, "nearest", expert="privileged", randomize=CEILING)
+    assert both[0] == 2 and len(both[1]) == 2 and len(alone[1]) == 1
+    for key, value in alone[1][0].items():  # seed 16's episode does not depend on its batch
+        np.testing.assert_array_equal(both[1][1][key], value, err_msg=key)
+    scene = sample_scenes([15])
+    rec = expert_rollout(scene, params, "nearest", first, "privileged")
+    for key, value in episode_frames(rec, scene, 0, "nearest").items():  # seed 15: its group's draw
+        np.testing.assert_array_equal(both[1][0][key], value, err_msg=key)
+    assert not np.array_equal(both[1][0]["action"][:5], both[1][1]["action"][:5])
+
+
+def test_same_seed_same_privileged_randomized_dataset(tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    kw = dict(seed=14, obstacle_encoding="nearest", workers=0, progress=False, expert="privileged")
+    a, b = tmp_path / "a", tmp_path / "b"
+    lerobot_writer.generate(a, REPO, 2, randomize=CEILING, **kw)
+    lerobot_writer.generate(b, REPO, 2, randomize=CEILING, **kw)
+    assert _hashes(a) == _hashes(b)
+    ds = LeRobotDataset(REPO, root=a)
+    assert ds.meta.total_episodes == 2
+    meta = json.loads((a / "meta" / "generation.json").read_text())
+    assert meta["expert"] == "privileged"
+    assert meta["conditions_randomize"]["ceiling"] == CEILING.changed()
+    with pytest.raises(ValueError, match="exclude each other"):
+        lerobot_writer.generate(tmp_path / "c", REPO, 3, randomize=CEILING, conditions=CEILING, **kw)
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--expert", "oracle"], "invalid choice"),
+        (["--conditions-randomize", "level3"], "has no conditions to randomize"),
+        (["--conditions-randomize", "level9"], "unknown level"),
+        (["--conditions-randomize", "level5", "--env.pose_noise", "0.1"], "excludes --env.* flags"),
+        (["--scene-preset", "paper,nope"], "'nope' of 'paper,nope' is neither a preset"),
+    ],
+)
+def test_bad_arguments(argv, match, capsys):
+    with pytest.raises(SystemExit):
+        gen.parse_args(argv)
+    assert match in capsys.readouterr().err
+
+
+def test_mixtures_are_accepted():
+    args = gen.parse_args(["--scene-preset", "structures"])
+    assert args.scene_preset == "structures"
+    args = gen.parse_args(["--scene-preset", "paper,wide,mixed-hard,structures", "--expert", "privileged"])
+    assert args.expert == "privileged"
