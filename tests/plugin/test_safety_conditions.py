@@ -18,7 +18,9 @@ FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
 
 def _reference_module():
-    spec = importlib.util.spec_from_file_location("make_safety_off_reference", FIXTURES / "make_safety_off_reference.py")
+    spec = importlib.util.spec_from_file_location(
+        "make_safety_off_reference", FIXTURES / "make_safety_off_reference.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -46,10 +48,22 @@ def test_with_the_new_settings_off_the_replanner_acts_as_before():
 
 def test_safety_settings_are_checked_with_their_value():
     for bad, message in (
-        (dict(safety_action_delay=-1), r"safety_action_delay must be an integer >= 0 \[control steps\], got -1"),
-        (dict(safety_action_delay=1.5), r"safety_action_delay must be an integer >= 0 \[control steps\], got 1.5"),
-        (dict(safety_max_linear_accel=0.0), r"safety_max_linear_accel must be null \(no limit\) or > 0, got 0.0"),
-        (dict(safety_max_angular_accel=-2.0), r"safety_max_angular_accel must be null \(no limit\) or > 0, got -2.0"),
+        (
+            dict(safety_action_delay=-1),
+            r"safety_action_delay must be an integer >= 0 \[control steps\], got -1",
+        ),
+        (
+            dict(safety_action_delay=1.5),
+            r"safety_action_delay must be an integer >= 0 \[control steps\], got 1.5",
+        ),
+        (
+            dict(safety_max_linear_accel=0.0),
+            r"safety_max_linear_accel must be null \(no limit\) or > 0, got 0.0",
+        ),
+        (
+            dict(safety_max_angular_accel=-2.0),
+            r"safety_max_angular_accel must be null \(no limit\) or > 0, got -2.0",
+        ),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
@@ -63,7 +77,10 @@ def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
     replanner.start(1)
     env = torch.from_numpy(
         environment_state(
-            np.array([[[3.0, 3.0, 0.3]]]), np.ones((1, 1), bool), np.array([[0.0, 8.0]]), "nearest",
+            np.array([[[3.0, 3.0, 0.3]]]),
+            np.ones((1, 1), bool),
+            np.array([[0.0, 8.0]]),
+            "nearest",
             pose=np.array([[0.0, 0.0, np.pi / 2]]),
         )
     )
@@ -93,15 +110,21 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     inputs, outputs = formation_features(env_dim=74)
     seeing = FormationDiffusionPolicy(
         nearest_config(
-            input_features=inputs, output_features=outputs, obstacle_encoding="nearest+velocity",
-            num_candidates=4, safety_moving_obstacles=True,
+            input_features=inputs,
+            output_features=outputs,
+            obstacle_encoding="nearest+velocity",
+            num_candidates=4,
+            safety_moving_obstacles=True,
         )
     )
     env = environment_state(obstacles, mask, goal, "nearest+velocity", pose=pose, obstacle_velocity=velocity)
     view = seeing.replanner.observed_obstacles(env)
     near = np.argmin(np.abs(view.obstacles[0, :, 2] - 0.3))  # the 0.3 m obstacle's slot
     np.testing.assert_allclose(view.velocity[0, near], [0.0, -0.3], atol=1e-6)  # body x right, y ahead
-    assert view.velocity[0, ~view.mask[0]].sum() == 0 and seeing.replanner.observed_obstacles(env).velocity is not None
+    assert (
+        view.velocity[0, ~view.mask[0]].sum() == 0
+        and seeing.replanner.observed_obstacles(env).velocity is not None
+    )
 
     tracking = _policy(safety_moving_obstacles=True).replanner
     tracking.start(1)
@@ -140,17 +163,33 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
     assert safety_settings(get_level("level3").conditions) == {}
     bundle = load_policy(save_nearest_checkpoint(tmp_path))
     options = ControllerOptions(candidates=3, conditions=conditions)
-    for name, knows in (("diffusion-safe", True), ("diffusion-cbf", True), ("diffusion", False), ("diffusion-policy", False)):
+    for name, knows in (
+        ("diffusion-safe", True),
+        ("diffusion-cbf", True),
+        ("diffusion", False),
+        ("diffusion-policy", False),
+    ):
         cfg = make_controller(name, FormationParams(), options, bundle).config
-        assert (cfg.safety_action_delay, cfg.safety_moving_obstacles) == ((1, True) if knows else (0, False)), name
-    plain = make_controller("diffusion-safe", FormationParams(), ControllerOptions(candidates=3), bundle).config
+        assert (cfg.safety_action_delay, cfg.safety_moving_obstacles) == (
+            (1, True) if knows else (0, False)
+        ), name
+    plain = make_controller(
+        "diffusion-safe", FormationParams(), ControllerOptions(candidates=3), bundle
+    ).config
     assert dataclasses.asdict(plain)["safety_max_linear_accel"] is None
 
 
 def test_bench_reports_how_often_the_safety_layer_intervened():
     from lerobot_formation.bench.results import safety_rates, safety_table
 
-    stats = {"replans": 50, "replans_none_safe": 10, "escapes": 5, "stops": 1, "steps": 400, "filter_interventions": 20}
+    stats = {
+        "replans": 50,
+        "replans_none_safe": 10,
+        "escapes": 5,
+        "stops": 1,
+        "steps": 400,
+        "filter_interventions": 20,
+    }
     rates = safety_rates(stats)
     assert rates == {
         "filter_intervention_rate": 0.05,
@@ -158,7 +197,9 @@ def test_bench_reports_how_often_the_safety_layer_intervened():
         "escape_rate": 0.1,
         "stop_rate": 0.02,
     }
-    table = safety_table({"pac": {}, "diffusion-safe": {"safety": {**stats, **rates}}}, "level5 scenes (level5:20)")
+    table = safety_table(
+        {"pac": {}, "diffusion-safe": {"safety": {**stats, **rates}}}, "level5 scenes (level5:20)"
+    )
     assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 |" in table
     assert "pac" not in table
     assert safety_table({"pac": {}}, "x") == ""
