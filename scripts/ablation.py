@@ -261,9 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             entry.pop("episodes")
             entry["wall_time_s"] = time.perf_counter() - t0
             if getattr(ctrl, "stats", None):
-                entry.update(safety_rates(ctrl.stats))
-                entry["escape_rate"] = ctrl.stats["escapes"] / max(ctrl.stats["replans"], 1)
-                entry["stop_rate"] = ctrl.stats["stops"] / max(ctrl.stats["replans"], 1)
+                entry.update(safety_rates(ctrl.stats))  # escape_rate and stop_rate included
             results[label][s] = entry
             lo, hi = entry["success_ci95"]
             print(

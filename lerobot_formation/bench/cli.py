@@ -273,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
             candidates=args.candidates,
             num_inference_steps=args.num_inference_steps,
             seed_policy=args.seed_policy,
+            conditions=conditions,
         ),
         # progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them
         progress=not args.no_progress and sys.stderr.isatty(),

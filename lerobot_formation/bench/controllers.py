@@ -8,6 +8,9 @@ made, so a new controller is one new file and one line here). A controller needs
 checkpoint: the bench asks for ``--policy.path`` and loads it once into ``bundle``. Each of them is
 the policy's ``Replanner`` with the checkpoint's config and, for K and the filter, an override
 (``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored.
+The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
+conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
+limits, and whether obstacles move; what a robot's designer knows of it, never its noise draws.
 """
 
 from __future__ import annotations
@@ -16,8 +19,23 @@ import importlib
 from collections.abc import Callable
 
 from lerobot_formation.bench.settings import ControllerOptions
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import PACController
+
+
+def safety_settings(conditions: Conditions | None) -> dict:
+    """The policy config fields of the safety layer's knowledge of a run under ``conditions``: the
+    actuator's delay and acceleration limits, and whether obstacles move (then it predicts the
+    observed ones at their velocities). Empty without conditions."""
+    if conditions is None or not conditions.enabled:
+        return {}
+    return {
+        "safety_action_delay": conditions.action_delay,
+        "safety_max_linear_accel": conditions.max_linear_accel,
+        "safety_max_angular_accel": conditions.max_angular_accel,
+        "safety_moving_obstacles": conditions.moving_obstacles > 0,
+    }
 
 
 def _diffusion(safety_filter: str | None, best_of_k: bool | None):
@@ -33,6 +51,8 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None):
                 "num_candidates": options.candidates if best_of_k else 1,
                 "safety_filter": safety_filter,
             }
+            if best_of_k or safety_filter != "none":  # a safety layer: it knows the run's actuator
+                overrides.update(safety_settings(options.conditions))
         return DiffusionController(
             options.policy_path,
             num_inference_steps=options.num_inference_steps,

@@ -26,12 +26,47 @@ def _clean(x):
 
 
 def safety_rates(stats: dict) -> dict:
-    """The safety layer's intervention rates from a controller's ``stats`` counts: CBF-changed
-    actions per step, replans with no safe candidate per replan."""
+    """The safety layer's intervention rates from a controller's ``stats`` counts
+    (``policy.replanner.STAT_KEYS``): the share of steps whose action the CBF filter changed
+    (``filter_intervention_rate``; x 100: per 100 steps), and the shares of replans where best-of-K
+    found no safe candidate, kept an escape manoeuvre, or stopped."""
+    replans = max(stats["replans"], 1)
     return {
         "filter_intervention_rate": stats["filter_interventions"] / max(stats["steps"], 1),
-        "replans_none_safe_rate": stats["replans_none_safe"] / max(stats["replans"], 1),
+        "replans_none_safe_rate": stats["replans_none_safe"] / replans,
+        "escape_rate": stats["escapes"] / replans,
+        "stop_rate": stats["stops"] / replans,
     }
+
+
+def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
+    """``tables.md``'s table of how often the safety layer intervened, per controller that has one
+    (``results[name]["safety"]``); empty without any."""
+    names = [n for n in dict.fromkeys((*order, *results)) if n in results and "safety" in results[n]]
+    if not names:
+        return ""
+    lines = [
+        f"### Safety layer interventions on {label}",
+        "",
+        "| Controller | Steps | Filter interventions / 100 steps | Replans | No safe candidate % | "
+        "Escape manoeuvre % | Stop % |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for n in names:
+        st = results[n]["safety"]
+        rates = safety_rates(st)
+        lines.append(
+            f"| {n} | {st['steps']} | {100 * rates['filter_intervention_rate']:.2f} | {st['replans']} | "
+            f"{100 * rates['replans_none_safe_rate']:.1f} | {100 * rates['escape_rate']:.1f} | "
+            f"{100 * rates['stop_rate']:.1f} |"
+        )
+    lines += [
+        "",
+        "Filter interventions: actions the CBF filter changed; the percentages are of best-of-K's "
+        "replans (an escape manoeuvre is kept only when no sampled chunk is safe).",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dict:
@@ -114,6 +149,11 @@ def write_results(
     payload["meta"]["unseen_conditions"] = unseen_conditions or {}  # a level's own when --unseen is a level
     atomic_write_text(out / "results.json", json.dumps(payload, indent=1, default=_clean))
     tables = [three_way_table(results.get(label, {}), f"{label} scenes ({settings.scenes})", settings.order)]
+    for name, by_controller in results.items():
+        spec = settings.unseen if name == "unseen" else settings.scenes
+        table = safety_table(by_controller, f"{name} scenes ({spec})", settings.order)
+        if table:
+            tables.append(table)
     sets = {k: v for k, v in results.items() if any(c in settings.policy_controllers for c in v)}
     if sets:
         specs = {label: settings.scenes, "unseen": settings.unseen or ""}

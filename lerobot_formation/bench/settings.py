@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from lerobot_formation.core.conditions import Conditions
+
 
 @dataclass(frozen=True)
 class ControllerOptions:
@@ -17,6 +19,9 @@ class ControllerOptions:
         seed_policy: seed of the controllers' noise (diffusion, MPPI).
         overrides: policy config fields every diffusion controller runs with, after its own.
         experiment: a ``policy.replanner.ReplanExperiment`` (ablation settings), or None.
+        conditions: the run's realistic conditions: the controllers with a safety layer give it the
+            actuator's delay and rate limits and whether obstacles move
+            (``controllers.safety_settings``); None: none.
     """
 
     policy_path: str | None = None
@@ -25,6 +30,7 @@ class ControllerOptions:
     seed_policy: int = 0
     overrides: dict = field(default_factory=dict)
     experiment: object | None = None
+    conditions: Conditions | None = None
 
 
 @dataclass(frozen=True)

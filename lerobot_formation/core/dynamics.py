@@ -240,6 +240,28 @@ def rate_limit(
     return out
 
 
+def rate_limit_sequence(
+    previous: np.ndarray,
+    commands: np.ndarray,
+    max_linear_accel: float | None,
+    max_angular_accel: float | None,
+    dt: float,
+) -> np.ndarray:
+    """``rate_limit`` along command sequences: the executed velocities (B, C, T, 2) of commands
+    (B, C, T, 2) from the executed [v, omega] (B, 2) before the first; step k starts from step
+    k - 1's result. The commands are returned as they are when neither limit is set."""
+    if max_linear_accel is None and max_angular_accel is None:
+        return commands
+    B, C, T, _ = commands.shape
+    out = np.empty((B, C, T, 2))
+    now = np.repeat(np.asarray(previous, dtype=np.float64), C, axis=0)  # (B * C, 2)
+    flat = commands.reshape(B * C, T, 2)
+    for k in range(T):
+        now = rate_limit(now, flat[:, k], max_linear_accel, max_angular_accel, dt)
+        out[:, :, k] = now.reshape(B, C, 2)
+    return out
+
+
 def step_midpoint(pose: np.ndarray, action: np.ndarray, dt) -> np.ndarray:
     """Midpoint unicycle, explicit Euler (paper's discrete dynamics). (..., 3), (..., 2) -> (..., 3).
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from lerobot_formation.core.dynamics import body_to_world, rollout_poses
 from lerobot_formation.core.geometry import xy_clearance
+from lerobot_formation.core.obstacle_tracker import predict_obstacles
 
 __all__ = ["rollout_poses", "sequence_clearance", "template_clearance"]
 
@@ -43,8 +44,22 @@ def sequence_clearance(
     template: np.ndarray,
     dt: float,
     agent_radius: float,
+    obstacle_velocity: np.ndarray | None = None,
+    start_step: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of candidate sequences."""
+    """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of candidate sequences.
+
+    ``obstacle_velocity`` (B, M, 2): the obstacles move at constant velocity, and the pose after
+    action k is checked against them at time (``start_step`` + k + 1) dt (``start_step``: the steps
+    from now until the first action runs). None: they stand still (the same numbers as all zeros).
+    """
     poses = rollout_poses(pose, actions, dt)  # (B, C, T, 3)
-    clear = template_clearance(poses, obstacles, template, agent_radius)
+    if obstacle_velocity is None:
+        clear = template_clearance(poses, obstacles, template, agent_radius)
+    else:  # time folded into the batch: step k's poses against the obstacles at step k
+        B, C, T, _ = poses.shape
+        moved = predict_obstacles(obstacles, obstacle_velocity, (start_step + 1 + np.arange(T)) * dt)
+        at = np.ascontiguousarray(poses.transpose(0, 2, 1, 3)).reshape(B * T, C, 3)
+        clear = template_clearance(at, moved.reshape(B * T, -1, 3), template, agent_radius)
+        clear = clear.reshape(B, T, C).transpose(0, 2, 1)
     return clear.min(axis=-1), poses[:, :, -1]

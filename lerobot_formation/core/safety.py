@@ -34,18 +34,101 @@ u_nom, a projection onto one constraint line, or a vertex of two; all are enumer
 the feasible one of least cost is kept. u = (0, 0) satisfies every row when the team is currently
 safe (h >= 0), so the QP is then always feasible: stopping is the fallback. If the team is already
 inside the margin, the candidate of least violation is taken.
+
+Moving obstacles (``obstacle_velocity``, body-frame velocities v_j of the observed obstacles, from
+the ``nearest+velocity`` encoding or ``core.obstacle_tracker``): ``select_chunk`` checks the pose
+after each action against the obstacles where they will be then, c_j + v_j t (constant velocity);
+the filter's barrier h_ij = |p_i - c_j(t)| - r_j - ... has dh_ij/dt = n_ij . (p_i' - v_j), so its
+row becomes n_ij . e_y v + n_ij . (-b_iy, b_ix) omega >= -alpha h_ij + n_ij . v_j (an approaching
+obstacle asks for more than a standing one).
+
+Delay and rate limits (``ChunkStart``, from ``predict_start``): the commands already sent run first
+(``delay`` steps), so a new chunk (and the filtered action) starts at the pose predicted after them,
+with the obstacles moved on by as many steps; with acceleration limits every command sequence is
+rolled out as the actuator executes it (``dynamics.rate_limit_sequence`` from the velocity executed
+last), and the filter's action box shrinks to the velocities reachable in one step from it
+(an action that only the rate limit changes is not an intervention).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from lerobot_formation.core.dynamics import rate_limit_sequence, rollout_poses
+from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.footprint import sequence_clearance
 from lerobot_formation.core.navigation import cost_to_go_at
 from lerobot_formation.core.replan_blend import blend_replan
 from lerobot_formation.core.scene import FAR
+from lerobot_formation.core.velocity_encoding import body_velocities
 
 BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
+
+
+@dataclass(frozen=True)
+class ChunkStart:
+    """Where the next command starts to act, in the current body frame (module docstring).
+
+    Attributes:
+        pose: (B, 3) the midpoint pose predicted after the commands in flight.
+        velocity: (B, 2) the [v, omega] executed over the step before the next command runs.
+        steps: the steps from now until the next command runs (the actuator's delay).
+        max_linear_accel: the actuator's limit on dv/dt [m/s^2] (None: none).
+        max_angular_accel: the same on domega/dt [rad/s^2] (None: none).
+    """
+
+    pose: np.ndarray
+    velocity: np.ndarray
+    steps: int = 0
+    max_linear_accel: float | None = None
+    max_angular_accel: float | None = None
+
+    def __getitem__(self, rows) -> ChunkStart:
+        return ChunkStart(
+            self.pose[rows], self.velocity[rows], self.steps, self.max_linear_accel, self.max_angular_accel
+        )
+
+    def executed(self, commands: np.ndarray, dt: float) -> np.ndarray:
+        """The velocities (B, C, T, 2) the actuator executes for command sequences (B, C, T, 2)."""
+        return rate_limit_sequence(self.velocity, commands, self.max_linear_accel, self.max_angular_accel, dt)
+
+
+def predict_start(
+    in_flight: np.ndarray,
+    executed: np.ndarray,
+    dt: float,
+    max_linear_accel: float | None = None,
+    max_angular_accel: float | None = None,
+) -> ChunkStart:
+    """The ``ChunkStart`` after the commands in flight (B, d, 2) [v, omega] (oldest first: sent but
+    not run yet, d = the delay), from the velocity executed last (B, 2): they run as the actuator runs
+    them (rate limited), from ``BODY_POSE``."""
+    B, d = in_flight.shape[:2]
+    pose = np.broadcast_to(BODY_POSE, (B, 3)).copy()
+    velocity = np.asarray(executed, dtype=np.float64)
+    if d:
+        run = rate_limit_sequence(velocity, in_flight[:, None], max_linear_accel, max_angular_accel, dt)
+        pose = rollout_poses(pose, run, dt)[:, 0, -1]
+        velocity = np.array(run[:, 0, -1], dtype=np.float64)
+    return ChunkStart(pose, velocity, d, max_linear_accel, max_angular_accel)
+
+
+def obstacles_at_start(
+    obstacles: np.ndarray, obstacle_velocity: np.ndarray | None, start: ChunkStart | None, dt: float
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Obstacles (B, M, 3) and their velocities (B, M, 2) in the body frame of the ``start`` pose,
+    moved on by its ``steps`` (the filter's view when the next action runs); unchanged without a start."""
+    if start is None:
+        return obstacles, obstacle_velocity
+    obstacles = np.array(obstacles, dtype=np.float64)
+    if obstacle_velocity is not None:
+        obstacles[..., :2] += obstacle_velocity * (start.steps * dt)
+    obstacles[..., :2] = world_to_body(obstacles[..., :2], start.pose)
+    if obstacle_velocity is not None:  # a direction: the rotation alone
+        obstacle_velocity = body_velocities(obstacle_velocity, start.pose)
+    return obstacles, obstacle_velocity
 
 
 def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -87,6 +170,8 @@ def select_chunk(
     escape_advantage: float | None = None,
     blend: tuple[np.ndarray, np.ndarray, int] | None = None,
     blocked_fallback: str = "widest",
+    obstacle_velocity: np.ndarray | None = None,
+    start: ChunkStart | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -100,7 +185,10 @@ def select_chunk(
     (B, 2), whether there is one (B,), m): the primitives are blended into the executed action as the
     caller blended the sampled chunks (``core.replan_blend``), so what is scored is what will run.
     ``blocked_fallback`` (step 4 of the module docstring): "widest" or "stop"; ``info["stopped"]`` says
-    where the team stops.
+    where the team stops. ``obstacle_velocity`` (B, M, 2): the obstacles' velocities (None: static);
+    ``start``: the commands in flight and the rate limits (``predict_start``; None: the chunk runs
+    from now, as commanded). Either changes only the predicted clearances, never the kept chunk's
+    commands.
     """
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
@@ -111,8 +199,12 @@ def select_chunk(
         if blend is not None:
             prim = blend_replan(prim, *blend)
         pool = np.concatenate([candidates, prim], axis=1)
-    pose = np.broadcast_to(BODY_POSE, (B, 3))
-    clear, end = sequence_clearance(pose, pool, obstacles, template, dt, agent_radius)
+    pose, steps, run = np.broadcast_to(BODY_POSE, (B, 3)), 0, pool
+    if start is not None:  # the pool as the actuator runs it, after the commands in flight
+        pose, steps, run = start.pose, start.steps, start.executed(pool, dt)
+    clear, end = sequence_clearance(
+        pose, run, obstacles, template, dt, agent_radius, obstacle_velocity, start_step=steps
+    )
     if progress_measure == "euclidean":
         dist0 = np.linalg.norm(goal, axis=-1)
         progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
@@ -120,7 +212,9 @@ def select_chunk(
         progress = cost_to_go_progress(obstacles, goal, end[..., :2], window)
     # inside the margin already (the filter holds the team at its edge): a chunk that gets no closer
     # than now counts as safe, so that the team may slide along an obstacle instead of stalling there
-    now, _ = sequence_clearance(pose, np.zeros((B, 1, 1, 2)), obstacles, template, dt, agent_radius)
+    now, _ = sequence_clearance(  # at the start (steps from now), standing
+        pose, np.zeros((B, 1, 1, 2)), obstacles, template, dt, agent_radius, obstacle_velocity, steps - 1
+    )
     safe = clear >= np.minimum(margin, now - SLIDE_TOLERANCE)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()
@@ -185,9 +279,15 @@ def cost_to_go_progress(
 
 
 def barrier_rows(
-    obstacles: np.ndarray, template: np.ndarray, agent_radius: float, margin: float, rate: float
+    obstacles: np.ndarray,
+    template: np.ndarray,
+    agent_radius: float,
+    margin: float,
+    rate: float,
+    obstacle_velocity: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """CBF rows A u >= b of every agent-obstacle pair: A (B, N*M, 2), b (B, N*M), h (B, N*M)."""
+    """CBF rows A u >= b of every agent-obstacle pair: A (B, N*M, 2), b (B, N*M), h (B, N*M); with
+    ``obstacle_velocity`` (B, M, 2), b gains n . v_j (module docstring)."""
     B, M, _ = obstacles.shape
     d = template[None, :, None, :] - obstacles[:, None, :, :2]  # (B, N, M, 2), from obstacle to agent
     dist = np.maximum(np.linalg.norm(d, axis=-1), 1e-9)
@@ -198,7 +298,10 @@ def barrier_rows(
     a_w = -n[..., 0] * by + n[..., 1] * bx
     A = np.stack([a_v, a_w], axis=-1).reshape(B, -1, 2)
     h = h.reshape(B, -1)
-    return A, -rate * h, h
+    b = -rate * h
+    if obstacle_velocity is not None:  # dh/dt = n . (p_i' - v_j)
+        b = b + (n * obstacle_velocity[:, None]).sum(-1).reshape(B, -1)
+    return A, b, h
 
 
 def cbf_filter(
@@ -211,30 +314,45 @@ def cbf_filter(
     low: np.ndarray,
     high: np.ndarray,
     max_rows: int = 8,
+    obstacle_velocity: np.ndarray | None = None,
+    start: ChunkStart | None = None,
+    dt: float = 0.1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Filtered actions (B, 2) and whether the filter changed them (B,) (see the module docstring).
 
     Only the ``max_rows`` most critical agent-obstacle pairs (smallest h) enter the QP; a pair with
-    alpha h above the largest |A u| any action can reach can never be active.
+    alpha h above the largest |A u| any action can reach can never be active. ``obstacle_velocity``
+    (B, M, 2): the obstacles' velocities (None: static). ``start`` (``predict_start``): the barrier
+    is taken at the pose where the action will run, after the commands in flight (``dt`` their
+    step), with the obstacles moved on to then; with rate limits the action box is the part of
+    [low, high] reachable in one step from ``start.velocity``.
     """
     low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
     u0 = np.clip(np.asarray(action, dtype=np.float64), low, high)  # the env clips to the box anyway
     B = len(u0)
-    A, b, h = barrier_rows(obstacles, template, agent_radius, margin, rate)
+    box_low, box_high = low, high
+    nominal = u0
+    if start is not None:
+        obstacles, obstacle_velocity = obstacles_at_start(obstacles, obstacle_velocity, start, dt)
+        reach = np.array([start.max_linear_accel or np.inf, start.max_angular_accel or np.inf]) * dt
+        box_low = np.clip(start.velocity - reach, low, high)  # (B, 2)
+        box_high = np.clip(start.velocity + reach, low, high)
+        nominal = np.clip(u0, box_low, box_high)  # what the actuator runs of u0
+    A, b, h = barrier_rows(obstacles, template, agent_radius, margin, rate, obstacle_velocity)
     R = min(max_rows, A.shape[1])
     idx = np.argsort(h, axis=1)[:, :R]
     A = np.take_along_axis(A, idx[..., None], axis=1)
     b = np.take_along_axis(b, idx, axis=1)
     box_A = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
-    box_b = np.stack([low[0], -high[0], low[1], -high[1]])
+    box_b = np.stack([box_low[..., 0], -box_high[..., 0], box_low[..., 1], -box_high[..., 1]], axis=-1)
     A = np.concatenate([A, np.broadcast_to(box_A, (B, 4, 2))], axis=1)  # (B, L, 2)
     b = np.concatenate([b, np.broadcast_to(box_b, (B, 4))], axis=1)  # (B, L)
     L = A.shape[1]
     w_inv = (high - low) ** 2  # W^-1: the metric is in units of the action ranges
-    # candidates: u0, its projection onto every line, every vertex of two lines
+    # candidates: the nominal action, its projection onto every line, every vertex of two lines
     Aw = A * w_inv
-    t = (b - np.einsum("bld,bd->bl", A, u0)) / np.maximum(np.einsum("bld,bld->bl", A, Aw), 1e-12)
-    proj = u0[:, None, :] + t[..., None] * Aw  # (B, L, 2)
+    t = (b - np.einsum("bld,bd->bl", A, nominal)) / np.maximum(np.einsum("bld,bld->bl", A, Aw), 1e-12)
+    proj = nominal[:, None, :] + t[..., None] * Aw  # (B, L, 2)
     i, j = np.triu_indices(L, k=1)
     a1, a2, b1, b2 = A[:, i], A[:, j], b[:, i], b[:, j]
     det = a1[..., 0] * a2[..., 1] - a1[..., 1] * a2[..., 0]
@@ -243,17 +361,17 @@ def cbf_filter(
     vx = (b1 * a2[..., 1] - b2 * a1[..., 1]) / det
     vy = (a1[..., 0] * b2 - a2[..., 0] * b1) / det
     vert = np.stack([vx, vy], axis=-1)
-    vert = np.where(ok[..., None], vert, u0[:, None, :])
-    cand = np.concatenate([u0[:, None, :], proj, vert], axis=1)  # (B, C, 2)
+    vert = np.where(ok[..., None], vert, nominal[:, None, :])
+    cand = np.concatenate([nominal[:, None, :], proj, vert], axis=1)  # (B, C, 2)
     slack = np.einsum("bld,bcd->bcl", A, cand) - b[:, None, :]  # (B, C, L), >= 0 where satisfied
     violation = np.maximum(-slack, 0.0).max(axis=-1)  # (B, C)
-    cost = (((cand - u0[:, None, :]) ** 2) / w_inv).sum(-1)
+    cost = (((cand - nominal[:, None, :]) ** 2) / w_inv).sum(-1)
     feasible = violation <= 1e-9
     score = np.where(feasible, cost, np.inf)
     best = np.argmin(score, axis=1)
     least_bad = np.argmin(violation + 1e-6 * cost, axis=1)
     pick = np.where(feasible.any(axis=1), best, least_bad)
     out = cand[np.arange(B), pick]
-    out = np.clip(out, low, high)
-    changed = np.abs(out - u0).max(axis=-1) > 1e-6
+    out = np.clip(out, box_low, box_high)
+    changed = np.abs(out - nominal).max(axis=-1) > 1e-6
     return np.where(changed[:, None], out, u0), changed

@@ -95,6 +95,18 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
             obstacle (followers lag their square slots by up to ~0.1 m).
         cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
+        safety_moving_obstacles: the safety layer predicts every observed obstacle at constant
+            velocity (best-of-K checks a chunk against where the obstacles will be, the filter's
+            barrier counts their approach): the velocities the "nearest+velocity" encoding observes,
+            else those the replanner's tracker estimates from the observation history
+            (``core.obstacle_tracker``). Off by default (obstacles stand still).
+        safety_action_delay: control steps between sending a command and its execution, a known
+            property of the robot (the env's ``action_delay``): best-of-K and the filter start from
+            the pose predicted after the commands already sent. 0 (default): at once.
+        safety_max_linear_accel: the robot's limit on dv/dt [m/s^2] (the env's ``max_linear_accel``):
+            best-of-K rolls chunks out rate limited (``dynamics.rate_limit``) and the filter chooses
+            among the velocities reachable in one step. None (default): no limit.
+        safety_max_angular_accel: the same on domega/dt [rad/s^2] (the env's ``max_angular_accel``).
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
             j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
@@ -160,6 +172,10 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_filter: str = "none"
     safety_margin: float = 0.1
     cbf_rate: float = 2.0
+    safety_moving_obstacles: bool = False
+    safety_action_delay: int = 0
+    safety_max_linear_accel: float | None = None
+    safety_max_angular_accel: float | None = None
     replan_on_intervention: bool = True
     warm_start_step: int = 0
     # Inference path (see the Args above; not a training setting).
@@ -276,6 +292,16 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
             )
+        if isinstance(self.safety_action_delay, bool) or not (
+            isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0
+        ):
+            raise config_error(
+                f"safety_action_delay must be an integer >= 0 [control steps], got {self.safety_action_delay!r}"
+            )
+        for name in ("safety_max_linear_accel", "safety_max_angular_accel"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise config_error(f"{name} must be null (no limit) or > 0, got {value}")
         if self.safety_layer and not (
             get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
         ):  # the layer reads body-frame obstacles and scores physical actions

@@ -20,6 +20,16 @@ actions ran) or whose last action the filter changed replans first:
 5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
    ``replan_on_intervention`` an episode whose action it changed replans at its next step.
 
+What the scorer and the filter see of an episode at a step is a ``SafetyView``, built once per step
+from the raw observation: the goal and obstacles of its ``nearest`` part; with
+``safety_moving_obstacles`` their velocities (the encoding's, else the estimates of the episode's
+``core.obstacle_tracker.ObstacleTracker``, which takes every step's observation); with a known
+actuator (``safety_action_delay``, ``safety_max_linear_accel`` / ``safety_max_angular_accel``)
+the ``core.safety.ChunkStart`` after the episode's commands in flight. For that the replanner keeps,
+per episode, the last ``safety_action_delay`` commands it sent (physical, clipped to the action
+bounds) and the velocity its actuator model executed last (``dynamics.rate_limit`` of the command
+that ran, action noise unknown). All of it starts afresh with each episode (``start``).
+
 K, the filter, its margin and rate, the warm start and ``replan_on_intervention`` come only from the
 policy config the replanner is given (the policy's own, or a copy made with ``dataclasses.replace``
 for a bench controller or an ablation row, which runs the config's checks). The settings of the
@@ -37,8 +47,9 @@ import torch
 from torch import Tensor
 
 from lerobot_formation.core import safety
-from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.dynamics import FormationParams, rate_limit
 from lerobot_formation.core.obstacle_grid import get_encoding
+from lerobot_formation.core.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.replan_blend import blend_replan
 
 STAT_KEYS = ("replans", "replans_none_safe", "escapes", "stops", "steps", "filter_interventions")
@@ -84,6 +95,28 @@ def safety_geometry() -> tuple[np.ndarray, float, float]:
     template = np.asarray(params.graph.template)
     template.flags.writeable = False
     return template, params.dt, params.agent_radius
+
+
+@dataclass(frozen=True)
+class SafetyView:
+    """What the safety layer sees of B episodes at one step (module docstring): goal (B, 2),
+    obstacles (B, M, 3) and mask (B, M) in the body frame, the obstacles' velocities (B, M, 2) (None:
+    static) and where the next command starts (``core.safety.ChunkStart``; None: at once)."""
+
+    goal: np.ndarray
+    obstacles: np.ndarray
+    mask: np.ndarray
+    velocity: np.ndarray | None = None
+    start: safety.ChunkStart | None = None
+
+    def __getitem__(self, rows) -> SafetyView:
+        return SafetyView(
+            self.goal[rows],
+            self.obstacles[rows],
+            self.mask[rows],
+            None if self.velocity is None else self.velocity[rows],
+            None if self.start is None else self.start[rows],
+        )
 
 
 def check_observation(batch: dict[str, Tensor], input_features: dict, dtype: torch.dtype) -> None:
@@ -176,6 +209,24 @@ class Replanner:
         self.executed = torch.zeros(B, dtype=torch.long)  # actions run since the episode's last replan
         self.last_action = torch.zeros(B, A, device=device)  # normalised
         self.has_last = torch.zeros(B, dtype=torch.bool)
+        cfg = self.config
+        self.in_flight = np.zeros((B, cfg.safety_action_delay, A))  # sent, not run yet; oldest first
+        self.executed_velocity = np.zeros((B, A))  # the actuator model's last executed [v, omega]
+        self.tracker = None
+        encoding = get_encoding(cfg.obstacle_encoding)
+        if cfg.safety_layer and cfg.safety_moving_obstacles and not encoding.velocity:
+            _, dt, _ = safety_geometry()
+            self.tracker = ObstacleTracker(B, encoding.slots(cfg.max_obstacles), dt)
+
+    @property
+    def knows_actuator(self) -> bool:
+        """Whether the config gives the actuator's delay or rate limits (``SafetyView.start``)."""
+        cfg = self.config
+        return bool(
+            cfg.safety_action_delay
+            or cfg.safety_max_linear_accel is not None
+            or cfg.safety_max_angular_accel is not None
+        )
 
     def needs_replan(self, rows: Tensor) -> Tensor:
         """Which of ``rows`` replan at their next ``act`` (B,) bool."""
@@ -204,24 +255,44 @@ class Replanner:
             rows = torch.arange(len(env_now))
         if self.plan is None:
             self.start(len(rows), env_now.device)
+        view = self.view(env_now, rows) if cfg.safety_layer else None
         need = rows[self.plan_pos[rows] >= cfg.n_action_steps]
         if len(need):
             at = torch.nonzero(self.plan_pos[rows] >= cfg.n_action_steps).flatten()
-            self._replan(need, env_now[at], history(need), noise)
+            self._replan(need, None if view is None else view[at.numpy()], history(need), noise)
         action = self.plan[rows, self.plan_pos[rows]]
         self.plan_pos[rows] += 1
         self.executed[rows] += 1
         self.stats["steps"] += len(rows)
         if cfg.safety_filter == "cbf":
-            action, changed = self.filter(env_now, action)
+            action, changed = self.filter(view, action)
             self.stats["filter_interventions"] += int(changed.sum())
             if cfg.replan_on_intervention:  # the plan met a barrier: replan at the next step
                 self.plan_pos[rows[torch.from_numpy(changed)]] = cfg.n_action_steps
         self.last_action[rows] = action.to(self.last_action.dtype)
         self.has_last[rows] = True
+        if view is not None and self.knows_actuator:
+            self._send(rows.cpu().numpy(), action)
         return action
 
-    def _replan(self, need: Tensor, env_now: Tensor, stacked: dict[str, Tensor], noise) -> None:
+    def _send(self, rows: np.ndarray, action: Tensor) -> None:
+        """Record the commands (normalised) sent to episodes ``rows``: the actuator model runs the
+        oldest in flight (or this one, without a delay) and queues this one."""
+        cfg = self.config
+        sent = np.clip(
+            self.policy.unnormalize_action(action).numpy().astype(np.float64), cfg.action_low, cfg.action_high
+        )
+        runs = sent
+        if cfg.safety_action_delay:
+            runs = self.in_flight[rows, 0]
+            self.in_flight[rows, :-1] = self.in_flight[rows, 1:]
+            self.in_flight[rows, -1] = sent
+        _, dt, _ = safety_geometry()
+        self.executed_velocity[rows] = rate_limit(
+            self.executed_velocity[rows], runs, cfg.safety_max_linear_accel, cfg.safety_max_angular_accel, dt
+        )
+
+    def _replan(self, need: Tensor, view: SafetyView | None, stacked: dict[str, Tensor], noise) -> None:
         cfg, ex = self.config, self.experiment
         K = cfg.num_candidates
         warm = None
@@ -241,7 +312,7 @@ class Replanner:
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
         if K > 1:
-            chosen, info = self.choose(env_now, chunks, last, has_last)
+            chosen, info = self.choose(view, chunks, last, has_last)
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             self.stats["stops"] += int(info["stopped"].sum())
@@ -254,24 +325,54 @@ class Replanner:
         self.executed[need] = 0
 
     # -- the safety layer: the one scorer and the filter, on physical actions ------------------------
-    def observed_obstacles(self, env_state) -> tuple[np.ndarray, np.ndarray]:
-        """Goal (B, 2) and obstacles (B, M, 3) in the body frame from a raw egocentric observation."""
-        encoding = get_encoding(self.config.obstacle_encoding)
-        slots = encoding.slots(self.config.max_obstacles)
+    def observed_obstacles(self, env_state) -> SafetyView:
+        """Goal (B, 2), obstacles (B, M, 3) and mask (B, M) in the body frame from a raw egocentric
+        observation (B, D), and with ``safety_moving_obstacles`` the velocities an encoding that
+        observes them gives (``nearest+velocity``: after the rows); no tracker, no actuator."""
+        cfg = self.config
+        encoding = get_encoding(cfg.obstacle_encoding)
+        slots = encoding.slots(cfg.max_obstacles)
         env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
+        rows_end = encoding.fixed + encoding.per_slot * slots
         # the nearest part only (e.g. "nearest+route" adds a route hint, "nearest+velocity" velocities)
-        env = env[:, : encoding.fixed + encoding.per_slot * slots]
-        goal, obstacles, _ = safety.decode_nearest(env, slots)
-        return goal, obstacles
+        goal, obstacles, mask = safety.decode_nearest(env[:, :rows_end], slots)
+        velocity = None
+        if cfg.safety_moving_obstacles and encoding.velocity:
+            velocity = env[:, rows_end : rows_end + 2 * slots].reshape(len(env), slots, 2).astype(np.float64)
+            velocity = np.where(mask[..., None], velocity, 0.0)
+        return SafetyView(goal, obstacles, mask, velocity)
+
+    def view(self, env_state: Tensor, rows: Tensor) -> SafetyView:
+        """The ``SafetyView`` of episodes ``rows`` at this step from their raw observation (len(rows),
+        D); updates their obstacle trackers (call it once per step)."""
+        view = self.observed_obstacles(env_state)
+        cfg = self.config
+        velocity, start = view.velocity, None
+        idx = rows.cpu().numpy()
+        if self.tracker is not None:
+            velocity = self.tracker.update(view.goal, view.obstacles, view.mask, idx)
+        if self.knows_actuator:
+            _, dt, _ = safety_geometry()
+            start = safety.predict_start(
+                self.in_flight[idx],
+                self.executed_velocity[idx],
+                dt,
+                cfg.safety_max_linear_accel,
+                cfg.safety_max_angular_accel,
+            )
+        return SafetyView(view.goal, view.obstacles, view.mask, velocity, start)
+
+    def _as_view(self, seen) -> SafetyView:
+        return seen if isinstance(seen, SafetyView) else self.observed_obstacles(seen)
 
     def choose_raw(
-        self, env_state, chunks: np.ndarray, last_action: np.ndarray | None = None, has_last=None
+        self, seen, chunks: np.ndarray, last_action: np.ndarray | None = None, has_last=None
     ) -> tuple[np.ndarray, dict]:
-        """Best-of-K (``core.safety.select_chunk``) with this config: env_state (B, D) raw egocentric
-        observation, chunks (B, K, T, 2) in m/s and rad/s -> kept chunks (B, T, 2), info. With blending
-        and the last executed actions (B, 2) [m/s, rad/s], the escape manoeuvres are blended into them
-        as the sampled chunks were."""
-        goal, obstacles = self.observed_obstacles(env_state)
+        """Best-of-K (``core.safety.select_chunk``) with this config: ``seen`` a ``SafetyView`` or a raw
+        egocentric observation (B, D) (``observed_obstacles``), chunks (B, K, T, 2) in m/s and rad/s
+        -> kept chunks (B, T, 2), info. With blending and the last executed actions (B, 2) [m/s,
+        rad/s], the escape manoeuvres are blended into them as the sampled chunks were."""
+        view = self._as_view(seen)
         template, dt, agent_radius = safety_geometry()
         ex = self.experiment
         blend = None
@@ -279,8 +380,8 @@ class Replanner:
             blend = (np.asarray(last_action), np.asarray(has_last), ex.blend_steps)
         return safety.select_chunk(
             chunks,
-            obstacles,
-            goal,
+            view.obstacles,
+            view.goal,
             template,
             dt,
             agent_radius,
@@ -288,10 +389,12 @@ class Replanner:
             escape_advantage=ex.escape_advantage,
             blend=blend,
             blocked_fallback=ex.blocked_fallback,
+            obstacle_velocity=view.velocity,
+            start=view.start,
         )
 
     def choose(
-        self, env_state: Tensor, chunks: Tensor, last_action: Tensor | None = None, has_last=None
+        self, view: SafetyView, chunks: Tensor, last_action: Tensor | None = None, has_last=None
     ) -> tuple[Tensor, dict]:
         """``choose_raw`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept chunks
         (B, T, 2) normalised."""
@@ -300,31 +403,32 @@ class Replanner:
         if last_action is not None:
             last_action = policy.unnormalize_action(last_action).numpy().astype(np.float64)
             has_last = has_last.cpu().numpy()
-        chosen, info = self.choose_raw(env_state, raw, last_action, has_last)
+        chosen, info = self.choose_raw(view, raw, last_action, has_last)
         return policy.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
-    def filter_raw(self, env_state, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def filter_raw(self, seen, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """CBF filter (``core.safety.cbf_filter``) with this config on [v, omega] (B, 2) -> (filtered,
-        changed)."""
-        _, obstacles = self.observed_obstacles(env_state)
-        template, _, agent_radius = safety_geometry()
+        changed); ``seen`` as in ``choose_raw``."""
+        view = self._as_view(seen)
+        template, dt, agent_radius = safety_geometry()
         cfg = self.config
         return safety.cbf_filter(
             action,
-            obstacles,
+            view.obstacles,
             template,
             agent_radius,
             cfg.safety_margin,
             cfg.cbf_rate,
             np.asarray(cfg.action_low),
             np.asarray(cfg.action_high),
+            obstacle_velocity=view.velocity,
+            start=view.start,
+            dt=dt,
         )
 
-    def filter(self, env_state: Tensor, action: Tensor) -> tuple[Tensor, np.ndarray]:
+    def filter(self, view: SafetyView, action: Tensor) -> tuple[Tensor, np.ndarray]:
         """``filter_raw`` on normalised actions (B, 2) -> (filtered normalised, changed)."""
         policy = self.policy
-        out, changed = self.filter_raw(
-            env_state, policy.unnormalize_action(action).numpy().astype(np.float64)
-        )
+        out, changed = self.filter_raw(view, policy.unnormalize_action(action).numpy().astype(np.float64))
         filtered = policy.normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
         return filtered, changed

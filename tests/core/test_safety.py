@@ -179,3 +179,172 @@ def test_blocked_fallback_stop_turns_a_predicted_contact_into_a_stop():
     np.testing.assert_array_equal(kept[0], slow[0, 0])
     with pytest.raises(ValueError, match="blocked_fallback"):
         select_chunk(*args, blocked_fallback="brake")
+
+
+# -- moving obstacles, delay and rate limits (issue 24) ---------------------------------------------
+
+
+def _straight(v=0.5, steps=15):
+    return np.tile([v, 0.0], (1, 1, steps, 1))  # (1, 1, T, 2)
+
+
+def test_scorer_checks_a_chunk_against_where_a_moving_obstacle_will_be():
+    """A straight chunk (0.75 m in 1.5 s) passes an obstacle standing 2 m to its right, but not the
+    same obstacle crossing at 1.5 m/s toward the path: it meets the right leader's path (x = 0.5) at
+    y = 0.6 after 1 s, when the team is there."""
+    goal = np.array([[0.0, 8.0]])
+    obstacles = np.array([[[2.0, 0.6, 0.2], [FAR, FAR, 0.0]]])
+    crossing = np.array([[[-1.5, 0.0], [0.0, 0.0]]])
+    args = (_straight(), obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    _, standing = select_chunk(*args, escape=False)
+    _, moving = select_chunk(*args, escape=False, obstacle_velocity=crossing)
+    assert standing["safe"][0, 0] and not moving["safe"][0, 0]
+    assert moving["clearance"][0, 0] < 0 < standing["clearance"][0, 0] - 0.1
+    # zero velocities are the static check, bit for bit
+    _, still = select_chunk(*args, escape=False, obstacle_velocity=np.zeros_like(crossing))
+    np.testing.assert_array_equal(still["clearance"], standing["clearance"])
+    # moving away from the path it is no threat
+    _, away = select_chunk(*args, escape=False, obstacle_velocity=-crossing)
+    assert away["safe"][0, 0]
+
+
+def test_filter_counts_an_approaching_obstacle():
+    """Full speed toward an obstacle 2 m ahead: standing, the barrier allows it; coming at 3 m/s, its
+    rows ask v <= ~0.2 (n . v_obs added to the bound)."""
+    obstacles = np.array([[[0.0, 2.0, 0.3]]])
+    full = np.array([[0.6, 0.0]])
+    out, changed = _filter(full, obstacles)
+    assert not changed[0] and out[0, 0] == 0.6
+    coming = np.array([[[0.0, -3.0]]])
+    out, changed = cbf_filter(
+        full, obstacles, TEMPLATE, P.agent_radius, 0.1, 2.0, LOW, HIGH, obstacle_velocity=coming
+    )
+    assert changed[0] and out[0, 0] < 0.25
+    out, changed = cbf_filter(
+        full, obstacles, TEMPLATE, P.agent_radius, 0.1, 2.0, LOW, HIGH, obstacle_velocity=-coming
+    )
+    assert not changed[0]  # leaving
+
+
+def test_filter_with_velocities_avoids_a_crossing_obstacle_the_static_one_hits():
+    """An obstacle crossing the team's way at 0.5 m/s (the team drives at 0.6 m/s, followers on the
+    real follower law): the filter that takes obstacles as standing lets the team meet it; with the
+    obstacle's velocity in the barrier the team waits and never touches it."""
+    from lerobot_formation.core.velocity_encoding import body_velocities
+
+    goal = np.array([[0.0, 20.0]])
+    for use_velocity, expect_hit in ((False, True), (True, False)):
+        obstacles = np.array([[[3.0, 1.6, 0.4], [FAR, FAR, 0.0]]])
+        velocity = np.array([[[-0.5, 0.0], [0.0, 0.0]]])
+        mask = np.array([[True, False]])
+        state = dynamics.initial_state(np.array([[0.0, 0.0, np.pi / 2]]), P)
+        hit = False
+        for _ in range(60):
+            env = environment_state(obstacles, mask, goal, "nearest", pose=state.pose)
+            _, seen, _ = decode_nearest(env, 12)
+            seen_v = np.zeros((1, 12, 2))
+            seen_v[0, 0] = body_velocities(velocity, state.pose)[0, 0]  # slot 0: the only obstacle
+            a, _ = cbf_filter(
+                np.array([[0.6, 0.0]]),
+                seen,
+                TEMPLATE,
+                P.agent_radius,
+                0.1,
+                2.0,
+                LOW,
+                HIGH,
+                obstacle_velocity=seen_v if use_velocity else None,
+            )
+            state = dynamics.step(state, a, P)
+            obstacles[..., :2] += velocity * P.dt
+            hit |= bool(
+                (agent_clearances(dynamics.agent_positions(state), obstacles, P.agent_radius) < 0).any()
+            )
+        assert hit == expect_hit
+
+
+def test_commands_in_flight_shift_the_predicted_start():
+    """Two commands of 0.5 m/s in flight move the start 0.1 m ahead (and a turn turns it); with a
+    rate limit from rest they move it only as far as the limited velocities go."""
+    from lerobot_formation.core.safety import predict_start
+
+    flight = np.array([[[0.5, 0.0], [0.5, 0.0]], [[0.0, 1.0], [0.0, 1.0]]])
+    executed = np.array([[0.5, 0.0], [0.0, 1.0]])
+    start = predict_start(flight, executed, P.dt)
+    np.testing.assert_allclose(start.pose[0], [0.0, 0.1, np.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(start.pose[1], [0.0, 0.0, np.pi / 2 + 0.2], atol=1e-12)
+    assert start.steps == 2
+    slow = predict_start(flight[:1], np.zeros((1, 2)), P.dt, max_linear_accel=0.5)
+    np.testing.assert_allclose(slow.velocity, [[0.1, 0.0]])  # 0.05 m/s per step
+    np.testing.assert_allclose(slow.pose[0, 1], 0.1 * (0.05 + 0.1))
+    none = predict_start(np.zeros((1, 0, 2)), executed[:1], P.dt)
+    np.testing.assert_array_equal(none.pose, [[0.0, 0.0, np.pi / 2]])
+    # the scorer starts there: standing still 0.1 m short of an obstacle is safe from now, not from
+    # where the commands in flight take the team
+    obstacles = np.array(
+        [[[0.5, 0.45, 0.2]]]
+    )  # 0.05 m from the right leader's disc edge... after 0.1 m, inside
+    goal = np.array([[0.0, 8.0]])
+    stop = np.zeros((1, 1, 15, 2))
+    args = (stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.0)
+    _, now = select_chunk(*args, escape=False)
+    _, late = select_chunk(*args, escape=False, start=start[:1])
+    assert now["clearance"][0, 0] > 0.1 and late["clearance"][0, 0] == pytest.approx(
+        now["clearance"][0, 0] - 0.1
+    )
+    # the filter too: the right leader's barrier (h = 0.25 m now, 0.15 m after the commands in flight)
+    # bounds its closing speed v + 0.5 omega by alpha h: 0.5 from now, 0.3 from the predicted start
+    near = np.array([[[0.5, 0.75, 0.3]]])
+    free, _ = _filter(np.array([[0.6, 0.0]]), near)
+    braked, changed = cbf_filter(
+        np.array([[0.6, 0.0]]), near, TEMPLATE, P.agent_radius, 0.1, 2.0, LOW, HIGH, start=start[:1]
+    )
+    closing = lambda u: u[0, 0] + 0.5 * u[0, 1]  # noqa: E731
+    assert changed[0] and closing(free) == pytest.approx(0.5) and closing(braked) == pytest.approx(0.3)
+
+
+def test_rate_limits_in_the_forward_model():
+    """Braking from 0.6 m/s with 0.5 m/s^2 takes 1.2 s (0.36 m): a stop chunk that is safe for an
+    actuator without limits meets an obstacle 0.25 m ahead when the actuator is rate limited. The
+    limited rollout is ``rate_limit`` step by step."""
+    from lerobot_formation.core.safety import ChunkStart
+
+    commands = np.random.default_rng(0).uniform([0.0, -1.5], [0.6, 1.5], (2, 3, 15, 2))
+    previous = np.array([[0.3, 0.0], [0.6, 1.0]])
+    run = dynamics.rate_limit_sequence(previous, commands, 0.5, 2.0, P.dt)
+    now = np.repeat(previous, 3, axis=0)
+    for k in range(15):
+        now = dynamics.rate_limit(now, commands[:, :, k].reshape(6, 2), 0.5, 2.0, P.dt)
+        np.testing.assert_array_equal(run[:, :, k].reshape(6, 2), now)
+    assert dynamics.rate_limit_sequence(previous, commands, None, None, P.dt) is commands
+    obstacles = np.array([[[0.5, 0.45, 0.1]]])  # 0.25 m ahead of the right leader's disc
+    goal = np.array([[0.0, 8.0]])
+    stop = np.zeros((1, 1, 15, 2))
+    rolling = ChunkStart(np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.6, 0.0]]))
+    limited = ChunkStart(rolling.pose, rolling.velocity, 0, 0.5, None)
+    _, free = select_chunk(
+        stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False, start=rolling
+    )
+    _, slow = select_chunk(
+        stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False, start=limited
+    )
+    assert free["safe"][0, 0] and not slow["safe"][0, 0] and slow["clearance"][0, 0] < 0
+
+
+def test_filter_chooses_among_reachable_velocities():
+    """With a rate limit the filter's box is what one step can reach from the executed velocity: a
+    command the limit alone changes is no intervention (returned as commanded), and a barrier asking
+    for more braking than reachable gets the hardest reachable braking."""
+    from lerobot_formation.core.safety import ChunkStart
+
+    start = ChunkStart(np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.6, 0.0]]), 0, 0.5, 2.0)
+    far = np.array([[[FAR, FAR, 0.0]]])
+    stop = np.array([[0.0, 0.0]])
+    out, changed = cbf_filter(stop, far, TEMPLATE, P.agent_radius, 0.1, 2.0, LOW, HIGH, start=start)
+    assert not changed[0] and (out == stop).all()
+    close = np.array([[[0.5, 0.55, 0.2]]])  # the right leader's barrier asks v + 0.5 omega <= 0.3
+    out, changed = cbf_filter(
+        np.array([[0.6, 0.0]]), close, TEMPLATE, P.agent_radius, 0.1, 2.0, LOW, HIGH, start=start
+    )
+    assert changed[0]
+    np.testing.assert_allclose(out[0], [0.55, -0.2])  # one step's reach: 0.05 m/s, 0.2 rad/s

@@ -1,0 +1,205 @@
+"""The safety layer under realistic conditions: moving obstacles, a known actuator delay and rate
+limits (config fields ``safety_*``), their defaults, and the bench's wiring and reports."""
+
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from plugin_helpers import formation_features, nearest_config, save_nearest_checkpoint
+
+from lerobot_formation.core.obstacle_grid import environment_state
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+from lerobot_formation.policy.replanner import Replanner
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+
+
+def _reference_module():
+    spec = importlib.util.spec_from_file_location(
+        "make_safety_off_reference", FIXTURES / "make_safety_off_reference.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _policy(**overrides):
+    torch.manual_seed(0)
+    return FormationDiffusionPolicy(nearest_config(num_candidates=4, safety_filter="cbf", **overrides)).eval()
+
+
+def test_with_the_new_settings_off_the_replanner_acts_as_before():
+    """Bit for bit the actions and counts of the code before these settings (the fixture's commit),
+    in a closed loop with best-of-4, escapes and the filter at work."""
+    ref = _reference_module()
+    want = np.load(FIXTURES / "safety_off_reference.npz")
+    got = ref.closed_loop(_policy())
+    np.testing.assert_array_equal(got["actions"], want["actions"])
+    np.testing.assert_array_equal(got["stats"], want["stats"])
+    assert want["stats"][ref.STAT_NAMES.index("filter_interventions")] > 0
+    assert want["stats"][ref.STAT_NAMES.index("escapes")] > 0
+    # the settings change what happens (so the comparison above can fail)
+    late = ref.closed_loop(_policy(safety_action_delay=2, safety_max_linear_accel=0.5))
+    assert not np.array_equal(late["actions"], want["actions"])
+
+
+def test_safety_settings_are_checked_with_their_value():
+    for bad, message in (
+        (
+            dict(safety_action_delay=-1),
+            r"safety_action_delay must be an integer >= 0 \[control steps\], got -1",
+        ),
+        (
+            dict(safety_action_delay=1.5),
+            r"safety_action_delay must be an integer >= 0 \[control steps\], got 1.5",
+        ),
+        (
+            dict(safety_max_linear_accel=0.0),
+            r"safety_max_linear_accel must be null \(no limit\) or > 0, got 0.0",
+        ),
+        (
+            dict(safety_max_angular_accel=-2.0),
+            r"safety_max_angular_accel must be null \(no limit\) or > 0, got -2.0",
+        ),
+    ):
+        with pytest.raises(ValueError, match=message):
+            nearest_config(**bad)
+
+
+def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
+    """With a delay of 2 the replanner remembers its last two commands (physical, oldest first), and
+    the start of the next command is the pose after them, as the actuator model runs them."""
+    policy = _policy(safety_action_delay=2, safety_max_linear_accel=0.5, safety_max_angular_accel=2.0)
+    replanner = Replanner(policy)
+    replanner.start(1)
+    env = torch.from_numpy(
+        environment_state(
+            np.array([[[3.0, 3.0, 0.3]]]),
+            np.ones((1, 1), bool),
+            np.array([[0.0, 8.0]]),
+            "nearest",
+            pose=np.array([[0.0, 0.0, np.pi / 2]]),
+        )
+    )
+    noise = lambda n: torch.randn(n, policy.config.horizon, 2, generator=torch.Generator().manual_seed(n))  # noqa: E731
+    policy.sample_action_chunks = _reference_module().stand_in_sampler(policy)
+    sent = []
+    for _ in range(5):
+        a = replanner.act(env, lambda rows: {}, noise=noise)
+        sent.append(np.clip(policy.unnormalize_action(a).numpy(), [0.0, -1.5], [0.6, 1.5])[0])
+    np.testing.assert_allclose(replanner.in_flight[0], sent[-2:], atol=1e-6)
+    # the actuator model ran the first three commands from rest, rate limited: 0.05 m/s per step
+    assert 0 < replanner.executed_velocity[0, 0] <= 0.15 + 1e-9
+    view = replanner.view(env, torch.tensor([0]))
+    assert view.start.steps == 2 and view.start.pose[0, 1] > 0  # ahead of where the team is now
+    replanner.start(1)  # a new episode: nothing in flight, at rest
+    assert not replanner.in_flight.any() and not replanner.executed_velocity.any()
+
+
+def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
+    """A "nearest+velocity" policy reads the obstacles' velocities from its observation; a "nearest"
+    one gets them from its tracker (new per episode); without ``safety_moving_obstacles`` neither."""
+    obstacles = np.array([[[1.0, 2.0, 0.3], [-2.0, 4.0, 0.5], [2.0, 5.0, 0.4], [-1.0, 6.5, 0.6]]])
+    velocity = np.zeros((1, 4, 2))
+    velocity[0, 0] = [0.3, 0.0]
+    goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi]])  # facing -x: body axes turned
+    mask = np.ones((1, 4), bool)
+    inputs, outputs = formation_features(env_dim=74)
+    seeing = FormationDiffusionPolicy(
+        nearest_config(
+            input_features=inputs,
+            output_features=outputs,
+            obstacle_encoding="nearest+velocity",
+            num_candidates=4,
+            safety_moving_obstacles=True,
+        )
+    )
+    env = environment_state(obstacles, mask, goal, "nearest+velocity", pose=pose, obstacle_velocity=velocity)
+    view = seeing.replanner.observed_obstacles(env)
+    near = np.argmin(np.abs(view.obstacles[0, :, 2] - 0.3))  # the 0.3 m obstacle's slot
+    np.testing.assert_allclose(view.velocity[0, near], [0.0, -0.3], atol=1e-6)  # body x right, y ahead
+    assert (
+        view.velocity[0, ~view.mask[0]].sum() == 0
+        and seeing.replanner.observed_obstacles(env).velocity is not None
+    )
+
+    tracking = _policy(safety_moving_obstacles=True).replanner
+    tracking.start(1)
+    assert tracking.tracker is not None
+    for t in range(12):
+        moved = obstacles.copy()
+        moved[..., :2] += velocity * 0.1 * t
+        env = torch.from_numpy(environment_state(moved, mask, goal, "nearest", pose=pose))
+        view = tracking.view(env, torch.tensor([0]))
+    near = np.argmin(np.abs(view.obstacles[0, :, 2] - 0.3))
+    np.testing.assert_allclose(view.velocity[0, near], [0.0, -0.3], atol=0.05)
+    tracking.start(1)
+    assert not tracking.tracker.started.any()  # a new episode, new tracks
+    assert _policy().replanner.observed_obstacles(env).velocity is None
+    plain = _policy().replanner
+    plain.start(1)
+    assert plain.tracker is None
+
+
+def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
+    """Under level 5 the controllers with a safety layer get its delay, rate limits and moving
+    obstacles; the standard policy and the checkpoint-as-stored controller do not."""
+    from lerobot_formation.bench.controllers import make_controller, safety_settings
+    from lerobot_formation.bench.levels import get_level
+    from lerobot_formation.bench.settings import ControllerOptions
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.policy.checkpoint import load_policy
+
+    conditions = get_level("level5").conditions
+    assert safety_settings(conditions) == {
+        "safety_action_delay": 1,
+        "safety_max_linear_accel": 0.5,
+        "safety_max_angular_accel": 2.0,
+        "safety_moving_obstacles": True,
+    }
+    assert safety_settings(get_level("level3").conditions) == {}
+    bundle = load_policy(save_nearest_checkpoint(tmp_path))
+    options = ControllerOptions(candidates=3, conditions=conditions)
+    for name, knows in (
+        ("diffusion-safe", True),
+        ("diffusion-cbf", True),
+        ("diffusion", False),
+        ("diffusion-policy", False),
+    ):
+        cfg = make_controller(name, FormationParams(), options, bundle).config
+        assert (cfg.safety_action_delay, cfg.safety_moving_obstacles) == (
+            (1, True) if knows else (0, False)
+        ), name
+    plain = make_controller(
+        "diffusion-safe", FormationParams(), ControllerOptions(candidates=3), bundle
+    ).config
+    assert dataclasses.asdict(plain)["safety_max_linear_accel"] is None
+
+
+def test_bench_reports_how_often_the_safety_layer_intervened():
+    from lerobot_formation.bench.results import safety_rates, safety_table
+
+    stats = {
+        "replans": 50,
+        "replans_none_safe": 10,
+        "escapes": 5,
+        "stops": 1,
+        "steps": 400,
+        "filter_interventions": 20,
+    }
+    rates = safety_rates(stats)
+    assert rates == {
+        "filter_intervention_rate": 0.05,
+        "replans_none_safe_rate": 0.2,
+        "escape_rate": 0.1,
+        "stop_rate": 0.02,
+    }
+    table = safety_table(
+        {"pac": {}, "diffusion-safe": {"safety": {**stats, **rates}}}, "level5 scenes (level5:20)"
+    )
+    assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 |" in table
+    assert "pac" not in table
+    assert safety_table({"pac": {}}, "x") == ""
