@@ -45,10 +45,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.bench.levels import get_level
 from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.footprint import sequence_clearance
+from lerobot_formation.core.levels import get_level
 from lerobot_formation.core.rollout import COLLISION, rollout
 from lerobot_formation.core.scene import (
     SCENE_MIXES,

@@ -56,8 +56,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from lerobot_formation.bench.levels import get_level
 from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.levels import get_level
 from lerobot_formation.core.obstacle_grid import ENCODINGS
 from lerobot_formation.core.scene import SCENE_MIXES, SCENE_PRESETS, distribution_entries
 from lerobot_formation.data.hub_folder import hub_destinations, push_to_folder

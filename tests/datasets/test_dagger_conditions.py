@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from datasets_scripts import dagger_scenes
-from lerobot_formation.bench.levels import get_level
 from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.levels import get_level
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import Scenes, load_scenes, save_scenes, scenes_from_list
 

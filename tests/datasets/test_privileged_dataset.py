@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from datasets_scripts import generate_pac_dataset as gen
-from lerobot_formation.bench.levels import get_level
 from lerobot_formation.core.conditions import randomized_conditions
 from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.levels import get_level
 from lerobot_formation.core.scene import sample_scenes
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.dataset_frames import episode_frames

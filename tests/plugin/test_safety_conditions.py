@@ -148,9 +148,9 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
     """Under level 5 the controllers with a safety layer get its delay, rate limits and moving
     obstacles; the standard policy and the checkpoint-as-stored controller do not."""
     from lerobot_formation.bench.controllers import make_controller, safety_settings
-    from lerobot_formation.bench.levels import get_level
     from lerobot_formation.bench.settings import ControllerOptions
     from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.levels import get_level
     from lerobot_formation.policy.checkpoint import load_policy
 
     conditions = get_level("level5").conditions
