@@ -212,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if safety:  # the policy's own safety layer, as lerobot-eval's --policy.num_candidates/safety_filter
         ctrl = DiffusionController(
-            args.policy_path, candidates=args.candidates, safety_filter=args.safety_filter
+            args.policy_path,
+            overrides={"num_candidates": args.candidates, "safety_filter": args.safety_filter},
         )
     else:
         ctrl = DiffusionController(args.policy_path)
