@@ -1,10 +1,12 @@
 """Shared builders of the tests in tests/ (pytest puts this folder, which holds conftest.py and no
 ``__init__.py``, on ``sys.path``): the last line of a CLI's stderr, and tiny untrained diffusion
-policies and their checkpoints."""
+policies and their checkpoints, and a controller spy."""
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import numpy as np
 
 # The obstacle encoding of a size of observation.environment_state, for the sizes the tests use.
 ENCODING_OF_ENV_DIM = {66: "grid+list", 51: "grid"}
@@ -80,3 +82,18 @@ def stock_diffusion_checkpoint(path: Path) -> Path:
     torch.manual_seed(0)
     DiffusionPolicy(DiffusionConfig(**tiny_diffusion_kwargs())).save_pretrained(path)
     return path
+
+
+class Spy:
+    """Wraps a rollout controller and keeps copies of the views (``Perception``) it was given."""
+
+    def __init__(self, inner):
+        self.inner, self.name, self.views = inner, inner.name, []
+
+    def reset(self, view):
+        self.views.append(view[np.arange(len(view))])
+        self.inner.reset(view)
+
+    def act(self, view, idx):
+        self.views.append(view[np.arange(len(view))])
+        return self.inner.act(view, idx)

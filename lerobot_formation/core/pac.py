@@ -27,6 +27,7 @@ import numpy as np
 from lerobot_formation.core.dynamics import FormationParams, constant_action_poses
 from lerobot_formation.core.footprint import template_clearance
 from lerobot_formation.core.navigation import SceneFields
+from lerobot_formation.core.obstacle_tracker import predict_obstacles
 from lerobot_formation.core.scene import FAR
 
 
@@ -82,15 +83,13 @@ def swept_obstacles(
     moving = np.any(velocity != 0, axis=-1)  # (B, M)
     if not moving.any():
         return obstacles
-    now = np.array(obstacles, dtype=np.float64)
-    now[..., :2] += velocity * lead
+    now = predict_obstacles(np.asarray(obstacles, dtype=np.float64), velocity, [lead])[:, 0]
     k = int(np.ceil(lookahead / spacing)) if lookahead > 0 else 0
     if k == 0:
         return now
     cols = np.flatnonzero(moving.any(axis=0))
     times = lookahead * np.arange(1, k + 1) / k  # (K,)
-    ahead = np.repeat(now[:, None, cols], k, axis=1)  # (B, K, m, 3)
-    ahead[..., :2] += velocity[:, None, cols] * times[None, :, None, None]
+    ahead = predict_obstacles(now[:, cols], velocity[:, cols], times)  # (B, K, m, 3)
     ahead = np.where(moving[:, None, cols, None], ahead, np.array([FAR, FAR, 0.0]))
     return np.concatenate([now, ahead.reshape(len(now), -1, 3)], axis=1)
 

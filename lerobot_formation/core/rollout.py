@@ -128,9 +128,8 @@ class PACController:
         sub = self.pac.select(idx)
         pose, obstacles = view.pose, view.obstacles
         dt = self.pac.params.dt
-        if self.delay:  # the pose once the queued commands have run
+        if self.delay:  # the pose once the queued commands have run, the moving obstacles then
             pose = rollout_poses(pose, self.sent[idx][:, None], dt)[:, 0, -1]
-        if self.delay:  # the moving obstacles where they will be then
             obstacles = swept_obstacles(obstacles, view.obstacle_velocity, self.delay * dt, 0.0)
         sub.obstacles = obstacles
         if self.predict:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import Spy
 
 from lerobot_formation.core.conditions import (
     CONDITION_FIELDS,
@@ -39,21 +40,6 @@ class Straight:
     def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
         self.views.append(view)
         return np.tile([self.v, 0.0], (len(idx), 1))
-
-
-class Spy:
-    """Wraps a controller and keeps the views it was given (copies)."""
-
-    def __init__(self, inner):
-        self.inner, self.name, self.views = inner, inner.name, []
-
-    def reset(self, view):
-        self.views.append(view[np.arange(len(view))])
-        self.inner.reset(view)
-
-    def act(self, view, idx):
-        self.views.append(view[np.arange(len(view))])
-        return self.inner.act(view, idx)
 
 
 def test_validation_names_field_and_value():

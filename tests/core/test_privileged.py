@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import Spy
 
 from lerobot_formation.core.conditions import Conditions, randomized_conditions
 from lerobot_formation.core.dynamics import FormationParams, rollout_poses
@@ -23,21 +24,6 @@ from lerobot_formation.core.scene import (
 
 # One obstacle right of the straight line, 5 m ahead: far beyond a 1 m sensing range at the start.
 BESIDE = {"obstacles": [[2.0, 5.0, 0.5]], "goal": [0.0, 10.0], "start": [0.0, 0.0, np.pi / 2]}
-
-
-class Spy:
-    """Wraps a controller and keeps copies of the views it was given."""
-
-    def __init__(self, inner):
-        self.inner, self.name, self.views = inner, inner.name, []
-
-    def reset(self, view):
-        self.views.append(view[np.arange(len(view))])
-        self.inner.reset(view)
-
-    def act(self, view, idx):
-        self.views.append(view[np.arange(len(view))])
-        return self.inner.act(view, idx)
 
 
 def test_privileged_expert_sees_what_the_recorded_observation_does_not():
