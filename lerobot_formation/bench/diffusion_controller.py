@@ -24,7 +24,7 @@ from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.observation import STATE_DIM, observe
+from lerobot_formation.core.observation import STATE_DIM, observe_perception
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, check_observation
@@ -104,17 +104,7 @@ class DiffusionController:
 
     def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
         idx = np.asarray(idx)
-        seen = observe(  # as the env observes it, from what the teams perceive
-            view.pose,
-            view.velocity,
-            view.obstacles,
-            view.mask,
-            view.goal,
-            self.encoding,
-            self.max_obstacles,
-            obstacle_velocity=view.obstacle_velocity,
-            map_obstacles=view.map_obstacles,
-        )
+        seen = observe_perception(view, self.encoding, self.max_obstacles)  # as the env observes it
         obs, env = seen["agent_pos"], seen["environment_state"]
         new = ~self.started[idx]
         if new.any():  # first observation fills the history, as LeRobot's populate_queues does

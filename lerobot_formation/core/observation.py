@@ -94,3 +94,23 @@ def observe(
         if len(env) != B:
             env = np.repeat(env, B, axis=0)
     return {"agent_pos": midpoint_state(pose, velocity), "environment_state": env}
+
+
+def observe_perception(
+    view, encoding: str = "grid", max_obstacles: int | None = None
+) -> dict[str, np.ndarray]:
+    """``observe`` of what B teams perceive: ``view`` is a ``core.conditions.Perception`` (its pose,
+    velocity, observed obstacles, their mask and velocities, the goal and the map snapshot the route
+    hint plans on). The one mapping from a perception to an observation: the rollout's teams and the
+    engine's diffusion controller both call it."""
+    return observe(
+        view.pose,
+        view.velocity,
+        view.obstacles,
+        view.mask,
+        view.goal,
+        encoding,
+        max_obstacles,
+        obstacle_velocity=view.obstacle_velocity,
+        map_obstacles=view.map_obstacles,
+    )

@@ -45,7 +45,7 @@ from lerobot_formation.core.dynamics import (
 )
 from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
 from lerobot_formation.core.navigation import SceneFields
-from lerobot_formation.core.observation import observe
+from lerobot_formation.core.observation import observe, observe_perception
 from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
 from lerobot_formation.core.pac import PACConfig, PathAwareController, swept_obstacles
 from lerobot_formation.core.scene import Scenes
@@ -260,18 +260,7 @@ class Teams:
         """``core.observation.observe`` of every team (arrays the caller may keep): of what they
         perceive (``perceive``)."""
         if self.world is not None:
-            v = self.perceive()
-            return observe(
-                v.pose,
-                v.velocity,
-                v.obstacles,
-                v.mask,
-                v.goal,
-                self.encoding,
-                self.max_obstacles,
-                obstacle_velocity=v.obstacle_velocity,
-                map_obstacles=v.map_obstacles,
-            )
+            return observe_perception(self.perceive(), self.encoding, self.max_obstacles)
         s = self.scenes
         obs = observe(
             self.state.pose,
