@@ -33,10 +33,13 @@ settings (``policy.replanner.ReplanExperiment``), not policy config fields.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from dataclasses import fields
 from pathlib import Path
+
+import numpy as np
 
 from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
@@ -249,9 +252,12 @@ def main(argv: list[str] | None = None) -> int:
         )
         for s in sets:
             sc, conditions = runs[s]
+            # as in the bench: the safety layer knows this set's conditions and whether its obstacles move
+            moving = sc.velocities is not None and bool(np.any(sc.velocities))
+            set_options = dataclasses.replace(options, conditions=conditions, scenes_move=moving)
             t0 = time.perf_counter()
             try:
-                ctrl = make_controller(name, params, options, bundle)
+                ctrl = make_controller(name, params, set_options, bundle)
                 rec = evaluate(ctrl, sc, params, progress=False, conditions=conditions)
             except ValueError as e:  # e.g. more obstacles than a "grid+list" policy can observe
                 results[label][s] = {"error": str(e).split(";")[0]}

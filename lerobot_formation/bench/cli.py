@@ -48,6 +48,7 @@ temporary file left behind.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -91,10 +92,13 @@ def run_set(
     index in its whole scene set (a shard's), default 0..len-1."""
     results = into if into is not None else {}
     spec = (settings.unseen if label == "unseen" else settings.scenes) or ""
+    # the controllers know this set's conditions (the unseen set has its own) and whether its obstacles move
+    moving = scenes.velocities is not None and bool(np.any(scenes.velocities))
+    options = dataclasses.replace(settings.options, conditions=conditions, scenes_move=moving)
     for name in names:
         t0 = time.perf_counter()
         try:
-            ctrl = make_controller(name, params, settings.options, bundle)
+            ctrl = make_controller(name, params, options, bundle)
         except ValueError as e:
             raise BenchInputError(f"controller {name}: {e}") from e
         rec = evaluate(

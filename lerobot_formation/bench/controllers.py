@@ -24,18 +24,23 @@ from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import PACController
 
 
-def safety_settings(conditions: Conditions | None) -> dict:
+def safety_settings(conditions: Conditions | None, scenes_move: bool = False) -> dict:
     """The policy config fields of the safety layer's knowledge of a run under ``conditions``: the
     actuator's delay and acceleration limits, and whether obstacles move (then it predicts the
-    observed ones at their velocities). Empty without conditions."""
-    if conditions is None or not conditions.enabled:
-        return {}
-    return {
-        "safety_action_delay": conditions.action_delay,
-        "safety_max_linear_accel": conditions.max_linear_accel,
-        "safety_max_angular_accel": conditions.max_angular_accel,
-        "safety_moving_obstacles": conditions.moving_obstacles > 0,
-    }
+    observed ones at their velocities): ``moving_obstacles`` of the conditions, or ``scenes_move``
+    (the scenes give their obstacles' ``velocities``, as a scenes file may). Empty when neither
+    conditions nor moving scenes."""
+    settings = {}
+    if conditions is not None and conditions.enabled:
+        settings = {
+            "safety_action_delay": conditions.action_delay,
+            "safety_max_linear_accel": conditions.max_linear_accel,
+            "safety_max_angular_accel": conditions.max_angular_accel,
+            "safety_moving_obstacles": conditions.moving_obstacles > 0,
+        }
+    if scenes_move:
+        settings["safety_moving_obstacles"] = True
+    return settings
 
 
 def _diffusion(safety_filter: str | None, best_of_k: bool | None):
@@ -52,7 +57,7 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None):
                 "safety_filter": safety_filter,
             }
             if best_of_k or safety_filter != "none":  # a safety layer: it knows the run's actuator
-                overrides.update(safety_settings(options.conditions))
+                overrides.update(safety_settings(options.conditions, options.scenes_move))
         return DiffusionController(
             options.policy_path,
             num_inference_steps=options.num_inference_steps,

@@ -22,6 +22,8 @@ class ControllerOptions:
         conditions: the run's realistic conditions: the controllers with a safety layer give it the
             actuator's delay and rate limits and whether obstacles move
             (``controllers.safety_settings``); None: none.
+        scenes_move: the scenes give their obstacles' velocities (a scenes file's ``velocities``):
+            the safety layer predicts the observed obstacles even without ``moving_obstacles``.
     """
 
     policy_path: str | None = None
@@ -31,6 +33,7 @@ class ControllerOptions:
     overrides: dict = field(default_factory=dict)
     experiment: object | None = None
     conditions: Conditions | None = None
+    scenes_move: bool = False
 
 
 @dataclass(frozen=True)

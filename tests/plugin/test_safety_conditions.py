@@ -177,6 +177,38 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
         "diffusion-safe", FormationParams(), ControllerOptions(candidates=3), bundle
     ).config
     assert dataclasses.asdict(plain)["safety_max_linear_accel"] is None
+    # a scenes file's own velocities: the obstacles move without moving_obstacles, so it predicts them
+    assert safety_settings(None, scenes_move=True) == {"safety_moving_obstacles": True}
+    moving = ControllerOptions(candidates=3, scenes_move=True)
+    assert make_controller("diffusion-safe", FormationParams(), moving, bundle).config.safety_moving_obstacles
+
+
+def test_bench_run_set_gives_the_controllers_each_sets_own_conditions(monkeypatch):
+    """The unseen set runs under its own conditions: its controllers must know those, not the main
+    set's (and moving scenes switch prediction on)."""
+    from lerobot_formation.bench import cli
+    from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.scene import sample_scenes
+
+    seen = []
+
+    def fake_make(name, params, options, bundle=None):
+        seen.append(options)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(cli, "make_controller", fake_make)
+    main = get_level("level5").conditions
+    settings = BenchSettings(scenes="level5:2", options=ControllerOptions(conditions=main))
+    scenes = sample_scenes(np.arange(2))
+    with pytest.raises(cli.BenchInputError):
+        cli.run_set(["diffusion-safe"], scenes, FormationParams(), settings, "unseen", None, conditions=None)
+    assert seen[-1].conditions is None and not seen[-1].scenes_move
+    moving = dataclasses.replace(scenes, velocities=np.full(scenes.obstacles.shape[:2] + (2,), 0.1))
+    with pytest.raises(cli.BenchInputError):
+        cli.run_set(["diffusion-safe"], moving, FormationParams(), settings, "unseen", None, conditions=None)
+    assert seen[-1].scenes_move
 
 
 def test_bench_reports_how_often_the_safety_layer_intervened():
