@@ -1,7 +1,7 @@
 """Export a training checkpoint as a small hub-style model folder with the EMA weights only.
 
     python scripts/export_pretrained.py outputs/train_cpu/checkpoints/last/pretrained_model \
-        pretrained/formation_diffusion_cpu --dataset.root data/formation_pac_list --card-results results.md
+        pretrained/formation_diffusion_cpu --dataset.root data/formation_pac_list --card results.md
 
 Writes config.json (use_ema false: the EMA weights are the weights), model.safetensors (the EMA
 denoiser stored as ``diffusion.*``), the pre/post-processors, dataset_scenes.json (the first 100
@@ -33,6 +33,12 @@ def main() -> None:
     ckpt = args.checkpoint
     if not (ckpt / "model.safetensors").is_file():
         raise SystemExit(f"error: {ckpt} has no model.safetensors")
+    if args.dest.exists() and not (args.dest / "dataset_scenes.json").is_file():
+        # Only a folder this script wrote (it always holds dataset_scenes.json) is replaced.
+        raise SystemExit(
+            f"error: {args.dest} exists and is not a model folder written by this script; "
+            "choose another destination"
+        )
     tmp = args.dest.parent / f".{args.dest.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -57,9 +63,11 @@ def main() -> None:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    old = args.dest.parent / f".{args.dest.name}.old"
     if args.dest.exists():
-        shutil.rmtree(args.dest)
+        os.rename(args.dest, old)  # the previous export stays whole until the new one is in place
     os.rename(tmp, args.dest)
+    shutil.rmtree(old, ignore_errors=True)
     size = sum(f.stat().st_size for f in args.dest.iterdir()) / 1e6
     print(f"wrote {args.dest} ({size:.1f} MB)")
 

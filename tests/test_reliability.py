@@ -878,3 +878,24 @@ def test_register_registers_everything_and_the_package_root_stays_light():
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.split() == ["FormationDiffusionConfig", "FormationEnvConfig", "True"]
+
+
+def test_export_refuses_a_destination_it_did_not_write(tmp_path, monkeypatch):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "export_pretrained", ROOT / "scripts" / "export_pretrained.py"
+    )
+    export = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(export)
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "model.safetensors").write_bytes(b"")
+    dest = tmp_path / "mine"
+    dest.mkdir()
+    (dest / "notes.txt").write_text("keep me")
+    monkeypatch.setattr(sys, "argv", ["export", str(ckpt), str(dest), "--dataset.root", str(tmp_path)])
+    with pytest.raises(SystemExit, match="is not a model folder written by this script"):
+        export.main()
+    assert (dest / "notes.txt").read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt", "mine"]  # no temporary left
