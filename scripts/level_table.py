@@ -1,0 +1,82 @@
+"""Print the level table (docs/benchmark.md) from bench output folders.
+
+    python scripts/level_table.py outputs/levels/level0 outputs/levels/level1 ... \
+        [--name diffusion="default, standard"]
+
+Each folder is one ``lerobot-formation-bench --out`` run on one scene set (``levelK:N``); several
+folders of the same set (say, a rerun of one controller) are merged, the later folder winning for a
+controller both hold. One row per level and controller: success % with its Wilson 95 % interval,
+collisions / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
+the episodes' minimum clearance and, for controllers with a safety layer, the filter's
+interventions per 100 steps and the share of replans where no candidate was safe.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+ORDER = ["pac", "mppi", "route-pursuit", "diffusion", "diffusion-safe"]
+NAMES = {
+    "pac": "PAC",
+    "mppi": "MPPI",
+    "route-pursuit": "route pursuit",
+    "diffusion": "default, standard",
+    "diffusion-safe": "default, best-of-10 + CBF",
+}
+
+
+def _row(level: str, key: str, name: str, m: dict) -> str:
+    lo, hi = m["success_ci95"]
+    safety = m.get("safety") or {}
+    if "safe" in key and safety.get("steps"):  # standard sampling counts zeros
+        interventions = (
+            f"{100 * safety['filter_intervention_rate']:.2f} / {100 * safety['replans_none_safe_rate']:.1f}"
+        )
+    else:
+        interventions = "-"
+    return (
+        f"| {level} ({m['n_episodes']}) | {name} | {100 * m['success_rate']:.1f} "
+        f"[{100 * lo:.0f}, {100 * hi:.0f}] | {m['collisions']} / {m['timeouts']} | "
+        f"{m['control_smoothness']['mean']:.3f} | {m['jerk']['mean']:.3f} | "
+        f"{m['min_clearance']['mean']:.3f} | {interventions} |"
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument(
+        "--name", action="append", default=[], metavar="KEY=LABEL", help="a controller's row label"
+    )
+    args = ap.parse_args(argv)
+    names = dict(NAMES)
+    for item in args.name:
+        key, sep, label = item.partition("=")
+        if not sep:
+            ap.error(f"--name takes KEY=LABEL, got {item!r}")
+        names[key] = label
+    levels: dict[str, dict] = {}
+    for folder in args.folders:
+        path = folder / "results.json"
+        if not path.is_file():
+            ap.error(f"{folder} holds no results.json")
+        results = json.loads(path.read_text())
+        level = results["meta"]["scenes"].split(":")[0]
+        levels.setdefault(level, {}).update(
+            {k: v for k, v in results.items() if isinstance(v, dict) and "success_rate" in v}
+        )
+    print(
+        "| level (scenes) | controller | success % [Wilson 95 %] | collisions / timeouts | "
+        "smoothness | jerk | min clearance [m] | filter interventions / 100 steps, no safe candidate % |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for level in sorted(levels):
+        metrics = levels[level]
+        for key in sorted(metrics, key=lambda k: (ORDER.index(k) if k in ORDER else len(ORDER), k)):
+            print(_row(level, key, names.get(key, key), metrics[key]))
+
+
+if __name__ == "__main__":
+    main()
