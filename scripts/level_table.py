@@ -5,10 +5,13 @@
 
 Each folder is one ``lerobot-formation-bench --out`` run on one scene set (``levelK:N``); several
 folders of the same set (say, a rerun of one controller) are merged, the later folder winning for a
-controller both hold. One row per level and controller: success % with its Wilson 95 % interval,
+controller both hold. ``FOLDER@TAG`` keys that folder's controllers ``KEY@TAG``, so another model's
+rows stand beside the default's (label them with ``--name KEY@TAG=LABEL``). One row per level and controller: success % with its Wilson 95 % interval,
 collisions / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
 the episodes' minimum clearance and, for controllers with a safety layer, the filter's
-interventions per 100 steps and the share of replans where no candidate was safe.
+interventions per 100 steps and the share of replans where no candidate was safe. ``--compact``
+prints the README's form instead: one row per level, one column per controller (success % [Wilson],
+collisions/timeouts (scenes)).
 """
 
 from __future__ import annotations
@@ -44,12 +47,41 @@ def _row(level: str, key: str, name: str, m: dict) -> str:
     )
 
 
+def _ordered(keys) -> list[str]:
+    def rank(key: str):
+        base, _, tag = key.partition("@")
+        return (tag, ORDER.index(base) if base in ORDER else len(ORDER), base)
+
+    return sorted(keys, key=rank)
+
+
+def _compact(levels: dict[str, dict], names: dict[str, str]) -> None:
+    keys = _ordered({k for metrics in levels.values() for k in metrics})
+    print("| level | " + " | ".join(names.get(k, k) for k in keys) + " |")
+    print("|---" * (len(keys) + 1) + "|")
+    for level in sorted(levels):
+        metrics = levels[level]
+        cells = []
+        for k in keys:
+            m = metrics.get(k)
+            if m is None:
+                cells.append("-")
+                continue
+            lo, hi = m["success_ci95"]
+            cells.append(
+                f"{100 * m['success_rate']:.1f} [{100 * lo:.0f}, {100 * hi:.0f}], "
+                f"{m['collisions']}/{m['timeouts']} ({m['n_episodes']})"
+            )
+        print(f"| {level} | " + " | ".join(cells) + " |")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument("folders", nargs="+", metavar="FOLDER[@TAG]")
     ap.add_argument(
         "--name", action="append", default=[], metavar="KEY=LABEL", help="a controller's row label"
     )
+    ap.add_argument("--compact", action="store_true", help="one row per level (the README's table)")
     args = ap.parse_args(argv)
     names = dict(NAMES)
     for item in args.name:
@@ -58,15 +90,24 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"--name takes KEY=LABEL, got {item!r}")
         names[key] = label
     levels: dict[str, dict] = {}
-    for folder in args.folders:
+    for spec in args.folders:
+        folder, _, tag = spec.partition("@")
+        folder = Path(folder)
         path = folder / "results.json"
         if not path.is_file():
             ap.error(f"{folder} holds no results.json")
         results = json.loads(path.read_text())
         level = results["meta"]["scenes"].split(":")[0]
         levels.setdefault(level, {}).update(
-            {k: v for k, v in results.items() if isinstance(v, dict) and "success_rate" in v}
+            {
+                f"{k}@{tag}" if tag else k: v
+                for k, v in results.items()
+                if isinstance(v, dict) and "success_rate" in v
+            }
         )
+    if args.compact:
+        _compact(levels, names)
+        return
     print(
         "| level (scenes) | controller | success % [Wilson 95 %] | collisions / timeouts | "
         "smoothness | jerk | min clearance [m] | filter interventions / 100 steps, no safe candidate % |"
@@ -74,7 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for level in sorted(levels):
         metrics = levels[level]
-        for key in sorted(metrics, key=lambda k: (ORDER.index(k) if k in ORDER else len(ORDER), k)):
+        for key in _ordered(metrics):
             print(_row(level, key, names.get(key, key), metrics[key]))
 
 

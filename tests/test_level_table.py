@@ -66,3 +66,14 @@ def test_a_folder_without_results_is_named(tmp_path, capsys):
     with pytest.raises(SystemExit):
         _script().main([str(tmp_path)])
     assert f"{tmp_path} holds no results.json" in capsys.readouterr().err
+
+
+def test_a_tagged_folder_stands_beside_the_default_in_the_compact_table(tmp_path, capsys):
+    a = _write(tmp_path / "a", "level3:10", pac=_metrics(0.5, 5), diffusion=_metrics(0.7, 3))
+    b = _write(tmp_path / "b", "level3:10", diffusion=_metrics(0.2, 8))
+    _script().main(["--compact", str(a), f"{b}@hf", "--name", "diffusion@hf=hint-free"])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "| level | PAC | default, standard | hint-free |"
+    assert lines[2] == (
+        "| level3 | 50.0 [40, 55], 5/0 (10) | 70.0 [60, 75], 3/0 (10) | 20.0 [10, 25], 8/0 (10) |"
+    )
