@@ -42,7 +42,8 @@ Run (full size)::
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
     the scorer against its whole-field baseline in the same run, and with a warm-starting checkpoint
     all K candidates warm-started (``ReplanExperiment.warm_all_candidates``). Its headline is the last line
-    when it runs.
+    when it runs. ``--level levelK``: the level's scenes (its first seeds) under its conditions instead,
+    with the safety layer told the conditions as the bench tells it (``safety_settings``).
 
 ``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (d) when it
 runs (``replan latency B=1 via select_action: student K=1 ...``), else of (c) when it
@@ -304,19 +305,21 @@ def student_part(teacher_path: str, student_path: str, candidates: list[int], re
     )
 
 
-def episode_replans_ms(policy, pre, post, encoding: str, seeds, scorer=None) -> tuple[list[float], list]:
+def episode_replans_ms(
+    policy, pre, post, encoding: str, seeds, scorer=None, env_kwargs: dict | None = None
+) -> tuple[list[float], list]:
     """Run one B=1 episode per seed (unseen paper scenes) through ``FormationEnv`` and the policy's
     ``select_action`` (pre/post processors), as ``lerobot-eval`` steps it; return the duration [ms] of
     every call that replanned (sampled and, with K > 1, scored a new chunk) and the actions taken.
     ``scorer``: a replacement for ``core.safety.cost_to_go_at`` (the baseline), else the shipped one.
-    Torch's generator is seeded per episode, so two scorers that keep the same chunks take the same
+    ``env_kwargs``: ``FormationEnv`` keyword arguments (a level's scenes and conditions). Torch's generator is seeded per episode, so two scorers that keep the same chunks take the same
     actions."""
     from lerobot.envs.utils import preprocess_observation
 
     from lerobot_formation.core import safety
     from lerobot_formation.envs.env import FormationEnv
 
-    env = FormationEnv(obstacle_encoding=encoding)
+    env = FormationEnv(**{**(env_kwargs or {}), "obstacle_encoding": encoding})
     shipped = safety.cost_to_go_at
     safety.cost_to_go_at = scorer or shipped
     times, actions = [], []
@@ -344,13 +347,14 @@ def episode_replans_ms(policy, pre, post, encoding: str, seeds, scorer=None) -> 
     return times, actions
 
 
-def safety_part(path: str, k: int, scenes: int) -> str:
+def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
     """Print part (e); return its headline: the replan latency at B=1 through ``select_action`` over
     whole episodes of ``scenes`` unseen paper scenes (``episode_replans_ms``), standard (K = 1) and with
     the safety layer's best-of-K (sampling the K candidates, then the scorer: footprint, cost-to-go
     progress, escape manoeuvres). The scorer's cost-to-go stops once the cells it reads are exact
     (``navigation.cost_to_go_at``); the baseline, in the same run, computes the whole field to
-    convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions)."""
+    convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions).
+    ``level``: that level's scenes and conditions instead of unseen paper scenes."""
     from lerobot_formation.core import navigation
     from lerobot_formation.core.scene import UNSEEN_SEED_START
     from lerobot_formation.policy.checkpoint import load_policy
@@ -360,6 +364,18 @@ def safety_part(path: str, k: int, scenes: int) -> str:
     policy.reconfigure(inference_backend="trace")
     cfg = policy.config
     seeds = UNSEEN_SEED_START + np.arange(scenes)
+    env_kwargs, where = None, f"{scenes} unseen paper scenes"
+    if level is not None:
+        from lerobot_formation.bench.controllers import safety_settings
+        from lerobot_formation.core.levels import get_level
+        from lerobot_formation.envs.env_config import FormationEnvConfig
+
+        env_cfg = FormationEnvConfig(level=level, obstacle_encoding=cfg.obstacle_encoding)
+        env_kwargs = {k_: v for k_, v in env_cfg.gym_kwargs.items() if k_ != "render_mode"}
+        seeds = get_level(level).seed + np.arange(scenes)
+        policy.reconfigure(**safety_settings(env_cfg.conditions()))
+        cfg = policy.config
+        where = f"{scenes} scenes of {level} under its conditions"
 
     def whole_field(obstacles, goal, points, rows=None, **kw):
         return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows)
@@ -375,11 +391,11 @@ def safety_part(path: str, k: int, scenes: int) -> str:
     for label, kk, scorer, all_warm in variants:
         policy.reconfigure(num_candidates=kk)
         policy.replanner = Replanner(policy, experiment=ReplanExperiment(warm_all_candidates=all_warm))
-        runs[label] = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, scorer)
+        runs[label] = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, scorer, env_kwargs)
     same = np.array_equal(np.asarray(runs[f"K={k}"][1]), np.asarray(runs[f"K={k}, whole field"][1]))
     print(
         f"(e) safety layer: every replan at B=1 through select_action (pre/post processors) over whole "
-        f"episodes of {scenes} unseen paper scenes; {path} (DDIM {cfg.num_inference_steps}, warm start "
+        f"episodes of {where}; {path} (DDIM {cfg.num_inference_steps}, warm start "
         f"{cfg.warm_start_step}, traced U-Net):"
     )
     med = {}
@@ -420,6 +436,9 @@ def main(argv: list[str] | None = None) -> int:
         "against --policy.path (default pretrained/formation_diffusion_safe) through select_action",
     )
     ap.add_argument("--safety-scenes", type=int, default=10, help="unseen scenes of part (e)")
+    ap.add_argument(
+        "--level", default=None, help="part (e) on this level's scenes and conditions (e.g. level5)"
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.repeats, args.batch, args.lean_repeats = 1, min(args.batch, 10), min(args.lean_repeats, 5)
@@ -466,7 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         print(student_part(path, args.student, args.lean_candidates, 10 * args.repeats))
     if "e" in args.parts:
         path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
-        print(safety_part(path, max(args.lean_candidates), args.safety_scenes))
+        print(safety_part(path, max(args.lean_candidates), args.safety_scenes, args.level))
     return 0
 
 

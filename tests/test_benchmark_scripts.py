@@ -96,3 +96,26 @@ def test_route_encoding_bench_times_both_encodings_and_ends_with_the_ratio(capsy
     assert lines[-1].startswith("step with the route hint:") and lines[-1].endswith("x the nearest step")
     with pytest.raises(ValueError, match="--scenes and --steps must be >= 1, got 0, 3"):
         m.main(["--scenes", "0", "--steps", "3"])
+
+
+@pytest.mark.slow
+def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told_the_conditions(capsys):
+    """Part (e) with --level: the level's scenes under its conditions, and the policy's safety layer
+    configured for them (the delay and rate limits of level5, moving obstacles predicted)."""
+    import torch
+
+    bench = _script("benchmarks/bench_replan_latency.py")
+    seen = []
+    real = bench.episode_replans_ms
+
+    def spy(policy, *args, **kwargs):
+        seen.append((policy.config.safety_action_delay, policy.config.safety_moving_obstacles, args[5]))
+        return real(policy, *args, **kwargs)
+
+    bench.episode_replans_ms = spy
+    torch.set_num_threads(1)
+    headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
+    assert "K=2 with the safety layer" in headline
+    assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
+    assert all(delay == 1 and moving for delay, moving, _ in seen), seen
+    assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
