@@ -28,6 +28,15 @@ best-of-K and filter (config fields ``num_candidates`` / ``safety_filter``): the
 --policy.safety_filter=...``. With K = 1 and no filter (the defaults) both run standard sampling.
 The two success rates are compared with a pooled two-proportion z-test (``within noise``: |z| < 1.96).
 
+**A graded level** (``--level levelK``): both paths play the level's first ``--episodes`` scenes under
+its conditions, the engine as the bench's ``--scenes levelK:N`` and the stock run as ``lerobot-eval
+--env.level=K --seed=<the level's first seed>`` (docs/benchmark.md). With a safety layer both are told
+the level's actuator and moving obstacles (``bench.controllers.safety_settings``; the stock run as
+``--policy.safety_*`` flags)::
+
+    python benchmarks/bench_eval_speed.py --policy.path pretrained/formation_diffusion_safe \
+        --level level5 --episodes 200 --stock 50:sync --threads 1
+
 ``--quick`` is a smoke run (10 episodes of 60 steps, three stock settings). The last line is the
 ratio of the best stock time to the engine's.
 """
@@ -88,22 +97,33 @@ def stock_command(
     scenes_file: Path,
     encoding: str,
     out: Path,
+    safety_fields: dict | None = None,
 ) -> list[str]:
-    """The ``lerobot-eval`` command line of one stock setting (the safety layer's flags included)."""
+    """The ``lerobot-eval`` command line of one stock setting (the safety layer's flags included):
+    the scenes file from seed 0, or with ``args.level`` the level from its own first seed.
+    ``safety_fields``: the safety layer's knowledge of the run's world (``safety_settings``)."""
+    if args.level:
+        from lerobot_formation.core.levels import get_level
+
+        level = get_level(args.level)
+        scenes = [f"--env.level={level.name}", f"--seed={level.seed}"]
+    else:
+        scenes = [f"--env.scenes_file={scenes_file}", "--seed=0"]
     cmd = [
         str(BIN / "lerobot-eval"),
         f"--policy.path={args.policy_path}",
         "--policy.device=cpu",
         "--env.type=formation",
         f"--env.obstacle_encoding={encoding}",
-        f"--env.scenes_file={scenes_file}",
+        *scenes,
         f"--env.episode_length={args.episode_length}",
-        "--seed=0",
         f"--eval.n_episodes={args.episodes}",
         f"--output_dir={out}",
     ]
     if args.candidates != 1 or args.safety_filter != "none":
         cmd += [f"--policy.num_candidates={args.candidates}", f"--policy.safety_filter={args.safety_filter}"]
+        for field, value in (safety_fields or {}).items():
+            cmd.append(f"--policy.{field}={str(value).lower() if isinstance(value, bool) else value}")
     if batch is not None:
         cmd += [f"--eval.batch_size={batch}", f"--eval.use_async_envs={'true' if use_async else 'false'}"]
     return cmd
@@ -118,8 +138,9 @@ def run_stock(
     encoding: str,
     out: Path,
     threads: int,
+    safety_fields: dict | None = None,
 ) -> dict:
-    cmd = stock_command(args, batch, use_async, scenes_file, encoding, out)
+    cmd = stock_command(args, batch, use_async, scenes_file, encoding, out, safety_fields)
     env = {
         **os.environ,
         "HF_HUB_OFFLINE": "1",
@@ -153,6 +174,11 @@ def main(argv: list[str] | None = None) -> int:
         "--scenes", default=None, help="random:N (default, N = --episodes), dataset:N or FILE.json"
     )
     ap.add_argument("--seed", type=int, default=UNSEEN_SEED_START, help="first seed of random:N")
+    ap.add_argument(
+        "--level",
+        default=None,
+        help="a graded level (level0 .. level5): its scenes and conditions, both paths",
+    )
     ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="for --scenes dataset:N")
     ap.add_argument("--episode-length", type=int, default=600, help="control steps before a timeout")
     ap.add_argument("--stock", default=None, help=f"lerobot-eval settings (default: {DEFAULT_STOCK})")
@@ -177,9 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.candidates < 1:
         ap.error(f"--candidates must be >= 1, got {args.candidates}")
     safety = args.candidates != 1 or args.safety_filter != "none"
+    if args.level and args.scenes:
+        ap.error(f"--level {args.level} fixes the scenes; drop --scenes {args.scenes}")
 
     import torch  # noqa: F401 (loaded before apply_threads sets its thread count)
 
+    from lerobot_formation.bench.controllers import safety_settings
     from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.bench.evaluation import evaluate
     from lerobot_formation.bench.scene_sets import parse_scenes
@@ -189,9 +218,22 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.core.scene import save_scenes
 
     threads = apply_threads(args.threads)
-    scenes = parse_scenes(
-        args.scenes or f"random:{args.episodes}", args.seed, args.dataset_root, args.policy_path
-    )
+    conditions = None
+    if args.level:
+        from lerobot_formation.core.levels import get_level
+
+        try:
+            level = get_level(args.level)
+        except ValueError as e:
+            ap.error(str(e))
+        args.level = level.name
+        conditions = level.conditions
+        scenes = parse_scenes(f"{level.name}:{args.episodes}", None)
+    else:
+        scenes = parse_scenes(
+            args.scenes or f"random:{args.episodes}", args.seed, args.dataset_root, args.policy_path
+        )
+    safety_fields = safety_settings(conditions) if safety else {}
     if len(scenes) < args.episodes:
         ap.error(f"--scenes gives {len(scenes)} scenes, fewer than --episodes {args.episodes}")
     scenes = scenes[: args.episodes]
@@ -203,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{args.episodes} episodes of at most {args.episode_length} steps, policy {args.policy_path} "
         f"(safety layer: K={args.candidates}, filter {args.safety_filter}) "
-        f"(env encoding {encoding!r}), scenes {args.scenes or f'random:{args.episodes}'} -> {scenes_file}; "
+        f"(env encoding {encoding!r}), scenes {args.level or args.scenes or f'random:{args.episodes}'} -> {scenes_file}; "
+        f"conditions {conditions.changed() if conditions is not None else 'none'}; "
         f"torch threads {threads}, {os.cpu_count()} CPUs",
         flush=True,
     )
@@ -213,13 +256,17 @@ def main(argv: list[str] | None = None) -> int:
     if safety:  # the policy's own safety layer, as lerobot-eval's --policy.num_candidates/safety_filter
         ctrl = DiffusionController(
             args.policy_path,
-            overrides={"num_candidates": args.candidates, "safety_filter": args.safety_filter},
+            overrides={
+                "num_candidates": args.candidates,
+                "safety_filter": args.safety_filter,
+                **safety_fields,
+            },
         )
     else:
         ctrl = DiffusionController(args.policy_path)
     load_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rec = evaluate(ctrl, scenes, FormationParams(max_steps=args.episode_length))
+    rec = evaluate(ctrl, scenes, FormationParams(max_steps=args.episode_length), conditions=conditions)
     engine_s = time.perf_counter() - t0
     engine_success = float(np.mean(rec.outcome == SUCCESS))
     print(
@@ -241,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
                 encoding,
                 out / f"lerobot_eval_{name.replace(':', '_')}",
                 threads,
+                safety_fields,
             )
             results.append(r)
             print(

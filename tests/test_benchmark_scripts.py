@@ -55,7 +55,7 @@ def test_eval_speed_stock_command_carries_the_safety_layer(tmp_path):
 
     m = _script("benchmarks/bench_eval_speed.py")
     args = argparse.Namespace(
-        policy_path="ckpt", episode_length=60, episodes=10, candidates=1, safety_filter="none"
+        policy_path="ckpt", episode_length=60, episodes=10, candidates=1, safety_filter="none", level=None
     )
     plain = m.stock_command(args, 10, False, tmp_path / "s.json", "nearest", tmp_path / "o")
     assert not any(c.startswith("--policy.num_candidates") for c in plain)
@@ -64,6 +64,43 @@ def test_eval_speed_stock_command_carries_the_safety_layer(tmp_path):
     safe = m.stock_command(args, None, None, tmp_path / "s.json", "nearest", tmp_path / "o")
     assert "--policy.num_candidates=10" in safe and "--policy.safety_filter=cbf" in safe
     assert not any(c.startswith("--eval.batch_size") for c in safe)
+
+
+def test_eval_speed_stock_command_plays_a_level_with_its_conditions(tmp_path):
+    """--level: lerobot-eval plays the level from its own first seed, and its safety layer is told the
+    level's actuator and moving obstacles through real fields of the policy config."""
+    import argparse
+    import dataclasses
+
+    from lerobot_formation.bench.controllers import safety_settings
+    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+
+    m = _script("benchmarks/bench_eval_speed.py")
+    level = get_level("level5")
+    args = argparse.Namespace(
+        policy_path="ckpt",
+        episode_length=600,
+        episodes=200,
+        candidates=10,
+        safety_filter="cbf",
+        level="level5",
+    )
+    cmd = m.stock_command(
+        args,
+        50,
+        False,
+        tmp_path / "s.json",
+        "nearest+route",
+        tmp_path / "o",
+        safety_settings(level.conditions),
+    )
+    assert "--env.level=level5" in cmd and f"--seed={level.seed}" in cmd
+    assert not any(c.startswith("--env.scenes_file") for c in cmd)
+    assert "--policy.safety_action_delay=1" in cmd and "--policy.safety_moving_obstacles=true" in cmd
+    names = {f.name for f in dataclasses.fields(FormationDiffusionConfig)}
+    policy_fields = [c[len("--policy.") :].split("=")[0] for c in cmd if c.startswith("--policy.")]
+    assert set(policy_fields) - {"path", "device"} <= names
 
 
 def test_sampling_steps_helpers():
