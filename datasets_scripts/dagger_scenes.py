@@ -10,13 +10,14 @@ demonstrations and training resumes from the checkpoint::
 
     python -m datasets_scripts.dagger_scenes --policy.path CKPT --scene-preset wide --rollouts 400 \\
         --out data/dagger_scenes.json
-    lerobot-formation-generate --scenes data/dagger_scenes.json --episodes 100000 \\
+    lerobot-formation-generate --scenes data/dagger_scenes.json --episodes 587 \\
         --obstacle-encoding nearest --root data/formation_dagger --repo-id local/formation_dagger
     lerobot-edit-dataset --new_repo_id local/formation_wide_dagger --new_root data/formation_wide_dagger \\
         --operation.type merge --operation.repo_ids "['local/formation_wide','local/formation_dagger']" \\
         --operation.roots "['data/formation_wide','data/formation_dagger']"
 
-(``--episodes`` larger than the file: the generator keeps every branch PAC completes.) The policy
+(``--episodes``: the file's scene count, printed as ``kept``; the generator then keeps every branch the
+expert completes and stops at the file's end. More than the file holds is an error.) The policy
 observes only the midpoint and the obstacles, so a branch restarts the followers at their usual
 offsets from the visited pose; PAC's labels depend on the pose only.
 
@@ -29,7 +30,7 @@ same conditions with the privileged expert::
 
     python -m datasets_scripts.dagger_scenes --policy.path CKPT --level level5 --rollouts 400 \
         --out data/dagger_l5.json
-    lerobot-formation-generate --scenes data/dagger_l5.json --episodes 100000 --expert privileged \
+    lerobot-formation-generate --scenes data/dagger_l5.json --episodes 751 --expert privileged \
         --obstacle-encoding nearest --root data/formation_dagger_l5 --repo-id local/formation_dagger_l5 \
         --env.sensing_range 3 --env.obstacle_noise 0.05 --env.pose_noise 0.05 --env.action_noise 0.05 \
         --env.action_delay 1 --env.max_linear_accel 0.5 --env.max_angular_accel 2.0
