@@ -98,14 +98,12 @@ def stock_command(
     encoding: str,
     out: Path,
     safety_fields: dict | None = None,
+    level=None,
 ) -> list[str]:
     """The ``lerobot-eval`` command line of one stock setting (the safety layer's flags included):
-    the scenes file from seed 0, or with ``args.level`` the level from its own first seed.
+    the scenes file from seed 0, or a ``core.levels.Level`` from its own first seed.
     ``safety_fields``: the safety layer's knowledge of the run's world (``safety_settings``)."""
-    if args.level:
-        from lerobot_formation.core.levels import get_level
-
-        level = get_level(args.level)
+    if level is not None:
         scenes = [f"--env.level={level.name}", f"--seed={level.seed}"]
     else:
         scenes = [f"--env.scenes_file={scenes_file}", "--seed=0"]
@@ -139,8 +137,9 @@ def run_stock(
     out: Path,
     threads: int,
     safety_fields: dict | None = None,
+    level=None,
 ) -> dict:
-    cmd = stock_command(args, batch, use_async, scenes_file, encoding, out, safety_fields)
+    cmd = stock_command(args, batch, use_async, scenes_file, encoding, out, safety_fields, level)
     env = {
         **os.environ,
         "HF_HUB_OFFLINE": "1",
@@ -211,14 +210,14 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench.controllers import safety_settings
     from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.bench.evaluation import evaluate
-    from lerobot_formation.bench.scene_sets import parse_scenes
+    from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes
     from lerobot_formation.core.dynamics import FormationParams
     from lerobot_formation.core.metrics import two_proportion_z
     from lerobot_formation.core.rollout import SUCCESS
     from lerobot_formation.core.scene import save_scenes
 
     threads = apply_threads(args.threads)
-    conditions = None
+    level, conditions = None, None
     if args.level:
         from lerobot_formation.core.levels import get_level
 
@@ -226,9 +225,8 @@ def main(argv: list[str] | None = None) -> int:
             level = get_level(args.level)
         except ValueError as e:
             ap.error(str(e))
-        args.level = level.name
         conditions = level.conditions
-        scenes = parse_scenes(f"{level.name}:{args.episodes}", None)
+        scenes = level_scenes(level.name, args.episodes)
     else:
         scenes = parse_scenes(
             args.scenes or f"random:{args.episodes}", args.seed, args.dataset_root, args.policy_path
@@ -245,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{args.episodes} episodes of at most {args.episode_length} steps, policy {args.policy_path} "
         f"(safety layer: K={args.candidates}, filter {args.safety_filter}) "
-        f"(env encoding {encoding!r}), scenes {args.level or args.scenes or f'random:{args.episodes}'} -> {scenes_file}; "
+        f"(env encoding {encoding!r}), scenes {level.name if level else args.scenes or f'random:{args.episodes}'} -> {scenes_file}; "
         f"conditions {conditions.changed() if conditions is not None else 'none'}; "
         f"torch threads {threads}, {os.cpu_count()} CPUs",
         flush=True,
@@ -289,6 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                 out / f"lerobot_eval_{name.replace(':', '_')}",
                 threads,
                 safety_fields,
+                level,
             )
             results.append(r)
             print(

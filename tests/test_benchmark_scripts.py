@@ -55,7 +55,7 @@ def test_eval_speed_stock_command_carries_the_safety_layer(tmp_path):
 
     m = _script("benchmarks/bench_eval_speed.py")
     args = argparse.Namespace(
-        policy_path="ckpt", episode_length=60, episodes=10, candidates=1, safety_filter="none", level=None
+        policy_path="ckpt", episode_length=60, episodes=10, candidates=1, safety_filter="none"
     )
     plain = m.stock_command(args, 10, False, tmp_path / "s.json", "nearest", tmp_path / "o")
     assert not any(c.startswith("--policy.num_candidates") for c in plain)
@@ -84,7 +84,6 @@ def test_eval_speed_stock_command_plays_a_level_with_its_conditions(tmp_path):
         episodes=200,
         candidates=10,
         safety_filter="cbf",
-        level="level5",
     )
     cmd = m.stock_command(
         args,
@@ -94,6 +93,7 @@ def test_eval_speed_stock_command_plays_a_level_with_its_conditions(tmp_path):
         "nearest+route",
         tmp_path / "o",
         safety_settings(level.conditions),
+        level,
     )
     assert "--env.level=level5" in cmd and f"--seed={level.seed}" in cmd
     assert not any(c.startswith("--env.scenes_file") for c in cmd)
