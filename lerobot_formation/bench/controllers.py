@@ -10,7 +10,8 @@ the policy's ``Replanner`` with the checkpoint's config and, for K and the filte
 (``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored.
 The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
-limits, and whether obstacles move; what a robot's designer knows of it, never its noise draws.
+limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
+never its noise draws.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from lerobot_formation.core.rollout import PACController
 
 def safety_settings(conditions: Conditions | None, scenes_move: bool = False) -> dict:
     """The policy config fields of the safety layer's knowledge of a run under ``conditions``: the
-    actuator's delay and acceleration limits, and whether obstacles move (then it predicts the
+    actuator's delay and acceleration limits, the sensors' noise stds, and whether obstacles move (then it predicts the
     observed ones at their velocities): ``moving_obstacles`` of the conditions, or ``scenes_move``
     (the scenes give their obstacles' ``velocities``, as a scenes file may). Empty when neither
     conditions nor moving scenes."""
@@ -36,6 +37,8 @@ def safety_settings(conditions: Conditions | None, scenes_move: bool = False) ->
             "safety_action_delay": conditions.action_delay,
             "safety_max_linear_accel": conditions.max_linear_accel,
             "safety_max_angular_accel": conditions.max_angular_accel,
+            "safety_obstacle_noise": conditions.obstacle_noise,
+            "safety_pose_noise": conditions.pose_noise,
             "safety_moving_obstacles": conditions.moving_obstacles > 0,
         }
     if scenes_move:

@@ -107,6 +107,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             best-of-K rolls chunks out rate limited (``dynamics.rate_limit``) and the filter chooses
             among the velocities reachable in one step. None (default): no limit.
         safety_max_angular_accel: the same on domega/dt [rad/s^2] (the env's ``max_angular_accel``).
+        safety_obstacle_noise: std [m] of the noise on the observed obstacles' centres and radii, a
+            known property of the robot's sensing (the env's ``obstacle_noise``). With
+            ``safety_pose_noise`` it widens the layer's margin by ``core.safety.noise_margin``: a
+            barrier on noisy clearances otherwise lets a team that cannot back up creep into the
+            obstacle it waits beside. 0 (default): exact observations.
+        safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
             j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
@@ -176,6 +182,8 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_action_delay: int = 0
     safety_max_linear_accel: float | None = None
     safety_max_angular_accel: float | None = None
+    safety_obstacle_noise: float = 0.0
+    safety_pose_noise: float = 0.0
     replan_on_intervention: bool = True
     warm_start_step: int = 0
     # Inference path (see the Args above; not a training setting).
@@ -302,6 +310,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             value = getattr(self, name)
             if value is not None and not value > 0:
                 raise config_error(f"{name} must be null (no limit) or > 0, got {value}")
+        for name in ("safety_obstacle_noise", "safety_pose_noise"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (
+                isinstance(value, int | float) and math.isfinite(value) and value >= 0
+            ):
+                raise config_error(f"{name} must be a finite std >= 0 [m], got {value!r}")
         if self.safety_layer and not (
             get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
         ):  # the layer reads body-frame obstacles and scores physical actions

@@ -28,7 +28,11 @@ actuator (``safety_action_delay``, ``safety_max_linear_accel`` / ``safety_max_an
 the ``core.safety.ChunkStart`` after the episode's commands in flight. For that the replanner keeps,
 per episode, the last ``safety_action_delay`` commands it sent (physical, clipped to the action
 bounds) and the velocity its actuator model executed last (``dynamics.rate_limit`` of the command
-that ran, action noise unknown). All of it starts afresh with each episode (``start``).
+that ran, action noise unknown). With a known sensing noise (``safety_obstacle_noise``,
+``safety_pose_noise``) the view's obstacles are smoothed over the steps (``core.obstacle_filter``,
+carried along with that executed velocity) and the scorer and the filter keep
+``core.safety.noise_margin`` of what noise is left more than ``safety_margin`` (``margin``). All of
+it starts afresh with each episode (``start``).
 
 K, the filter, its margin and rate, the warm start and ``replan_on_intervention`` come only from the
 policy config the replanner is given (the policy's own, or a copy made with ``dataclasses.replace``
@@ -48,6 +52,7 @@ from torch import Tensor
 
 from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams, rate_limit
+from lerobot_formation.core.obstacle_filter import SMOOTHING_GAIN, ObstacleFilter
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.replan_blend import blend_replan
@@ -212,11 +217,13 @@ class Replanner:
         cfg = self.config
         self.in_flight = np.zeros((B, cfg.safety_action_delay, A))  # sent, not run yet; oldest first
         self.executed_velocity = np.zeros((B, A))  # the actuator model's last executed [v, omega]
-        self.tracker = None
+        self.tracker = self.smoother = None
         encoding = get_encoding(cfg.obstacle_encoding)
+        _, dt, _ = safety_geometry()
         if cfg.safety_layer and cfg.safety_moving_obstacles and not encoding.velocity:
-            _, dt, _ = safety_geometry()
             self.tracker = ObstacleTracker(B, encoding.slots(cfg.max_obstacles), dt)
+        if cfg.safety_layer and self.knows_noise:
+            self.smoother = ObstacleFilter(B, encoding.slots(cfg.max_obstacles), dt, SMOOTHING_GAIN)
 
     @property
     def knows_actuator(self) -> bool:
@@ -227,6 +234,19 @@ class Replanner:
             or cfg.safety_max_linear_accel is not None
             or cfg.safety_max_angular_accel is not None
         )
+
+    @property
+    def knows_noise(self) -> bool:
+        """Whether the config gives the sensors' noise (the view is smoothed, the margin widened)."""
+        return self.config.safety_obstacle_noise > 0 or self.config.safety_pose_noise > 0
+
+    @property
+    def margin(self) -> float:
+        """The clearance [m] the scorer and the filter keep: ``safety_margin`` plus the
+        ``core.safety.noise_margin`` of the sensing noise left after the view's smoothing."""
+        cfg = self.config
+        extra = safety.noise_margin(cfg.safety_obstacle_noise, cfg.safety_pose_noise, SMOOTHING_GAIN)
+        return cfg.safety_margin + extra
 
     def needs_replan(self, rows: Tensor) -> Tensor:
         """Which of ``rows`` replan at their next ``act`` (B,) bool."""
@@ -271,7 +291,7 @@ class Replanner:
                 self.plan_pos[rows[torch.from_numpy(changed)]] = cfg.n_action_steps
         self.last_action[rows] = action.to(self.last_action.dtype)
         self.has_last[rows] = True
-        if view is not None and self.knows_actuator:
+        if view is not None and (self.knows_actuator or self.knows_noise):
             self._send(rows.cpu().numpy(), action)
         return action
 
@@ -351,6 +371,9 @@ class Replanner:
         idx = rows.cpu().numpy()
         if self.tracker is not None:
             velocity = self.tracker.update(view.goal, view.obstacles, view.mask, idx)
+        obstacles = view.obstacles
+        if self.smoother is not None:  # carried along with the velocity the team executed last step
+            obstacles = self.smoother.update(obstacles, view.mask, self.executed_velocity[idx], velocity, idx)
         if self.knows_actuator:
             _, dt, _ = safety_geometry()
             start = safety.predict_start(
@@ -360,7 +383,7 @@ class Replanner:
                 cfg.safety_max_linear_accel,
                 cfg.safety_max_angular_accel,
             )
-        return SafetyView(view.goal, view.obstacles, view.mask, velocity, start)
+        return SafetyView(view.goal, obstacles, view.mask, velocity, start)
 
     def _as_view(self, seen) -> SafetyView:
         return seen if isinstance(seen, SafetyView) else self.observed_obstacles(seen)
@@ -385,7 +408,7 @@ class Replanner:
             template,
             dt,
             agent_radius,
-            self.config.safety_margin,
+            self.margin,
             escape_advantage=ex.escape_advantage,
             blend=blend,
             blocked_fallback=ex.blocked_fallback,
@@ -417,7 +440,7 @@ class Replanner:
             view.obstacles,
             template,
             agent_radius,
-            cfg.safety_margin,
+            self.margin,
             cfg.cbf_rate,
             np.asarray(cfg.action_low),
             np.asarray(cfg.action_high),

@@ -12,7 +12,7 @@ from plugin_helpers import formation_features, nearest_config, save_nearest_chec
 
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
-from lerobot_formation.policy.replanner import Replanner
+from lerobot_formation.policy.replanner import Replanner, SafetyView
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
@@ -64,9 +64,40 @@ def test_safety_settings_are_checked_with_their_value():
             dict(safety_max_angular_accel=-2.0),
             r"safety_max_angular_accel must be null \(no limit\) or > 0, got -2.0",
         ),
+        (
+            dict(safety_obstacle_noise=-0.02),
+            r"safety_obstacle_noise must be a finite std >= 0 \[m\], got -0.02",
+        ),
+        (
+            dict(safety_pose_noise=float("nan")),
+            r"config values must be finite numbers, got safety_pose_noise=nan",
+        ),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
+
+
+def test_the_layer_widens_its_margin_by_the_known_sensing_noise():
+    """The scorer and the filter keep ``safety_margin`` plus ``core.safety.noise_margin`` of the
+    configured noise stds after the view's smoothing; with exact sensing, ``safety_margin`` alone
+    and no smoothing."""
+    from lerobot_formation.core.obstacle_filter import SMOOTHING_GAIN
+    from lerobot_formation.core.safety import noise_margin
+
+    exact = Replanner(_policy(safety_margin=0.05))
+    noisy = Replanner(_policy(safety_margin=0.05, safety_obstacle_noise=0.02, safety_pose_noise=0.02))
+    assert exact.margin == 0.05
+    assert noisy.margin == pytest.approx(0.05 + noise_margin(0.02, 0.02, SMOOTHING_GAIN))
+    exact.start(1), noisy.start(1)
+    assert exact.smoother is None and noisy.smoother is not None
+    # the filter holds the noisy team farther out: an obstacle 0.15 m ahead of a leader's disc
+    view = SafetyView(
+        np.array([[0.0, 8.0]]), np.array([[[0.5, 0.1 + 0.15 + 0.2, 0.2]]]), np.ones((1, 1), bool)
+    )
+    fast = np.array([[0.6, 0.0]])
+    exact_out, _ = exact.filter_raw(view, fast)
+    noisy_out, _ = noisy.filter_raw(view, fast)
+    assert noisy_out[0, 0] < exact_out[0, 0] < 0.6
 
 
 def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
@@ -158,6 +189,8 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
         "safety_action_delay": 1,
         "safety_max_linear_accel": 0.5,
         "safety_max_angular_accel": 2.0,
+        "safety_obstacle_noise": 0.05,
+        "safety_pose_noise": 0.05,
         "safety_moving_obstacles": True,
     }
     assert safety_settings(get_level("level3").conditions) == {}

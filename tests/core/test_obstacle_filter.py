@@ -1,0 +1,91 @@
+"""The safety layer's obstacle filter: exact observations pass through while the team moves, noisy
+ones are smoothed as the gain says, and slots that change order keep their tracks."""
+
+import numpy as np
+import pytest
+
+from lerobot_formation.core.dynamics import rollout_poses
+from lerobot_formation.core.encoding import world_to_body
+from lerobot_formation.core.obstacle_filter import ObstacleFilter
+from lerobot_formation.core.safety import noise_margin
+
+DT = 0.1
+WORLD = np.array([[1.0, 2.0, 0.3], [-1.5, 3.0, 0.5], [0.5, -2.0, 0.4]])
+
+
+def _seen(pose):
+    """The obstacles in the body frame of a world pose (1, 3)."""
+    out = WORLD.copy()
+    out[:, :2] = world_to_body(WORLD[None, :, :2], pose)[0]
+    return out[None]
+
+
+def test_exact_observations_of_a_moving_team_pass_through():
+    """The tracks are carried along with the executed motion exactly as the team moves, so with
+    exact observations the filter's output is the observation itself."""
+    filt = ObstacleFilter(1, 3, DT, beta=0.2)
+    pose = np.array([[0.0, 0.0, np.pi / 2]])
+    mask = np.ones((1, 3), bool)
+    for k in range(30):
+        motion = np.array([[0.4, 0.8 * np.sin(0.3 * k)]])  # what ran over the last step
+        if k:
+            pose = rollout_poses(pose, motion[:, None, None], DT)[:, 0, 0]
+        out = filt.update(_seen(pose), mask, motion if k else np.zeros((1, 2)))
+        np.testing.assert_allclose(out, _seen(pose), atol=1e-9)
+
+
+def test_noise_of_a_standing_team_shrinks_as_the_gain_says():
+    beta, sigma = 0.3, 0.05
+    filt = ObstacleFilter(1, 3, DT, beta=beta)
+    pose = np.array([[0.0, 0.0, np.pi / 2]])
+    rng = np.random.default_rng(0)
+    errors = []
+    for k in range(3000):
+        seen = _seen(pose) + sigma * rng.normal(size=(1, 3, 3))
+        out = filt.update(seen, np.ones((1, 3), bool), np.zeros((1, 2)))
+        if k > 50:
+            errors.append(out[0] - _seen(pose)[0])
+    std = np.std(np.array(errors))
+    assert std == pytest.approx(sigma * np.sqrt(beta / (2 - beta)), rel=0.1)
+    # the layer's extra margin counts the noise that is left, not the raw noise
+    assert noise_margin(sigma, 0.0, beta) == pytest.approx(
+        noise_margin(sigma, 0.0) * np.sqrt(beta / (2 - beta))
+    )
+
+
+def test_reordered_slots_keep_their_tracks_and_new_ones_start_fresh():
+    filt = ObstacleFilter(2, 3, DT, beta=0.5)
+    pose = np.array([[0.0, 0.0, np.pi / 2]] * 2)
+    mask = np.ones((2, 3), bool)
+    first = np.concatenate([_seen(pose[:1])] * 2)
+    filt.update(first, mask, np.zeros((2, 2)))
+    shifted = first.copy()
+    shifted[:, :, 0] += 0.1  # every obstacle seen 0.1 m to the right
+    swapped = shifted[:, [2, 0, 1]]
+    out = filt.update(swapped, mask, np.zeros((2, 2)), rows=np.array([0, 1]))
+    np.testing.assert_allclose(out[:, :, 0], first[:, [2, 0, 1], 0] + 0.05)  # halfway: beta = 0.5
+    # an observation beyond the gate of every track starts a new one at itself; so does every
+    # observation of a reset episode
+    filt.reset(rows=[1])
+    far = swapped.copy()
+    far[0, 0, :2] += 5.0
+    out = filt.update(far, mask, np.zeros((2, 2)))
+    np.testing.assert_allclose(out[0, 0], far[0, 0])
+    assert not np.allclose(out[0, 1:], far[0, 1:])  # the others are still smoothed
+    np.testing.assert_allclose(out[1], far[1])
+    with pytest.raises(ValueError, match="beta must be in"):
+        ObstacleFilter(1, 3, DT, beta=0.0)
+
+
+def test_an_obstacle_observed_to_move_passes_through():
+    filt = ObstacleFilter(1, 3, DT, beta=0.3)
+    pose = np.array([[0.0, 0.0, np.pi / 2]])
+    mask = np.ones((1, 3), bool)
+    filt.update(_seen(pose), mask, np.zeros((1, 2)))
+    moved = _seen(pose).copy()
+    moved[0, :, 1] += 0.03
+    velocity = np.zeros((1, 3, 2))
+    velocity[0, 1] = [0.0, 0.3]
+    out = filt.update(moved, mask, np.zeros((1, 2)), velocity)
+    np.testing.assert_allclose(out[0, 1], moved[0, 1])  # the mover as observed
+    np.testing.assert_allclose(out[0, [0, 2], 1], _seen(pose)[0, [0, 2], 1] + 0.3 * 0.03)  # smoothed
