@@ -49,15 +49,15 @@ rolled out as the actuator executes it (``dynamics.rate_limit_sequence`` from th
 last), and the filter's action box shrinks to the velocities reachable in one step from it
 (an action that only the rate limit changes is not an intervention).
 
-Sensing noise (``noise_margin``): with noisy observations a barrier on the observed clearance h_obs =
-h + e is not one on h. The leaders cannot back up (v >= 0), so each step the filter lets the team in
-by alpha dt h_obs when a draw says there is room, and only stops it when a draw says there is none:
-dwelling beside an obstacle, the team ratchets in until h is about the largest draw of -e, several
-stds below zero after hundreds of steps (under level4 15 of 100 tuning episodes ended in 0-16 mm
-grazes at standstill with a 5 cm margin). The layer therefore keeps ``NOISE_SIGMAS`` stds of e more
-margin (a measurement-robust barrier: Dean et al. 2020, "Guaranteeing Safety of Learned Perception
-Modules via Measurement-Robust Control Barrier Functions"), the std from the sensor's known noise
-after the replanner's filter of the observations (``core.obstacle_filter``), which shrinks it.
+Sensing noise: with noisy observations a barrier on the observed clearance h_obs = h + e is not one
+on h. The leaders cannot back up (v >= 0), so each step the filter lets the team in by alpha dt h_obs
+when a draw says there is room, and only stops it when a draw says there is none: dwelling beside an
+obstacle, the team ratchets in until h is about the largest draw of -e, several stds below zero after
+hundreds of steps (under level4 15 of 100 tuning episodes ended in 0.4-16 mm grazes at a standstill
+with a 5 cm margin). So where the sensing noise is known the replanner smooths the obstacles the layer
+sees (``core.obstacle_filter``): the std of e falls to 0.42 of the raw, and ``margin`` should be
+about three times that (a measurement-robust barrier: Dean et al. 2020, "Guaranteeing Safety of
+Learned Perception Modules via Measurement-Robust Control Barrier Functions").
 """
 
 from __future__ import annotations
@@ -75,26 +75,6 @@ from lerobot_formation.core.scene import FAR
 from lerobot_formation.core.velocity_encoding import body_velocities
 
 BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
-# Stds of the observed clearance's error kept as extra margin (module docstring); chosen on level4's
-# and level5's tuning seeds (docs/conditions.md).
-NOISE_SIGMAS = 1.5
-NOISE_LEVER = 1.0  # [m] the obstacle distance at which the heading noise is counted
-
-
-def noise_margin(obstacle_noise: float, pose_noise: float, beta: float = 1.0) -> float:
-    """The extra margin [m] for observations with Gaussian noise of std ``obstacle_noise`` on each
-    obstacle's centre and radius and ``pose_noise`` on the midpoint's position [m] and heading [rad]
-    (``core.conditions``): ``NOISE_SIGMAS`` times the std of the error of one observed clearance,
-    sqrt(sigma_o^2 (centre, along the normal) + sigma_o^2 (radius) + sigma_p^2 (position) +
-    (sigma_p L)^2 (heading, at L = ``NOISE_LEVER``)), after an exponential filter of gain ``beta``
-    (``core.obstacle_filter``; 1: raw observations), whose steady-state std on independent draws of
-    std s is s sqrt(beta / (2 - beta)) (variance beta^2 s^2 sum_k (1 - beta)^(2k))."""
-    if not (obstacle_noise >= 0 and pose_noise >= 0):
-        raise ValueError(f"noise stds must be >= 0 [m], got {obstacle_noise} and {pose_noise}")
-    if not 0.0 < beta <= 1.0:
-        raise ValueError(f"beta must be in (0, 1], got {beta}")
-    std = np.sqrt(2.0 * obstacle_noise**2 + pose_noise**2 * (1.0 + NOISE_LEVER**2))
-    return float(NOISE_SIGMAS * std * np.sqrt(beta / (2.0 - beta)))
 
 
 @dataclass(frozen=True)

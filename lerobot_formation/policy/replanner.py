@@ -30,9 +30,7 @@ per episode, the last ``safety_action_delay`` commands it sent (physical, clippe
 bounds) and the velocity its actuator model executed last (``dynamics.rate_limit`` of the command
 that ran, action noise unknown). With a known sensing noise (``safety_obstacle_noise``,
 ``safety_pose_noise``) the view's obstacles are smoothed over the steps (``core.obstacle_filter``,
-carried along with that executed velocity) and the scorer and the filter keep
-``core.safety.noise_margin`` of what noise is left more than ``safety_margin`` (``margin``). All of
-it starts afresh with each episode (``start``).
+carried along with that executed velocity). All of it starts afresh with each episode (``start``).
 
 K, the filter, its margin and rate, the warm start and ``replan_on_intervention`` come only from the
 policy config the replanner is given (the policy's own, or a copy made with ``dataclasses.replace``
@@ -237,16 +235,8 @@ class Replanner:
 
     @property
     def knows_noise(self) -> bool:
-        """Whether the config gives the sensors' noise (the view is smoothed, the margin widened)."""
+        """Whether the config gives the sensors' noise (then the view is smoothed)."""
         return self.config.safety_obstacle_noise > 0 or self.config.safety_pose_noise > 0
-
-    @property
-    def margin(self) -> float:
-        """The clearance [m] the scorer and the filter keep: ``safety_margin`` plus the
-        ``core.safety.noise_margin`` of the sensing noise left after the view's smoothing."""
-        cfg = self.config
-        extra = safety.noise_margin(cfg.safety_obstacle_noise, cfg.safety_pose_noise, SMOOTHING_GAIN)
-        return cfg.safety_margin + extra
 
     def needs_replan(self, rows: Tensor) -> Tensor:
         """Which of ``rows`` replan at their next ``act`` (B,) bool."""
@@ -408,7 +398,7 @@ class Replanner:
             template,
             dt,
             agent_radius,
-            self.margin,
+            self.config.safety_margin,
             escape_advantage=ex.escape_advantage,
             blend=blend,
             blocked_fallback=ex.blocked_fallback,
@@ -440,7 +430,7 @@ class Replanner:
             view.obstacles,
             template,
             agent_radius,
-            self.margin,
+            cfg.safety_margin,
             cfg.cbf_rate,
             np.asarray(cfg.action_low),
             np.asarray(cfg.action_high),

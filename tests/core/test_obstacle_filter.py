@@ -7,7 +7,6 @@ import pytest
 from lerobot_formation.core.dynamics import rollout_poses
 from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.obstacle_filter import ObstacleFilter
-from lerobot_formation.core.safety import noise_margin
 
 DT = 0.1
 WORLD = np.array([[1.0, 2.0, 0.3], [-1.5, 3.0, 0.5], [0.5, -2.0, 0.4]])
@@ -47,10 +46,6 @@ def test_noise_of_a_standing_team_shrinks_as_the_gain_says():
             errors.append(out[0] - _seen(pose)[0])
     std = np.std(np.array(errors))
     assert std == pytest.approx(sigma * np.sqrt(beta / (2 - beta)), rel=0.1)
-    # the layer's extra margin counts the noise that is left, not the raw noise
-    assert noise_margin(sigma, 0.0, beta) == pytest.approx(
-        noise_margin(sigma, 0.0) * np.sqrt(beta / (2 - beta))
-    )
 
 
 def test_reordered_slots_keep_their_tracks_and_new_ones_start_fresh():
@@ -89,3 +84,41 @@ def test_an_obstacle_observed_to_move_passes_through():
     out = filt.update(moved, mask, np.zeros((1, 2)), velocity)
     np.testing.assert_allclose(out[0, 1], moved[0, 1])  # the mover as observed
     np.testing.assert_allclose(out[0, [0, 2], 1], _seen(pose)[0, [0, 2], 1] + 0.3 * 0.03)  # smoothed
+
+
+def test_smoothing_stops_the_ratchet_of_a_noisy_barrier():
+    """A team that cannot back up (v >= 0) presses at an obstacle ahead and observes it with fresh
+    Gaussian noise each step (centre and radius, as ``core.conditions`` draws it). On the raw draws
+    the CBF filter lets it creep in whenever a draw shows room, and the team ends in contact; on the
+    smoothed view it stays clear over the same draws (margin 0.05 m, level4's noise 0.02 m: 1.9 cm
+    inside against 2.1 cm clear)."""
+    from lerobot_formation.core import dynamics
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.geometry import agent_clearances
+    from lerobot_formation.core.safety import cbf_filter
+
+    params = FormationParams()
+    template = np.asarray(params.graph.template)
+    low, high = np.array([0.0, -params.omega_max]), np.array([params.v_max, params.omega_max])
+    sigma = 0.02
+    draws = np.random.default_rng(0).normal(size=(400, 3))
+    obstacle = np.array([0.5, 1.6, 0.4])
+    closest = {}
+    for smooth in (False, True):
+        state = dynamics.initial_state(np.array([[0.0, 0.0, np.pi / 2]]), params)
+        filt = ObstacleFilter(1, 1, params.dt)
+        executed, gap = np.zeros((1, 2)), np.inf
+        for z in draws:
+            seen = obstacle + sigma * z
+            view = np.concatenate([world_to_body(seen[None, None, :2], state.pose), seen[None, None, 2:]], -1)
+            if smooth:
+                view = filt.update(view, np.ones((1, 1), bool), executed)
+            executed, _ = cbf_filter(
+                np.array([[0.3, 0.0]]), view, template, params.agent_radius, 0.05, 2.0, low, high
+            )
+            state = dynamics.step(state, executed, params)
+            pos = dynamics.agent_positions(state)
+            gap = min(gap, agent_clearances(pos, obstacle[None, None], params.agent_radius).min())
+        closest[smooth] = gap
+    assert closest[False] < 0.0  # the ratchet: contact at a standstill
+    assert closest[True] > 0.0

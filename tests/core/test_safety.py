@@ -6,16 +6,13 @@ import pytest
 
 from lerobot_formation.core import dynamics
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.safety import (
-    NOISE_SIGMAS,
     barrier_rows,
     cbf_filter,
     cost_to_go_progress,
     decode_nearest,
-    noise_margin,
     select_chunk,
 )
 from lerobot_formation.core.scene import FAR
@@ -351,35 +348,3 @@ def test_filter_chooses_among_reachable_velocities():
     )
     assert changed[0]
     np.testing.assert_allclose(out[0], [0.55, -0.2])  # one step's reach: 0.05 m/s, 0.2 rad/s
-
-
-def test_noise_margin_stops_the_ratchet_of_noisy_observations():
-    """A team that cannot back up (v >= 0) presses at an obstacle ahead and observes it with fresh
-    Gaussian noise each step (centre and radius, as ``core.conditions`` draws it). With the noise-free
-    margin the filter lets it creep in whenever a draw shows room and the team ends in contact; with
-    ``noise_margin`` of the known std it stays clear over the same draws."""
-    sigma = 0.03
-    rng = np.random.default_rng(0)
-    draws = rng.normal(size=(400, 3))
-    true_obstacle = np.array([0.5, 1.6, 0.4])
-    assert noise_margin(0.0, 0.0) == 0.0
-    extra = noise_margin(sigma, 0.0)
-    assert extra == pytest.approx(NOISE_SIGMAS * np.sqrt(2) * sigma)
-    with pytest.raises(ValueError, match="-0.1"):
-        noise_margin(-0.1, 0.0)
-    closest = {}
-    for margin in (0.05, 0.05 + extra):
-        state = dynamics.initial_state(np.array([[0.0, 0.0, np.pi / 2]]), P)
-        gap = np.inf
-        for z in draws:
-            seen = true_obstacle + sigma * z
-            obs_b = np.concatenate(
-                [world_to_body(seen[None, None, :2], state.pose), seen[None, None, 2:]], -1
-            )
-            a, _ = _filter(np.array([[0.3, 0.0]]), obs_b, margin=margin)
-            state = dynamics.step(state, a, P)
-            pos = dynamics.agent_positions(state)
-            gap = min(gap, agent_clearances(pos, true_obstacle[None, None], P.agent_radius).min())
-        closest[margin] = gap
-    assert closest[0.05] < 0.0  # the ratchet: contact at standstill
-    assert closest[0.05 + extra] > 0.0

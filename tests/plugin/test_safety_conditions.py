@@ -12,7 +12,7 @@ from plugin_helpers import formation_features, nearest_config, save_nearest_chec
 
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
-from lerobot_formation.policy.replanner import Replanner, SafetyView
+from lerobot_formation.policy.replanner import Replanner
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
@@ -77,27 +77,31 @@ def test_safety_settings_are_checked_with_their_value():
             nearest_config(**bad)
 
 
-def test_the_layer_widens_its_margin_by_the_known_sensing_noise():
-    """The scorer and the filter keep ``safety_margin`` plus ``core.safety.noise_margin`` of the
-    configured noise stds after the view's smoothing; with exact sensing, ``safety_margin`` alone
-    and no smoothing."""
-    from lerobot_formation.core.obstacle_filter import SMOOTHING_GAIN
-    from lerobot_formation.core.safety import noise_margin
-
+def test_the_layer_smooths_its_view_when_it_knows_the_sensing_noise():
+    """With a noise std in the config the replanner's view of the obstacles is smoothed over the
+    steps (``core.obstacle_filter``); with exact sensing it is the observation itself."""
     exact = Replanner(_policy(safety_margin=0.05))
     noisy = Replanner(_policy(safety_margin=0.05, safety_obstacle_noise=0.02, safety_pose_noise=0.02))
-    assert exact.margin == 0.05
-    assert noisy.margin == pytest.approx(0.05 + noise_margin(0.02, 0.02, SMOOTHING_GAIN))
     exact.start(1), noisy.start(1)
     assert exact.smoother is None and noisy.smoother is not None
-    # the filter holds the noisy team farther out: an obstacle 0.15 m ahead of a leader's disc
-    view = SafetyView(
-        np.array([[0.0, 8.0]]), np.array([[[0.5, 0.1 + 0.15 + 0.2, 0.2]]]), np.ones((1, 1), bool)
-    )
-    fast = np.array([[0.6, 0.0]])
-    exact_out, _ = exact.filter_raw(view, fast)
-    noisy_out, _ = noisy.filter_raw(view, fast)
-    assert noisy_out[0, 0] < exact_out[0, 0] < 0.6
+
+    def observed(x):
+        return torch.from_numpy(
+            environment_state(
+                np.array([[[x, 2.0, 0.3]]]),
+                np.ones((1, 1), bool),
+                np.array([[0.0, 8.0]]),
+                "nearest",
+                pose=np.array([[0.0, 0.0, np.pi / 2]]),
+            )
+        )
+
+    rows = torch.tensor([0])
+    for replanner in (exact, noisy):
+        replanner.view(observed(1.0), rows)
+    assert exact.view(observed(1.2), rows).obstacles[0, 0, 0] == pytest.approx(1.2)
+    smoothed = noisy.view(observed(1.2), rows).obstacles[0, 0, 0]
+    assert 1.0 < smoothed < 1.2  # a step toward the new draw, not all the way
 
 
 def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
