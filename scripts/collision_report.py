@@ -7,8 +7,8 @@ and how long the team had already been that close.
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
 level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin,
-``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing, no noise margin:
-the layer before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move. One
+``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing: the layer
+before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move. One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
