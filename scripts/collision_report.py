@@ -13,8 +13,8 @@ line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
 nearest (the ``nearest`` encoding observes 12). The last line is the summary: success %,
-collisions, timeouts, and how many collisions came after the team had been within 2 cm of an
-obstacle for 10 steps (grazes after dwelling).
+collisions, timeouts, and how many collisions came after the team was already within 2 cm of an
+obstacle in the 10 steps before (grazes, not run-ins).
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ from lerobot_formation.threads import add_threads_argument, apply_threads  # noq
 
 
 def collision_lines(rec, scenes, params) -> tuple[list[str], int]:
-    """One line per collision of the records ``rec`` (module docstring), and how many came after
-    10 steps within 2 cm."""
+    """One line per collision of the records ``rec`` (module docstring), and how many came after the
+    team was within 2 cm in the 10 steps before."""
     from lerobot_formation.core.dynamics import desired_follower_positions
     from lerobot_formation.core.geometry import agent_clearances
     from lerobot_formation.core.rollout import COLLISION
@@ -41,18 +41,14 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int]:
     for b in np.flatnonzero(rec.outcome == COLLISION):
         t = int(rec.steps[b])
         pos = rec.positions[b, t]
-        moving = rec.obstacle_paths is not None  # the true centres at every frame (under conditions)
-        centres = (
-            rec.obstacle_paths[b]
-            if moving
-            else np.broadcast_to(scenes.obstacles[b, :, :2], (t + 1,) + scenes.obstacles.shape[1:2] + (2,))
-        )
-        obstacles = np.concatenate([centres[t], scenes.obstacles[b, :, 2:3]], -1)
+        paths = rec.obstacle_paths  # the true centres at every frame under conditions; else static
+        now, last = (paths[b, t], paths[b, t - 1]) if paths is not None else (scenes.obstacles[b, :, :2],) * 2
+        obstacles = np.concatenate([now, scenes.obstacles[b, :, 2:3]], -1)
         gaps = agent_clearances(pos[None], obstacles[None], params.agent_radius)[0]
         agent = int(np.argmin(gaps))
         reach = np.linalg.norm(pos[agent][None] - obstacles[:, :2], axis=-1) - obstacles[:, 2]
         hit = int(np.argmin(np.where(scenes.mask[b], reach, np.inf)))
-        surface = np.linalg.norm(centres[t - 1] - rec.poses[b, t - 1, :2], axis=-1) - obstacles[:, 2]
+        surface = np.linalg.norm(last - rec.poses[b, t - 1, :2], axis=-1) - obstacles[:, 2]
         surface = np.where(scenes.mask[b], surface, np.inf)
         rank = int((surface < surface[hit]).sum())
         slots = desired_follower_positions(rec.poses[b, t], params.graph)
@@ -115,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{args.controller} on {level.name} ({n} scenes from seed {args.seed}): success "
         f"{100 * np.mean(rec.outcome == SUCCESS):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
-        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions after 10 steps within 2 cm"
+        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions within 2 cm already in the 10 steps before"
     )
     return 0
 

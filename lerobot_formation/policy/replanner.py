@@ -50,7 +50,7 @@ from torch import Tensor
 
 from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams, rate_limit
-from lerobot_formation.core.obstacle_filter import SMOOTHING_GAIN, ObstacleFilter
+from lerobot_formation.core.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.replan_blend import blend_replan
@@ -221,7 +221,7 @@ class Replanner:
         if cfg.safety_layer and cfg.safety_moving_obstacles and not encoding.velocity:
             self.tracker = ObstacleTracker(B, encoding.slots(cfg.max_obstacles), dt)
         if cfg.safety_layer and self.knows_noise:
-            self.smoother = ObstacleFilter(B, encoding.slots(cfg.max_obstacles), dt, SMOOTHING_GAIN)
+            self.smoother = ObstacleFilter(B, encoding.slots(cfg.max_obstacles), dt)
 
     @property
     def knows_actuator(self) -> bool:
