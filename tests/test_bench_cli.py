@@ -46,9 +46,20 @@ def test_scenes_file_and_dataset_spec(tmp_path):
         (["--controllers", "pac,foo"], "unknown controller 'foo'"),
         (["--controllers", "diffusion"], "need --policy.path"),
         (["--scenes", "random:0"], "N >= 1"),
+        (["--controllers", "diffusion", "--policy.path", "m", "--device", "gpu0"], "got 'gpu0'"),
+        (["--controllers", "diffusion", "--policy.path", "m", "--device", "mps"], "cpu or a CUDA device"),
     ],
 )
 def test_bad_arguments(argv, match, capsys, tmp_path):
     with pytest.raises(SystemExit):
         main([*argv, "--out", str(tmp_path)])
     assert match in capsys.readouterr().err
+
+
+def test_cuda_device_without_cuda_is_named(capsys, tmp_path):
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(SystemExit):
+        main(["--controllers", "diffusion", "--policy.path", "m", "--device", "cuda", "--out", str(tmp_path)])
+    assert "CUDA is not available on this machine" in capsys.readouterr().err

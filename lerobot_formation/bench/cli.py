@@ -158,6 +158,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--num-inference-steps", type=int, default=None, help="DDIM steps (default: checkpoint's)"
     )
     ap.add_argument("--seed-policy", type=int, default=0, help="seed of the policies' noise")
+    ap.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device of the diffusion controllers' networks (cpu, cuda, cuda:N); scenes, "
+        "replanning state and safety layer stay on the CPU, and the noise is drawn there, so a seed "
+        "gives the same initial noise on any device",
+    )
     ap.add_argument("--out", default="outputs/bench", help="output folder")
     ap.add_argument("--no-figures", action="store_true", help="write results.json and tables.md only")
     ap.add_argument(
@@ -175,6 +182,27 @@ def _fail(message: str):
     """One line ``error: ...`` on stderr and exit code 2 (bad input; no traceback)."""
     print(f"error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+def check_device(text: str) -> None:
+    """ValueError naming ``text`` unless it is a torch device this machine has (``cpu``, or a CUDA
+    device when CUDA is available and the index exists)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"--device must be a torch device such as cpu, cuda or cuda:0, got {text!r}") from None
+    if device.type == "cpu":
+        return
+    if device.type != "cuda":
+        raise ValueError(f"--device must be cpu or a CUDA device (cuda, cuda:N), got {text!r}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"--device {text}: CUDA is not available on this machine (use --device cpu)")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(
+            f"--device {text}: this machine has {torch.cuda.device_count()} CUDA device(s), no index {device.index}"
+        )
 
 
 def parse_shard(text: str | None) -> tuple[int, int] | None:
@@ -219,6 +247,11 @@ def main(argv: list[str] | None = None) -> int:
     diffusion = [n for n in names if needs_policy(n)]
     if diffusion and not args.policy_path:
         _fail(f"controllers {diffusion} need --policy.path")
+    if diffusion:
+        try:
+            check_device(args.device)
+        except ValueError as e:
+            _fail(str(e))
     if args.candidates < 1:
         _fail(f"--candidates must be >= 1, got {args.candidates}")
     if args.num_inference_steps is not None and args.num_inference_steps < 1:
@@ -257,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
 
         # torch's thread count is --threads (apply_threads set OMP_NUM_THREADS before torch loads).
         try:
-            bundle = load_policy(args.policy_path)
+            bundle = load_policy(args.policy_path, args.device)
         except ValueError as e:  # CheckpointError: missing, incomplete, broken or another policy type
             _fail(f"--policy.path: {e}")
         steps, most = args.num_inference_steps, bundle[0].config.num_train_timesteps
@@ -278,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
             num_inference_steps=args.num_inference_steps,
             seed_policy=args.seed_policy,
             conditions=conditions,
+            device=args.device,
         ),
         # progress bars only on a terminal (tqdm writes to stderr), so logs stay free of them
         progress=not args.no_progress and sys.stderr.isatty(),

@@ -66,6 +66,7 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None):
             num_inference_steps=options.num_inference_steps,
             seed=options.seed_policy,
             params=params,
+            device=options.device,
             policy_bundle=bundle,
             overrides={**overrides, **options.overrides},
             experiment=options.experiment,

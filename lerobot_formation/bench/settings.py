@@ -24,6 +24,8 @@ class ControllerOptions:
             (``controllers.safety_settings``); None: none.
         scenes_move: the scenes give their obstacles' velocities (a scenes file's ``velocities``):
             the safety layer predicts the observed obstacles even without ``moving_obstacles``.
+        device: torch device of the diffusion controllers' networks ("cpu", "cuda", "cuda:1"); the
+            scenes, the replanner's state and the safety layer stay on the CPU.
     """
 
     policy_path: str | None = None
@@ -34,6 +36,7 @@ class ControllerOptions:
     experiment: object | None = None
     conditions: Conditions | None = None
     scenes_move: bool = False
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)

@@ -286,6 +286,11 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         model = self.inference_model
         cond = global_conditioning(model, batch)  # (B, cond)
         B, K = cond.shape[0], int(num_candidates)
+        # a caller's noise and guess (a bench seeds them on the CPU) go where the model runs
+        if noise is not None:
+            noise = noise.to(cond.device, cond.dtype)
+        if warm_start is not None:
+            warm_start = tuple(x.to(cond.device) for x in warm_start)
         if K > 1:
             cond = cond.repeat_interleave(K, dim=0)
         if warm_start is not None and K > 1:  # the first candidate of each row continues its last plan

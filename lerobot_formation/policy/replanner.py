@@ -318,7 +318,7 @@ class Replanner:
             warm_start=warm,
             warm_start_step=cfg.warm_start_step,
             warm_all=ex.warm_all_candidates,
-        )
+        ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
         if K > 1:

@@ -13,7 +13,13 @@ from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-NAMES = ["formation_diffusion_paper", "formation_diffusion_cpu", "formation_diffusion_tiny"]
+NAMES = [
+    "formation_diffusion_paper",
+    "formation_diffusion_cpu",
+    "formation_diffusion_tiny",
+    "formation_diffusion_hintfree",
+    "formation_diffusion_hintfree_paper",
+]
 
 
 def chain(exc: BaseException | None) -> str:
