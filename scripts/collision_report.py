@@ -14,7 +14,9 @@ is in [mm], the followers' distance from their template slots, the midpoint's sp
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
 nearest (the ``nearest`` encoding observes 12). The last line is the summary: success %,
 collisions, timeouts, and how many collisions came after the team was already within 2 cm of an
-obstacle in the 10 steps before (grazes, not run-ins).
+obstacle in the 10 steps before (grazes, not run-ins), and how many were with a moving obstacle (its
+line gives that obstacle's speed over the last step and the part of it towards the agent it hit).
+``--controller pac-privileged`` (no checkpoint) reports the privileged expert, on the true world.
 """
 
 from __future__ import annotations
@@ -30,14 +32,14 @@ from lerobot_formation.core.levels import TUNING_SEED_START  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 
-def collision_lines(rec, scenes, params) -> tuple[list[str], int]:
-    """One line per collision of the records ``rec`` (module docstring), and how many came after the
-    team was within 2 cm in the 10 steps before."""
+def collision_lines(rec, scenes, params) -> tuple[list[str], int, int]:
+    """One line per collision of the records ``rec`` (module docstring), how many came after the
+    team was within 2 cm in the 10 steps before, and how many were with a moving obstacle."""
     from lerobot_formation.core.dynamics import desired_follower_positions
     from lerobot_formation.core.geometry import agent_clearances
     from lerobot_formation.core.rollout import COLLISION
 
-    lines, dwelt = [], 0
+    lines, dwelt, movers = [], 0, 0
     for b in np.flatnonzero(rec.outcome == COLLISION):
         t = int(rec.steps[b])
         pos = rec.positions[b, t]
@@ -56,17 +58,24 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int]:
         speed = np.linalg.norm(rec.poses[b, t, :2] - rec.poses[b, t - 1, :2]) / params.dt
         before = [float(np.nanmin(rec.agent_clearance[b, max(0, t - k) : t])) for k in (10, 30)]
         dwelt += int(before[0] < 0.02)
+        # the obstacle's own speed over the last step, and its part towards the agent it hit
+        step = (now[hit] - last[hit]) / params.dt
+        to_agent = pos[agent] - now[hit]
+        closing = float(step @ to_agent / max(np.linalg.norm(to_agent), 1e-9))
+        moving = bool(np.linalg.norm(step) > 1e-6)
+        movers += int(moving)
+        mover = f", a mover at {np.linalg.norm(step):.2f} m/s ({closing:+.2f} towards it)" if moving else ""
         lines.append(
             f"episode {b} step {t}: agent {agent} {-1e3 * gaps[agent]:.1f} mm deep, followers off their "
             f"slots {off[0]:.3f} / {off[1]:.3f} m, speed {speed:.2f} m/s, closest before {before[0]:.3f} m "
-            f"(10 steps) / {before[1]:.3f} m (30), obstacle rank {rank}, radius {obstacles[hit, 2]:.2f} m"
+            f"(10 steps) / {before[1]:.3f} m (30), obstacle rank {rank}, radius {obstacles[hit, 2]:.2f} m{mover}"
         )
-    return lines, dwelt
+    return lines, dwelt, movers
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--policy.path", dest="policy_path", required=True)
+    ap.add_argument("--policy.path", dest="policy_path", default=None, help="for the diffusion controllers")
     ap.add_argument("--level", required=True, help="level0 .. level5")
     ap.add_argument("--scenes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
@@ -80,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     apply_threads(args.threads)
 
-    from lerobot_formation.bench.controllers import make_controller
+    from lerobot_formation.bench.controllers import make_controller, needs_policy
     from lerobot_formation.bench.scene_sets import level_scenes
     from lerobot_formation.bench.settings import ControllerOptions
     from lerobot_formation.core.dynamics import FormationParams
@@ -88,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
 
     level = get_level(args.level)  # a bad name: ValueError naming the choices
+    if needs_policy(args.controller) and not args.policy_path:
+        ap.error(f"--controller {args.controller} needs --policy.path")
     overrides = {}
     if args.safety_margin is not None:
         overrides["safety_margin"] = args.safety_margin
@@ -104,14 +115,23 @@ def main(argv: list[str] | None = None) -> int:
     )
     controller = make_controller(args.controller, params, options)
     scenes = level_scenes(level.name, args.scenes, seed=args.seed)
-    rec = rollout(scenes, controller, params, max_steps=args.max_steps, conditions=level.conditions)
-    lines, dwelt = collision_lines(rec, scenes, params)
+    privileged = bool(getattr(controller, "privileged", False))  # pac-privileged: the true world
+    rec = rollout(
+        scenes,
+        controller,
+        params,
+        max_steps=args.max_steps,
+        conditions=level.conditions,
+        privileged=privileged,
+    )
+    lines, dwelt, movers = collision_lines(rec, scenes, params)
     print("\n".join(lines))
     n = len(scenes)
     print(
         f"{args.controller} on {level.name} ({n} scenes from seed {args.seed}): success "
         f"{100 * np.mean(rec.outcome == SUCCESS):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
-        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions within 2 cm already in the 10 steps before"
+        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions within 2 cm already in the 10 steps "
+        f"before; {movers} with a moving obstacle"
     )
     return 0
 

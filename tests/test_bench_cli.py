@@ -1,7 +1,9 @@
 """lerobot-formation-bench: results.json keys, tables, figures and bad arguments."""
 
+import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from lerobot_formation.bench.cli import main
@@ -63,3 +65,26 @@ def test_cuda_device_without_cuda_is_named(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["--controllers", "diffusion", "--policy.path", "m", "--device", "cuda", "--out", str(tmp_path)])
     assert "CUDA is not available on this machine" in capsys.readouterr().err
+
+
+def test_bench_runs_the_privileged_expert_on_the_true_world():
+    """``pac-privileged`` in the bench acts on the true world: under sensing noise and a 3 m
+    sensing range (which change only what the team perceives) its episodes are those it drives with
+    no conditions at all, while plain PAC's change."""
+    from lerobot_formation.bench.controllers import make_controller
+    from lerobot_formation.bench.evaluation import evaluate
+    from lerobot_formation.bench.settings import ControllerOptions
+    from lerobot_formation.core.conditions import Conditions
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.scene import sample_scenes
+
+    scenes, params = sample_scenes(range(3)), dataclasses.replace(FormationParams(), max_steps=150)
+    sensing = Conditions(sensing_range=3.0, obstacle_noise=0.1, pose_noise=0.05)
+    runs = {}
+    for name in ("pac", "pac-privileged"):
+        for label, cond in (("exact", None), ("sensing", sensing)):
+            controller = make_controller(name, params, ControllerOptions(conditions=cond))
+            runs[name, label] = evaluate(controller, scenes, params, conditions=cond)
+    same = runs["pac-privileged", "sensing"].poses, runs["pac-privileged", "exact"].poses
+    np.testing.assert_array_equal(*same)
+    assert not np.array_equal(runs["pac", "sensing"].poses, runs["pac", "exact"].poses, equal_nan=True)

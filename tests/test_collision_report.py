@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import COLLISION, rollout
 from lerobot_formation.core.scene import Scenes
@@ -45,9 +46,35 @@ def test_a_team_driven_into_an_obstacle_is_reported_by_its_leader():
     )
     rec = rollout(scenes, _Straight(), params, max_steps=200)
     assert rec.outcome[0] == COLLISION
-    lines, dwelt = _script().collision_lines(rec, scenes, params)
-    assert len(lines) == 1 and dwelt == 0  # at 0.4 m/s, never close before
+    lines, dwelt, movers = _script().collision_lines(rec, scenes, params)
+    assert len(lines) == 1 and dwelt == 0 and movers == 0  # at 0.4 m/s, never close before
     assert "agent 1 " in lines[0] and "speed 0.40 m/s" in lines[0] and "obstacle rank 0" in lines[0]
+    assert "mover" not in lines[0]
+
+
+def test_a_mover_that_runs_into_a_standing_team_is_named():
+    params = FormationParams()
+    scenes = Scenes(
+        obstacles=np.array([[[3.0, 1.9, 0.3], [-4.0, 9.0, 0.5]]]),
+        mask=np.ones((1, 2), bool),
+        goal=np.array([[0.0, 12.0]]),
+        start=np.array([[0.0, 0.0, np.pi / 2]]),
+        seeds=np.array([-1]),
+        velocities=np.array([[[-0.3, 0.0], [0.0, 0.0]]]),
+    )
+
+    class _DriveThenStand(_Straight):  # out of the start zone (movers bounce off it), then still
+        def act(self, view, idx):
+            self.t = getattr(self, "t", 0) + 1
+            return np.tile([[0.4 if self.t <= 40 else 0.0, 0.0]], (len(idx), 1))
+
+    moving = Conditions(moving_obstacles=1, obstacle_speed=0.3)
+    rec = rollout(scenes, _DriveThenStand(), params, max_steps=200, conditions=moving)
+    assert rec.outcome[0] == COLLISION
+    lines, _, movers = _script().collision_lines(rec, scenes, params)
+    assert (
+        movers == 1 and "speed 0.00 m/s" in lines[0] and "a mover at 0.30 m/s (+0.19 towards it)" in lines[0]
+    )
 
 
 def test_a_bad_level_names_the_value():

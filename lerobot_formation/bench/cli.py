@@ -192,7 +192,9 @@ def check_device(text: str) -> None:
     try:
         device = torch.device(text)
     except (RuntimeError, ValueError):
-        raise ValueError(f"--device must be a torch device such as cpu, cuda or cuda:0, got {text!r}") from None
+        raise ValueError(
+            f"--device must be a torch device such as cpu, cuda or cuda:0, got {text!r}"
+        ) from None
     if device.type == "cpu":
         return
     if device.type != "cuda":

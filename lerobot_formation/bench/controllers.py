@@ -80,6 +80,12 @@ def _pac(name, params, options, bundle=None):
     return PACController(params=params)
 
 
+def _pac_privileged(name, params, options, bundle=None):
+    from lerobot_formation.data.pac_episodes import privileged_expert
+
+    return privileged_expert(params, options.conditions)
+
+
 def _mppi(name, params, options, bundle=None):
     from lerobot_formation.core.mppi import MPPIConfig, MPPIController
 
@@ -91,6 +97,9 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "pac": _pac,
     "mppi": _mppi,
     "route-pursuit": "lerobot_formation.core.route_pursuit:make_route_pursuit",
+    # a reference, not a baseline: the demonstrator of the students, on the true world (every
+    # obstacle, exact, moving ones predicted, the delay compensated)
+    "pac-privileged": _pac_privileged,
     "diffusion": _diffusion("none", best_of_k=False),  # standard: one sample per replan
     "diffusion-bestof": _diffusion("none", best_of_k=True),  # best-of-K (footprint, then progress)
     "diffusion-cbf": _diffusion("cbf", best_of_k=False),  # one sample, CBF filter on every action

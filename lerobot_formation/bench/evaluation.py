@@ -22,7 +22,8 @@ def evaluate(
     conditions: Conditions | None = None,
 ) -> EpisodeRecords:
     """Roll ``controller`` out on every scene (batched) under ``conditions`` (None: none) and return
-    the records."""
+    the records. A controller with ``privileged = True`` (the privileged expert, a reference that sees
+    the true world) acts on the true world; every other one on what the team perceives."""
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -30,7 +31,10 @@ def evaluate(
         bar = tqdm(total=len(scenes), desc=desc or getattr(controller, "name", "eval"), unit="ep")
     try:
         update = bar.update if bar is not None else None
-        return rollout(scenes, controller, params, progress=update, conditions=conditions)
+        privileged = bool(getattr(controller, "privileged", False))
+        return rollout(
+            scenes, controller, params, progress=update, conditions=conditions, privileged=privileged
+        )
     finally:
         if bar is not None:
             bar.close()

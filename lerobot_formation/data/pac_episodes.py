@@ -40,6 +40,19 @@ def check_expert(expert: str) -> None:
         raise ValueError(f"expert must be one of {EXPERTS}, got {expert!r}")
 
 
+def privileged_expert(params: FormationParams, conditions: Conditions | None) -> PACController:
+    """The privileged expert: PAC that avoids moving obstacles over the next ``EXPERT_PREDICT``
+    seconds and compensates the conditions' action delay. It must be driven on the true world
+    (``rollout(privileged=True)``; ``privileged`` is set on it so the bench does)."""
+    on = conditions is not None and conditions.enabled
+    controller = PACController(
+        params=params, predict=EXPERT_PREDICT, delay=conditions.action_delay if on else 0
+    )
+    controller.name = "pac-privileged"
+    controller.privileged = True
+    return controller
+
+
 def expert_rollout(
     scenes: Scenes,
     params: FormationParams,
@@ -52,11 +65,7 @@ def expert_rollout(
     check_expert(expert)
     on = conditions is not None and conditions.enabled
     privileged = expert == "privileged"
-    if privileged:
-        delay = conditions.action_delay if on else 0
-        controller = PACController(params=params, predict=EXPERT_PREDICT, delay=delay)
-    else:
-        controller = PACController(params=params)
+    controller = privileged_expert(params, conditions) if privileged else PACController(params=params)
     return rollout(
         scenes,
         controller,
