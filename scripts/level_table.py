@@ -20,13 +20,14 @@ import argparse
 import json
 from pathlib import Path
 
-ORDER = ["pac", "mppi", "route-pursuit", "diffusion", "diffusion-safe"]
+ORDER = ["pac", "mppi", "route-pursuit", "diffusion", "diffusion-safe", "pac-privileged"]
 NAMES = {
     "pac": "PAC",
     "mppi": "MPPI",
     "route-pursuit": "route pursuit",
     "diffusion": "default, standard",
     "diffusion-safe": "default, best-of-10 + CBF",
+    "pac-privileged": "privileged expert (reference: sees the true world)",
 }
 
 
