@@ -267,7 +267,7 @@ def test_bench_unseen_level_runs_under_its_levels_conditions(tmp_path, monkeypat
     monkeypatch.setattr(cli, "run_set", lambda *a: ran.__setitem__(a[4], a[8]))  # label -> conditions
     monkeypatch.setattr(cli, "needs_policy", lambda name: True)  # the unseen set runs policy controllers
     policy = SimpleNamespace(config=SimpleNamespace(num_train_timesteps=100))
-    monkeypatch.setattr(checkpoint, "load_policy", lambda path: (policy, None))
+    monkeypatch.setattr(checkpoint, "load_policy", lambda path, device="cpu": (policy, None))
     argv = ["--controllers", "pac", "--policy.path", "p", "--no-figures", "--out", str(tmp_path)]
     assert cli.main([*argv, "--scenes", "random:1", "--unseen", "level4:1"]) == 0
     assert ran == {"random": Conditions(), "unseen": get_level("4").conditions}
