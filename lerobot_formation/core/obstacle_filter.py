@@ -22,6 +22,19 @@ smoothing movers too cost 7 points of success on 100 tuning scenes). For indepen
 the estimates' std is s sqrt(beta / (2 - beta)) (variance beta^2 s^2 sum_k (1 - beta)^(2k)): 0.42 s
 at beta = 0.3. What the actuator model does not know (the action noise) enters the motion as a
 small random walk.
+
+The gain, told the noise (``obstacle_noise`` and ``pose_noise`` given: what the Replanner does).
+A fixed gain leaves a standing team's estimate jittering by 0.42 s for ever, and at level5's
+0.05 m that is enough for the ratchet again. So each track keeps the variance P of its estimate (a
+scalar Kalman filter per track, one gain for centre and radius): the observation's variance per
+axis is R = s_o^2 + s_p^2 + (s_p d)^2 (the obstacle's noise, the pose's on the position, and its
+heading noise at the obstacle's distance d); the motion adds Q = (a v dt)^2 + (a omega dt d)^2 +
+q_0 (``ACTUATION_NOISE`` a: the actuator's unknown noise, a fraction of each command); then
+K = max(P / (P + R), ``MIN_GAIN``), x <- x' + K (z - x'), P <- (1 - K) P, and a new track starts at
+its observation with P = R. A standing team's estimate keeps converging (K ~ 1 / n, floored at
+``MIN_GAIN``: std s sqrt(MIN_GAIN / (2 - MIN_GAIN)) = 0.1 s); a moving one's forgets as fast as its
+odometry drifts. On the first 100 tuning scenes: level5 59 % (34 collisions, 6 with static
+obstacles) against 50 % (47, 23) with beta = 0.3; level4 82 % (0 collisions) against 83 % (4).
 """
 
 from __future__ import annotations
@@ -32,7 +45,10 @@ from lerobot_formation.core.dynamics import rollout_poses
 from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.safety import BODY_POSE
 
-SMOOTHING_GAIN = 0.3  # beta of the safety layer's filter (``policy.replanner``)
+SMOOTHING_GAIN = 0.3  # beta: the fixed gain, when the filter is not told the noise
+ACTUATION_NOISE = 0.05  # a: the actuator's unknown noise, a fraction of each command (Q)
+MIN_GAIN = 0.02  # the Kalman gain's floor: at most ~50 steps of memory
+PROCESS_FLOOR = 1e-3  # [m] q_0: a track's estimate drifts at least this much per step
 
 
 class ObstacleFilter:
@@ -45,6 +61,9 @@ class ObstacleFilter:
         beta: the filter's gain in (0, 1]; 1 passes the observations through.
         gate: [m] the largest centre-and-radius distance at which an observation continues a track.
         still_speed: [m/s] an obstacle with a given velocity above this is passed through.
+        obstacle_noise, pose_noise: the sensors' noise stds [m] (and [rad] for the heading), as
+            ``Conditions`` draws them; given, the gain is a Kalman gain per track (module
+            docstring) and ``beta`` is not used.
     """
 
     def __init__(
@@ -55,6 +74,8 @@ class ObstacleFilter:
         beta: float = SMOOTHING_GAIN,
         gate: float = 0.3,
         still_speed: float = 0.1,
+        obstacle_noise: float | None = None,
+        pose_noise: float | None = None,
     ):
         if batch_size < 0 or slots < 1:
             raise ValueError(f"need batch_size >= 0 and slots >= 1, got {batch_size} and {slots}")
@@ -63,9 +84,15 @@ class ObstacleFilter:
         for name, value in (("dt", dt), ("gate", gate)):
             if not value > 0:
                 raise ValueError(f"{name} must be > 0, got {value}")
+        told = obstacle_noise is not None or pose_noise is not None
+        noises = (obstacle_noise or 0.0, pose_noise or 0.0)
+        if told and not all(np.isfinite(n) and n >= 0 for n in noises):
+            raise ValueError(f"noise stds must be finite and >= 0, got {obstacle_noise} and {pose_noise}")
         self.dt, self.beta, self.gate, self.still_speed = dt, beta, gate, still_speed
+        self.noise = noises if told else None
         self.obstacles = np.zeros((batch_size, slots, 3))  # estimates [x, y, r], last step's frame
         self.alive = np.zeros((batch_size, slots), dtype=bool)
+        self.variance = np.zeros((batch_size, slots))  # P of each estimate (told the noise)
 
     def reset(self, rows=None) -> None:
         """Forget the tracks of episodes ``rows`` (default all)."""
@@ -108,7 +135,18 @@ class ObstacleFilter:
         if velocity is not None:  # moving obstacles pass through
             matched &= np.linalg.norm(np.asarray(velocity, np.float64), axis=-1) <= self.still_speed
         prior = np.take_along_axis(tracks, track[..., None], axis=1)
-        smoothed = np.where(matched[..., None], prior + self.beta * (obstacles - prior), obstacles)
+        if self.noise is None:
+            gain = np.full(mask.shape, self.beta)
+        else:  # a Kalman gain per track (module docstring)
+            s_o, s_p = self.noise
+            d = np.linalg.norm(prior[..., :2], axis=-1)
+            R = s_o**2 + s_p**2 + (s_p * d) ** 2
+            a_dt = ACTUATION_NOISE * self.dt * np.abs(motion[:, 0, 0])  # (b, 2)
+            Q = a_dt[:, :1] ** 2 + (a_dt[:, 1:] * d) ** 2 + PROCESS_FLOOR**2
+            P = np.take_along_axis(self.variance[rows], track, axis=1) + Q
+            gain = np.maximum(P / (P + R), MIN_GAIN)
+            self.variance[rows] = np.where(matched, (1 - gain) * P, R)
+        smoothed = np.where(matched[..., None], prior + gain[..., None] * (obstacles - prior), obstacles)
         self.obstacles[rows] = smoothed
         self.alive[rows] = mask
         return smoothed

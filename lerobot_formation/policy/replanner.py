@@ -221,7 +221,13 @@ class Replanner:
         if cfg.safety_layer and cfg.safety_moving_obstacles and not encoding.velocity:
             self.tracker = ObstacleTracker(B, encoding.slots(cfg.max_obstacles), dt)
         if cfg.safety_layer and self.knows_noise:
-            self.smoother = ObstacleFilter(B, encoding.slots(cfg.max_obstacles), dt)
+            self.smoother = ObstacleFilter(
+                B,
+                encoding.slots(cfg.max_obstacles),
+                dt,
+                obstacle_noise=cfg.safety_obstacle_noise,
+                pose_noise=cfg.safety_pose_noise,
+            )
 
     @property
     def knows_actuator(self) -> bool:

@@ -1,5 +1,6 @@
 """The safety layer's obstacle filter: exact observations pass through while the team moves, noisy
-ones are smoothed as the gain says, and slots that change order keep their tracks."""
+ones are smoothed as the gain says (fixed, or a Kalman gain when told the noise), slots that change
+order keep their tracks, and the smoothed view stops the ratchet of a noisy barrier."""
 
 import numpy as np
 import pytest
@@ -86,12 +87,13 @@ def test_an_obstacle_observed_to_move_passes_through():
     np.testing.assert_allclose(out[0, [0, 2], 1], _seen(pose)[0, [0, 2], 1] + 0.3 * 0.03)  # smoothed
 
 
-def test_smoothing_stops_the_ratchet_of_a_noisy_barrier():
+@pytest.mark.parametrize("sigma", [0.02, 0.05])
+def test_smoothing_stops_the_ratchet_of_a_noisy_barrier(sigma):
     """A team that cannot back up (v >= 0) presses at an obstacle ahead and observes it with fresh
     Gaussian noise each step (centre and radius, as ``core.conditions`` draws it). On the raw draws
     the CBF filter lets it creep in whenever a draw shows room, and the team ends in contact; on the
-    smoothed view it stays clear over the same draws (margin 0.05 m, level4's noise 0.02 m: 1.9 cm
-    inside against 2.1 cm clear)."""
+    view of the filter told the noise it stays clear over the same draws (margin 0.05 m, level4's
+    noise 0.02 m and level5's 0.05 m). At level5's noise the fixed gain 0.3 does not: contact."""
     from lerobot_formation.core import dynamics
     from lerobot_formation.core.dynamics import FormationParams
     from lerobot_formation.core.geometry import agent_clearances
@@ -100,18 +102,18 @@ def test_smoothing_stops_the_ratchet_of_a_noisy_barrier():
     params = FormationParams()
     template = np.asarray(params.graph.template)
     low, high = np.array([0.0, -params.omega_max]), np.array([params.v_max, params.omega_max])
-    sigma = 0.02
     draws = np.random.default_rng(0).normal(size=(400, 3))
     obstacle = np.array([0.5, 1.6, 0.4])
     closest = {}
-    for smooth in (False, True):
+    for smooth in ("raw", "fixed gain", "told the noise"):
         state = dynamics.initial_state(np.array([[0.0, 0.0, np.pi / 2]]), params)
-        filt = ObstacleFilter(1, 1, params.dt)
+        told = {"obstacle_noise": sigma, "pose_noise": 0.0} if smooth == "told the noise" else {}
+        filt = ObstacleFilter(1, 1, params.dt, **told)
         executed, gap = np.zeros((1, 2)), np.inf
         for z in draws:
             seen = obstacle + sigma * z
             view = np.concatenate([world_to_body(seen[None, None, :2], state.pose), seen[None, None, 2:]], -1)
-            if smooth:
+            if smooth != "raw":
                 view = filt.update(view, np.ones((1, 1), bool), executed)
             executed, _ = cbf_filter(
                 np.array([[0.3, 0.0]]), view, template, params.agent_radius, 0.05, 2.0, low, high
@@ -120,5 +122,40 @@ def test_smoothing_stops_the_ratchet_of_a_noisy_barrier():
             pos = dynamics.agent_positions(state)
             gap = min(gap, agent_clearances(pos, obstacle[None, None], params.agent_radius).min())
         closest[smooth] = gap
-    assert closest[False] < 0.0  # the ratchet: contact at a standstill
-    assert closest[True] > 0.0
+    assert closest["raw"] < 0.0  # the ratchet: contact at a standstill
+    assert closest["told the noise"] > 0.0
+    if sigma == 0.05:
+        assert closest["fixed gain"] < 0.0
+
+
+def test_told_the_noise_a_standing_teams_estimate_keeps_converging():
+    """With the noise stds, the gain is a Kalman gain per track: a standing team's estimate averages
+    ever more draws (about 1 / n) down to the gain's floor, far below the fixed gain's 0.42 s."""
+    from lerobot_formation.core.obstacle_filter import MIN_GAIN
+
+    sigma = 0.05
+    filt = ObstacleFilter(1, 3, DT, obstacle_noise=sigma, pose_noise=0.0)
+    pose = np.array([[0.0, 0.0, np.pi / 2]])
+    rng = np.random.default_rng(1)
+    early, late = [], []
+    for k in range(3000):
+        seen = _seen(pose) + sigma * rng.normal(size=(1, 3, 3))
+        out = filt.update(seen, np.ones((1, 3), bool), np.zeros((1, 2)))
+        (early if k < 10 else late if k > 500 else []).append(out[0] - _seen(pose)[0])
+    assert np.std(np.array(early)) > 0.3 * sigma  # the first estimates are the first draws, barely averaged
+    floor = sigma * np.sqrt(MIN_GAIN / (2 - MIN_GAIN))
+    assert np.std(np.array(late)) == pytest.approx(floor, rel=0.2)
+
+
+def test_told_the_noise_exact_observations_of_a_moving_team_still_pass_through():
+    filt = ObstacleFilter(1, 3, DT, obstacle_noise=0.05, pose_noise=0.05)
+    pose = np.array([[0.0, 0.0, np.pi / 2]])
+    mask = np.ones((1, 3), bool)
+    for k in range(30):
+        motion = np.array([[0.4, 0.8 * np.sin(0.3 * k)]])
+        if k:
+            pose = rollout_poses(pose, motion[:, None, None], DT)[:, 0, 0]
+        out = filt.update(_seen(pose), mask, motion if k else np.zeros((1, 2)))
+        np.testing.assert_allclose(out, _seen(pose), atol=1e-9)
+    with pytest.raises(ValueError, match="noise stds must be finite"):
+        ObstacleFilter(1, 3, DT, obstacle_noise=-0.1)
