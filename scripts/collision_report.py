@@ -115,15 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     controller = make_controller(args.controller, params, options)
     scenes = level_scenes(level.name, args.scenes, seed=args.seed)
-    privileged = bool(getattr(controller, "privileged", False))  # pac-privileged: the true world
-    rec = rollout(
-        scenes,
-        controller,
-        params,
-        max_steps=args.max_steps,
-        conditions=level.conditions,
-        privileged=privileged,
-    )
+    rec = rollout(scenes, controller, params, max_steps=args.max_steps, conditions=level.conditions)
     lines, dwelt, movers = collision_lines(rec, scenes, params)
     print("\n".join(lines))
     n = len(scenes)

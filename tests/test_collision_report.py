@@ -25,6 +25,20 @@ def _script():
     return module
 
 
+def _scene(obstacle, velocity=None) -> Scenes:
+    """One scene: a team at the origin facing +y, the goal 12 m ahead, ``obstacle`` [x, y, r] and a
+    far one; ``velocity`` [vx, vy] moves the first."""
+    velocities = None if velocity is None else np.array([[velocity, [0.0, 0.0]]])
+    return Scenes(
+        obstacles=np.array([[obstacle, [-4.0, 9.0, 0.5]]]),
+        mask=np.ones((1, 2), bool),
+        goal=np.array([[0.0, 12.0]]),
+        start=np.array([[0.0, 0.0, np.pi / 2]]),
+        seeds=np.array([-1]),
+        velocities=velocities,
+    )
+
+
 class _Straight:
     name = "straight"
 
@@ -37,13 +51,7 @@ class _Straight:
 
 def test_a_team_driven_into_an_obstacle_is_reported_by_its_leader():
     params = FormationParams()
-    scenes = Scenes(
-        obstacles=np.array([[[0.5, 3.0, 0.3], [-4.0, 9.0, 0.5]]]),
-        mask=np.ones((1, 2), bool),
-        goal=np.array([[0.0, 12.0]]),
-        start=np.array([[0.0, 0.0, np.pi / 2]]),
-        seeds=np.array([-1]),
-    )
+    scenes = _scene([0.5, 3.0, 0.3])
     rec = rollout(scenes, _Straight(), params, max_steps=200)
     assert rec.outcome[0] == COLLISION
     lines, dwelt, movers = _script().collision_lines(rec, scenes, params)
@@ -54,14 +62,7 @@ def test_a_team_driven_into_an_obstacle_is_reported_by_its_leader():
 
 def test_a_mover_that_runs_into_a_standing_team_is_named():
     params = FormationParams()
-    scenes = Scenes(
-        obstacles=np.array([[[3.0, 1.9, 0.3], [-4.0, 9.0, 0.5]]]),
-        mask=np.ones((1, 2), bool),
-        goal=np.array([[0.0, 12.0]]),
-        start=np.array([[0.0, 0.0, np.pi / 2]]),
-        seeds=np.array([-1]),
-        velocities=np.array([[[-0.3, 0.0], [0.0, 0.0]]]),
-    )
+    scenes = _scene([3.0, 1.9, 0.3], velocity=[-0.3, 0.0])
 
     class _DriveThenStand(_Straight):  # out of the start zone (movers bounce off it), then still
         def act(self, view, idx):

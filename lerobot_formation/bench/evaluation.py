@@ -31,10 +31,7 @@ def evaluate(
         bar = tqdm(total=len(scenes), desc=desc or getattr(controller, "name", "eval"), unit="ep")
     try:
         update = bar.update if bar is not None else None
-        privileged = bool(getattr(controller, "privileged", False))
-        return rollout(
-            scenes, controller, params, progress=update, conditions=conditions, privileged=privileged
-        )
+        return rollout(scenes, controller, params, progress=update, conditions=conditions)
     finally:
         if bar is not None:
             bar.close()

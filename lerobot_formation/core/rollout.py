@@ -447,14 +447,15 @@ def rollout(
     progress=None,
     conditions: Conditions | None = None,
     record_observations: tuple[str, int | None] | None = None,
-    privileged: bool = False,
+    privileged: bool | None = None,
 ) -> EpisodeRecords:
     """Run ``controller`` on every scene until each episode ends, under ``conditions`` (None: none).
     ``progress(n_done)`` is called after each step if given. ``record_observations`` (encoding,
     max_obstacles): also record what the teams observe at every frame (``EpisodeRecords.observations``).
     ``privileged``: the controller acts on the true world (``Teams.truth``: a privileged expert) while
     the conditions still act on its commands and the recorded observations stay what the teams
-    perceive; without conditions it changes nothing."""
+    perceive; without conditions it changes nothing. None (default): the controller's own
+    ``privileged`` attribute, if any (``data.pac_episodes.privileged_expert`` sets it), else False."""
     params = params or FormationParams()
     T = max_steps or params.max_steps
     B = len(scenes)
@@ -486,6 +487,8 @@ def rollout(
         rec.observations = {k: np.full((B, T + 1, v.shape[1]), nan, v.dtype) for k, v in first.items()}
         for k, v in first.items():
             rec.observations[k][:, 0] = v
+    if privileged is None:  # a controller marked privileged (the bench's pac-privileged) says so itself
+        privileged = bool(getattr(controller, "privileged", False))
     view = teams.truth if privileged else teams.perceive
     controller.reset(view())
     rec.put(slice(None), 0, frame_record(teams.state, scenes.obstacles, params))

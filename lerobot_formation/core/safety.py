@@ -55,8 +55,8 @@ when a draw says there is room, and only stops it when a draw says there is none
 obstacle, the team ratchets in until h is about the largest draw of -e, several stds below zero after
 hundreds of steps (under level4 15 of 100 tuning episodes ended in 0.4-16 mm grazes at a standstill
 with a 5 cm margin). So where the sensing noise is known the replanner smooths the obstacles the layer
-sees (``core.obstacle_filter``): the std of e falls to 0.42 of the raw, and ``margin`` should be
-about three times that (a measurement-robust barrier: Dean et al. 2020, "Guaranteeing Safety of
+sees (``core.obstacle_filter``, a Kalman gain per obstacle): the std of e falls, to 0.1 of the raw
+for a team that stands, and ``margin`` should be about three times what is left (a measurement-robust barrier: Dean et al. 2020, "Guaranteeing Safety of
 Learned Perception Modules via Measurement-Robust Control Barrier Functions").
 """
 

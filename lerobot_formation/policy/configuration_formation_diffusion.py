@@ -110,8 +110,8 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_obstacle_noise: std [m] of the noise on the observed obstacles' centres and radii, a
             known property of the robot's sensing (the env's ``obstacle_noise``). With either noise
             field > 0 the layer smooths the obstacles it sees over the steps
-            (``core.obstacle_filter``; the noise left is 0.42 of theirs, which ``safety_margin``
-            should cover about three times): a barrier on raw noisy clearances lets a team that
+            (``core.obstacle_filter``: a Kalman gain per obstacle from the two noise stds; a
+            standing team's estimate keeps averaging): a barrier on raw noisy clearances lets a team that
             cannot back up creep into the obstacle it waits beside. 0 (default): exact observations.
         safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
