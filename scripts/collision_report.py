@@ -3,12 +3,15 @@ and how long the team had already been that close.
 
     python scripts/collision_report.py --policy.path pretrained/formation_diffusion_safe \
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
-        [--safety-margin 0.11] [--layer-ignores-noise] [--layer-ignores-motion]
+        [--safety-margin 0.11] [--layer-ignores-noise] [--layer-ignores-motion] \
+        [--route-proposal on|off] [--route-lookahead N]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
 level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin,
 ``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing: the layer
-before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move. One
+before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
+``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``
+(``off`` and 0: the layer before 2026-12-04 night). One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
@@ -84,6 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--safety-margin", type=float, default=None)
     ap.add_argument("--layer-ignores-noise", action="store_true")
     ap.add_argument("--layer-ignores-motion", action="store_true")
+    ap.add_argument("--route-proposal", choices=("on", "off"), default=None)
+    ap.add_argument(
+        "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
+    )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
     add_threads_argument(ap, "torch threads")
     args = ap.parse_args(argv)
@@ -106,6 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         overrides.update(safety_obstacle_noise=0.0, safety_pose_noise=0.0)
     if args.layer_ignores_motion:
         overrides["safety_moving_obstacles"] = False
+    if args.route_proposal is not None:
+        overrides["safety_route_proposal"] = args.route_proposal == "on"
+    if args.route_lookahead is not None:
+        overrides["safety_route_lookahead"] = args.route_lookahead
     params = FormationParams()
     options = ControllerOptions(
         policy_path=args.policy_path,

@@ -9,7 +9,8 @@ controller both hold. ``FOLDER@TAG`` keys that folder's controllers ``KEY@TAG``,
 rows stand beside the default's (label them with ``--name KEY@TAG=LABEL``). One row per level and controller: success % with its Wilson 95 % interval,
 collisions / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
 the episodes' minimum clearance and, for controllers with a safety layer, the filter's
-interventions per 100 steps and the share of replans where no candidate was safe. ``--compact``
+interventions per 100 steps and the share of replans where no candidate was safe (and, with
+``safety_route_proposal``, the share where route pursuit's proposal was kept). ``--compact``
 prints the README's form instead: one row per level, one column per controller (success % [Wilson],
 collisions/timeouts (scenes)).
 """
@@ -38,6 +39,8 @@ def _row(level: str, key: str, name: str, m: dict) -> str:
         interventions = (
             f"{100 * safety['filter_intervention_rate']:.2f} / {100 * safety['replans_none_safe_rate']:.1f}"
         )
+        if safety.get("proposals"):  # a layer with route pursuit's proposal: how often it was kept
+            interventions += f" / {100 * safety['proposals'] / max(safety['replans'], 1):.1f}"
     else:
         interventions = "-"
     return (
@@ -111,7 +114,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     print(
         "| level (scenes) | controller | success % [Wilson 95 %] | collisions / timeouts | "
-        "smoothness | jerk | min clearance [m] | filter interventions / 100 steps, no safe candidate % |"
+        "smoothness | jerk | min clearance [m] | filter interventions / 100 steps, no safe candidate %, "
+        "route proposal kept % |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for level in sorted(levels):

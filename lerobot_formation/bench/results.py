@@ -29,13 +29,15 @@ def safety_rates(stats: dict) -> dict:
     """The safety layer's intervention rates from a controller's ``stats`` counts
     (``policy.replanner.STAT_KEYS``): the share of steps whose action the CBF filter changed
     (``filter_intervention_rate``; x 100: per 100 steps), and the shares of replans where best-of-K
-    found no safe candidate, kept an escape manoeuvre, or stopped."""
+    found no safe candidate, kept an escape manoeuvre, stopped, or kept route pursuit's proposal
+    (``proposal_rate``; ``safety_route_proposal``)."""
     replans = max(stats["replans"], 1)
     return {
         "filter_intervention_rate": stats["filter_interventions"] / max(stats["steps"], 1),
         "replans_none_safe_rate": stats["replans_none_safe"] / replans,
         "escape_rate": stats["escapes"] / replans,
         "stop_rate": stats["stops"] / replans,
+        "proposal_rate": stats.get("proposals", 0) / replans,
     }
 
 
@@ -49,8 +51,8 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
         f"### Safety layer interventions on {label}",
         "",
         "| Controller | Steps | Filter interventions / 100 steps | Replans | No safe candidate % | "
-        "Escape manoeuvre % | Stop % |",
-        "|---|---|---|---|---|---|---|",
+        "Escape manoeuvre % | Stop % | Route proposal % |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for n in names:
         st = results[n]["safety"]
@@ -58,12 +60,13 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
         lines.append(
             f"| {n} | {st['steps']} | {100 * rates['filter_intervention_rate']:.2f} | {st['replans']} | "
             f"{100 * rates['replans_none_safe_rate']:.1f} | {100 * rates['escape_rate']:.1f} | "
-            f"{100 * rates['stop_rate']:.1f} |"
+            f"{100 * rates['stop_rate']:.1f} | {100 * rates['proposal_rate']:.1f} |"
         )
     lines += [
         "",
         "Filter interventions: actions the CBF filter changed; the percentages are of best-of-K's "
-        "replans (an escape manoeuvre is kept only when no sampled chunk is safe).",
+        "replans (an escape manoeuvre is kept only when no sampled chunk is safe; the route proposal is "
+        "route pursuit's chunk, scored beside the sampled ones with ``safety_route_proposal``).",
         "",
     ]
     return "\n".join(lines)

@@ -108,3 +108,43 @@ def make_route_pursuit(
 ) -> RoutePursuitController:
     """The controller registry's factory (``controllers.CONTROLLER_FACTORIES``): default gains."""
     return RoutePursuitController(params=params)
+
+
+def pursuit_chunk(
+    route_body: np.ndarray,
+    goal_body: np.ndarray,
+    steps: int,
+    dt: float,
+    omega_max: float,
+    config: RoutePursuitConfig | None = None,
+) -> np.ndarray:
+    """Route pursuit's command sequence (B, steps, 2) over one chunk, from what the route hint
+    observes: ``route_body`` (B, 4) the near and far carrots, ``goal_body`` (B, 2) the goal, in the
+    body frame of the midpoint now (x right, y ahead; the ``nearest+route`` encoding's values).
+
+    The midpoint is rolled out as a unicycle; at each step it pursues (``pursuit_command``) the near
+    carrot until within half the carrot distance of it, then the far one, and the goal within
+    ``r_goal`` of it: pure pursuit of the polyline the hint gives, which the safety layer's best-of-K
+    scores beside the sampled chunks (``safety_route_proposal``).
+    """
+    config = config or RoutePursuitConfig()
+    route_body = np.asarray(route_body, dtype=np.float64)
+    goal_body = np.asarray(goal_body, dtype=np.float64)
+    B = len(route_body)
+    near, far = route_body[:, :2], route_body[:, 2:4]
+    switch = 0.5 * np.linalg.norm(near, axis=-1)
+    pose = np.zeros((B, 3))
+    pose[:, 2] = np.pi / 2  # the body frame's own pose: at the origin, facing +y
+    passed = np.zeros(B, dtype=bool)
+    out = np.zeros((B, steps, 2))
+    for k in range(steps):
+        passed |= np.linalg.norm(near - pose[:, :2], axis=-1) < switch
+        aim = np.where(passed[:, None], far, near)
+        d_goal = np.linalg.norm(goal_body - pose[:, :2], axis=-1)
+        aim = np.where((d_goal < config.r_goal)[:, None], goal_body, aim)
+        cmd = pursuit_command(world_to_body(aim, pose), d_goal, config, omega_max)
+        out[:, k] = cmd
+        pose[:, 0] += cmd[:, 0] * np.cos(pose[:, 2]) * dt
+        pose[:, 1] += cmd[:, 0] * np.sin(pose[:, 2]) * dt
+        pose[:, 2] += cmd[:, 1] * dt
+    return out

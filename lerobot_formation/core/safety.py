@@ -14,6 +14,9 @@ covers.
   3. among the rest keep the one with the most progress toward the goal: the decrease of a grid
      cost-to-go around the observed obstacles (``cost_to_go_progress``; straight-line progress is
      greedy and drives into obstacles, clearance alone would steer away from the goal too);
+  (with a ``continuation``, e.g. route pursuit after the chunk: steps 2-3 also cover it, so that a
+  chunk leaving the team nose-in at a wall it cannot turn away from loses, and progress counts the
+  heading it leaves; a preference, dropped where no candidate's continuation is safe)
   4. if none is safe, a safe escape manoeuvre (a turn in place or a slow arc, ``ESCAPE_PRIMITIVES``)
      with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
      sampled candidate with the largest predicted clearance (a CBF filter then brakes); "stop", the
@@ -182,6 +185,7 @@ def select_chunk(
     blocked_fallback: str = "widest",
     obstacle_velocity: np.ndarray | None = None,
     start: ChunkStart | None = None,
+    continuation=None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -198,7 +202,13 @@ def select_chunk(
     where the team stops. ``obstacle_velocity`` (B, M, 2): the obstacles' velocities (None: static);
     ``start``: the commands in flight and the rate limits (``predict_start``; None: the chunk runs
     from now, as commanded). Either changes only the predicted clearances, never the kept chunk's
-    commands.
+    commands. ``continuation``: a function of the candidates' end poses (B, K', 3) (body frame) that
+    returns the commands (B, K', C, 2) the team would run after them (e.g. route pursuit's,
+    ``core.route_pursuit.pursuit_chunk``); a candidate is then safe only if its continuation is too
+    (one that ends nose-in at a wall it cannot turn away from, the leaders unable to back up, is
+    not), unless no candidate's continuation is safe: then the chunks alone decide. Progress is then
+    measured at the continuation's end, so a chunk that leaves the team facing its way scores the
+    progress it makes possible (the leaders' heading matters: they cannot back up).
     """
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
@@ -215,6 +225,21 @@ def select_chunk(
     clear, end = sequence_clearance(
         pose, run, obstacles, template, dt, agent_radius, obstacle_velocity, start_step=steps
     )
+    if continuation is not None:  # the footprint after the chunk, too
+        more = continuation(end)
+        P, C = more.shape[1], more.shape[2]
+        after, after_end = sequence_clearance(
+            end.reshape(B * P, 3),
+            more.reshape(B * P, 1, C, 2),
+            np.repeat(obstacles, P, axis=0),
+            template,
+            dt,
+            agent_radius,
+            None if obstacle_velocity is None else np.repeat(obstacle_velocity, P, axis=0),
+            start_step=steps + T,
+        )
+        viable = np.minimum(clear, after.reshape(B, P))
+        end = after_end.reshape(B, P, 3)  # progress counts the continuation: heading matters
     if progress_measure == "euclidean":
         dist0 = np.linalg.norm(goal, axis=-1)
         progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
@@ -225,7 +250,11 @@ def select_chunk(
     now, _ = sequence_clearance(  # at the start (steps from now), standing
         pose, np.zeros((B, 1, 1, 2)), obstacles, template, dt, agent_radius, obstacle_velocity, steps - 1
     )
-    safe = clear >= np.minimum(margin, now - SLIDE_TOLERANCE)
+    floor = np.minimum(margin, now - SLIDE_TOLERANCE)
+    safe = clear >= floor
+    if continuation is not None:  # a preference: where no candidate's continuation is safe, the chunks'
+        strict = viable >= floor
+        safe = np.where(strict.any(axis=1, keepdims=True), strict, safe)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()
     if escape_advantage is None:

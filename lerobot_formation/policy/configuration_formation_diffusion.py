@@ -114,6 +114,16 @@ class FormationDiffusionConfig(DiffusionConfig):
             standing team's estimate keeps averaging): a barrier on raw noisy clearances lets a team that
             cannot back up creep into the obstacle it waits beside. 0 (default): exact observations.
         safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
+        safety_route_proposal: best-of-K also scores route pursuit's chunk
+            (``core.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
+            "nearest+route") beside the K sampled ones, and keeps it when it is safe and makes the most
+            progress (the ``proposals`` count says how often).
+        safety_route_lookahead: n >= 0 steps. With n > 0 best-of-K follows every candidate with n
+            steps of route pursuit from its end pose (``pursuit_chunk``; needs "nearest+route"),
+            checks the footprint over both (a chunk that ends facing a wall the team cannot turn away
+            from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
+            and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
+            counts). 0 (default): the chunk alone.
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
             j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
@@ -185,6 +195,8 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_max_angular_accel: float | None = None
     safety_obstacle_noise: float = 0.0
     safety_pose_noise: float = 0.0
+    safety_route_proposal: bool = False
+    safety_route_lookahead: int = 0
     replan_on_intervention: bool = True
     warm_start_step: int = 0
     # Inference path (see the Args above; not a training setting).
@@ -317,6 +329,21 @@ class FormationDiffusionConfig(DiffusionConfig):
                 isinstance(value, int | float) and math.isfinite(value) and value >= 0
             ):
                 raise config_error(f"{name} must be a finite std >= 0 [m], got {value!r}")
+        if isinstance(self.safety_route_lookahead, bool) or not (
+            isinstance(self.safety_route_lookahead, int) and self.safety_route_lookahead >= 0
+        ):
+            raise config_error(
+                f"safety_route_lookahead must be an integer >= 0 [steps], got {self.safety_route_lookahead!r}"
+            )
+        for name, value in (
+            ("safety_route_proposal=true", self.safety_route_proposal),
+            ("safety_route_lookahead > 0", bool(self.safety_route_lookahead)),
+        ):
+            if value and self.obstacle_encoding != "nearest+route":
+                raise config_error(
+                    f"{name} needs the route hint of obstacle_encoding='nearest+route', "
+                    f"got obstacle_encoding={self.obstacle_encoding!r}"
+                )
         if self.safety_layer and not (
             get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
         ):  # the layer reads body-frame obstacles and scores physical actions

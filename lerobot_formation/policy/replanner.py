@@ -16,7 +16,9 @@ actions ran) or whose last action the filter changed replans first:
    blended from the last executed one (``core.replan_blend``);
 4. choice: with K > 1 the one scorer, ``core.safety.select_chunk`` (no predicted contact of the whole
    formation's footprint with the observed obstacles, then cost-to-go progress; escape manoeuvres
-   when nothing sampled is safe); with K = 1 the sample;
+   when nothing sampled is safe); with K = 1 the sample. A "nearest+route" policy may add route
+   pursuit's chunk from its route hint to the candidates (``safety_route_proposal``) and have every
+   candidate followed by route pursuit in the check (``safety_route_lookahead``);
 5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
    ``replan_on_intervention`` an episode whose action it changed replans at its next step.
 
@@ -50,12 +52,14 @@ from torch import Tensor
 
 from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams, rate_limit
+from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.replan_blend import blend_replan
+from lerobot_formation.core.route_pursuit import pursuit_chunk
 
-STAT_KEYS = ("replans", "replans_none_safe", "escapes", "stops", "steps", "filter_interventions")
+STAT_KEYS = ("replans", "replans_none_safe", "escapes", "stops", "steps", "filter_interventions", "proposals")
 
 
 @dataclass(frozen=True)
@@ -104,13 +108,15 @@ def safety_geometry() -> tuple[np.ndarray, float, float]:
 class SafetyView:
     """What the safety layer sees of B episodes at one step (module docstring): goal (B, 2),
     obstacles (B, M, 3) and mask (B, M) in the body frame, the obstacles' velocities (B, M, 2) (None:
-    static) and where the next command starts (``core.safety.ChunkStart``; None: at once)."""
+    static), where the next command starts (``core.safety.ChunkStart``; None: at once) and the route
+    hint's near and far carrots (B, 4) of a "nearest+route" policy (None otherwise)."""
 
     goal: np.ndarray
     obstacles: np.ndarray
     mask: np.ndarray
     velocity: np.ndarray | None = None
     start: safety.ChunkStart | None = None
+    route: np.ndarray | None = None  # (B, 4) the route hint's near and far carrots; None: no hint
 
     def __getitem__(self, rows) -> SafetyView:
         return SafetyView(
@@ -119,7 +125,18 @@ class SafetyView:
             self.mask[rows],
             None if self.velocity is None else self.velocity[rows],
             None if self.start is None else self.start[rows],
+            None if self.route is None else self.route[rows],
         )
+
+
+def _route_continuation(route, goal, steps, dt, omega_max, end):
+    """Route pursuit's commands (B, P, steps, 2) from each candidate's end pose (B, P, 3) (body frame
+    of now), towards the hint's carrots ``route`` (B, 4) and the goal (B, 2) seen from there."""
+    B, P = end.shape[:2]
+    points = np.concatenate([route.reshape(B, 2, 2), goal[:, None]], axis=1)  # (B, 3, 2)
+    local = world_to_body(np.repeat(points, P, axis=0), end.reshape(B * P, 3))
+    out = pursuit_chunk(local[:, :2].reshape(B * P, 4), local[:, 2], steps, dt, omega_max)
+    return out.reshape(B, P, steps, 2)
 
 
 def check_observation(batch: dict[str, Tensor], input_features: dict, dtype: torch.dtype) -> None:
@@ -332,6 +349,7 @@ class Replanner:
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             self.stats["stops"] += int(info["stopped"].sum())
+            self.stats["proposals"] += int(info["proposal_kept"].sum())
         else:
             chosen = chunks[:, 0]
         self.stats["replans"] += len(need)
@@ -356,7 +374,11 @@ class Replanner:
         if cfg.safety_moving_obstacles and encoding.velocity:
             velocity = env[:, rows_end : rows_end + 2 * slots].reshape(len(env), slots, 2).astype(np.float64)
             velocity = np.where(mask[..., None], velocity, 0.0)
-        return SafetyView(goal, obstacles, mask, velocity)
+        route = None
+        if cfg.obstacle_encoding == "nearest+route":  # the hint's carrots (core.route_encoding)
+            at = rows_end + encoding.trailing_per_slot * slots
+            route = env[:, at : at + 4].astype(np.float64)
+        return SafetyView(goal, obstacles, mask, velocity, route=route)
 
     def view(self, env_state: Tensor, rows: Tensor) -> SafetyView:
         """The ``SafetyView`` of episodes ``rows`` at this step from their raw observation (len(rows),
@@ -379,7 +401,7 @@ class Replanner:
                 cfg.safety_max_linear_accel,
                 cfg.safety_max_angular_accel,
             )
-        return SafetyView(view.goal, obstacles, view.mask, velocity, start)
+        return SafetyView(view.goal, obstacles, view.mask, velocity, start, view.route)
 
     def _as_view(self, seen) -> SafetyView:
         return seen if isinstance(seen, SafetyView) else self.observed_obstacles(seen)
@@ -393,11 +415,20 @@ class Replanner:
         rad/s], the escape manoeuvres are blended into them as the sampled chunks were."""
         view = self._as_view(seen)
         template, dt, agent_radius = safety_geometry()
-        ex = self.experiment
+        cfg, ex = self.config, self.experiment
         blend = None
         if last_action is not None and ex.blend_steps:
             blend = (np.asarray(last_action), np.asarray(has_last), ex.blend_steps)
-        return safety.select_chunk(
+        K = chunks.shape[1]
+        if cfg.safety_route_proposal:  # route pursuit's chunk competes with the sampled ones
+            proposal = pursuit_chunk(view.route, view.goal, chunks.shape[2], dt, cfg.action_high[1])
+            chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
+        continuation = None
+        if cfg.safety_route_lookahead:
+            continuation = functools.partial(
+                _route_continuation, view.route, view.goal, cfg.safety_route_lookahead, dt, cfg.action_high[1]
+            )
+        chosen, info = safety.select_chunk(
             chunks,
             view.obstacles,
             view.goal,
@@ -410,7 +441,12 @@ class Replanner:
             blocked_fallback=ex.blocked_fallback,
             obstacle_velocity=view.velocity,
             start=view.start,
+            continuation=continuation,
         )
+        info["proposal_kept"] = (
+            info["choice"] == K if cfg.safety_route_proposal else np.zeros(len(chosen), bool)
+        )
+        return chosen, info
 
     def choose(
         self, view: SafetyView, chunks: Tensor, last_action: Tensor | None = None, has_last=None

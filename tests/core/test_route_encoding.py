@@ -9,7 +9,7 @@ from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.pac import PathAwareController
 from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.route_pursuit import RoutePursuitController
+from lerobot_formation.core.route_pursuit import RoutePursuitController, pursuit_chunk
 from lerobot_formation.core.safety import decode_nearest
 from lerobot_formation.core.scene import FAR, sample_scenes, scene_preset
 
@@ -140,3 +140,23 @@ def test_route_hint_field_is_rebuilt_only_when_the_map_changes(monkeypatch, cont
         assert any((v.obstacle_velocity != 0).any() for _, v in views)
     # one field per team and map version (fewer when a map repeats), not one per step
     assert len({b for b, _ in versions}) <= len(builds) <= len(versions) < steps / 5
+
+
+def test_pursuit_chunk_follows_the_hints_polyline():
+    """Route pursuit's chunk from the hint's two carrots (body frame): straight down a straight route
+    at cruise speed; towards a carrot on the left it turns left, and it is the command route pursuit
+    itself sends at the first step."""
+    from lerobot_formation.core.route_pursuit import RoutePursuitConfig, pursuit_command
+
+    cfg = RoutePursuitConfig()
+    route = np.array([[0.0, 1.0, 0.0, 3.0], [-0.8, 0.6, -2.5, 1.5]])
+    goal = np.array([[0.0, 8.0], [-4.0, 4.0]])
+    chunk = pursuit_chunk(route, goal, 15, 0.1, 1.5)
+    assert chunk.shape == (2, 15, 2)
+    np.testing.assert_allclose(chunk[0], np.tile([cfg.v_max, 0.0], (15, 1)), atol=1e-12)
+    first = pursuit_command(route[1:, :2], np.linalg.norm(goal[1:], axis=-1), cfg, 1.5)
+    np.testing.assert_allclose(chunk[1, 0], first[0])
+    assert (chunk[1, :, 1] > 0).all()  # left all along: the far carrot is further left
+    # within r_goal of the goal it aims at the goal itself
+    near_goal = pursuit_chunk(np.array([[0.0, 1.0, 0.0, 3.0]]), np.array([[0.3, 0.0]]), 3, 0.1, 1.5)
+    assert near_goal[0, 0, 1] < 0  # the goal is to the right

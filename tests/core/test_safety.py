@@ -348,3 +348,34 @@ def test_filter_chooses_among_reachable_velocities():
     )
     assert changed[0]
     np.testing.assert_allclose(out[0], [0.55, -0.2])  # one step's reach: 0.05 m/s, 0.2 rad/s
+
+
+def test_continuation_rejects_a_chunk_that_ends_where_the_team_cannot_turn():
+    """A chunk that stops 10 cm short of a wall is safe on its own; the turn the team must make after
+    it (here a turn in place, which swings a leader forward into the wall) is not, so with that
+    ``continuation`` it is rejected and the chunk that stops earlier is kept. It is a preference:
+    where no candidate's continuation is safe, the chunks alone decide."""
+    wall = np.array([[[x, 1.6, 0.3] for x in (-1.5, -0.9, -0.3, 0.3, 0.9, 1.5)]])  # surface at 1.3 m
+    goal = np.array([[0.0, 6.0]])
+    T = 10
+    far = np.tile([1.1 / (T * P.dt), 0.0], (1, 1, T, 1))  # 1.1 m ahead: 10 cm short of the wall
+    short = np.tile([0.3, 0.0], (1, 1, T, 1))  # 0.3 m ahead
+    chunks = np.concatenate([far, short], axis=1)
+
+    def turn(end):  # (B, P, 3) -> a quarter turn in place
+        return np.broadcast_to([0.0, 1.5], end.shape[:2] + (10, 2)).copy()
+
+    alone, info = select_chunk(chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False)
+    assert info["safe"][0].all() and info["choice"][0] == 0  # the farther one: more progress
+    kept, info = select_chunk(
+        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False, continuation=turn
+    )
+    assert not info["safe"][0, 0] and info["safe"][0, 1] and info["choice"][0] == 1
+
+    def ram(end):  # every continuation hits the wall: the chunks alone decide, as without one
+        return np.broadcast_to([0.6, 0.0], end.shape[:2] + (30, 2)).copy()
+
+    kept, info = select_chunk(
+        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False, continuation=ram
+    )
+    assert info["safe"][0].all() and info["choice"][0] == 0

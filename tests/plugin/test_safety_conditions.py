@@ -258,6 +258,7 @@ def test_bench_reports_how_often_the_safety_layer_intervened():
         "stops": 1,
         "steps": 400,
         "filter_interventions": 20,
+        "proposals": 10,
     }
     rates = safety_rates(stats)
     assert rates == {
@@ -265,10 +266,11 @@ def test_bench_reports_how_often_the_safety_layer_intervened():
         "replans_none_safe_rate": 0.2,
         "escape_rate": 0.1,
         "stop_rate": 0.02,
+        "proposal_rate": 0.2,
     }
     table = safety_table(
         {"pac": {}, "diffusion-safe": {"safety": {**stats, **rates}}}, "level5 scenes (level5:20)"
     )
-    assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 |" in table
+    assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 | 20.0 |" in table
     assert "pac" not in table
     assert safety_table({"pac": {}}, "x") == ""

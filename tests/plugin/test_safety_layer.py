@@ -235,3 +235,34 @@ def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
     np.testing.assert_array_equal(kept55, kept50)
     np.testing.assert_array_equal(info55["safe"], info50["safe"])
     assert not info55["safe"][0, 0]  # the straight chunk hits the obstacle ahead
+
+
+def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
+    """With ``safety_route_proposal`` best-of-K scores route pursuit's chunk beside the sampled ones:
+    obstacles ahead of both leaders, every sampled chunk drives straight into them, the hint's route
+    turns left, so the proposal (index K) is kept; it needs the route hint."""
+    inputs, outputs = formation_features(env_dim=55)
+    kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
+    obs = np.array([[[0.5, 1.2, 0.3], [-0.5, 1.2, 0.3]]])
+    pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
+    env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
+    chunks = np.tile([0.6, 0.0], (1, 3, HORIZON, 1))
+    kept = {}
+    for proposal in (False, True):
+        policy = FormationDiffusionPolicy(nearest_config(safety_route_proposal=proposal, **kw)).eval()
+        kept[proposal], info = policy.replanner.choose_raw(env, chunks)
+        assert not info["safe"][0, :3].any()
+        assert info["proposal_kept"][0] == proposal
+    assert kept[True][0, 0, 1] > 0  # it turns left, down the route
+    with pytest.raises(ValueError, match="safety_route_proposal=true needs the route hint"):
+        nearest_config(safety_route_proposal=True)
+
+
+def test_route_lookahead_is_checked_with_its_value():
+    inputs, outputs = formation_features(env_dim=55)
+    kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
+    with pytest.raises(ValueError, match="safety_route_lookahead must be an integer >= 0.*-3"):
+        nearest_config(safety_route_lookahead=-3, **kw)
+    with pytest.raises(ValueError, match="safety_route_lookahead > 0 needs the route hint"):
+        nearest_config(safety_route_lookahead=20)
+    assert nearest_config(safety_route_lookahead=20, **kw).safety_route_lookahead == 20
