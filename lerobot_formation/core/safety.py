@@ -65,6 +65,7 @@ Learned Perception Modules via Measurement-Robust Control Barrier Functions").
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -185,7 +186,7 @@ def select_chunk(
     blocked_fallback: str = "widest",
     obstacle_velocity: np.ndarray | None = None,
     start: ChunkStart | None = None,
-    continuation=None,
+    continuation: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
