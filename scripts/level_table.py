@@ -40,7 +40,7 @@ def _row(level: str, key: str, name: str, m: dict) -> str:
             f"{100 * safety['filter_intervention_rate']:.2f} / {100 * safety['replans_none_safe_rate']:.1f}"
         )
         if safety.get("proposals"):  # a layer with route pursuit's proposal: how often it was kept
-            interventions += f" / {100 * safety['proposals'] / max(safety['replans'], 1):.1f}"
+            interventions += f" / {100 * safety['proposal_rate']:.1f}"
     else:
         interventions = "-"
     return (

@@ -33,9 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.dynamics import FormationParams, step_midpoint
 from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.route_encoding import route_features
+from lerobot_formation.core.safety import BODY_POSE
 
 
 @dataclass(frozen=True)
@@ -117,13 +118,16 @@ def pursuit_chunk(
     dt: float,
     omega_max: float,
     config: RoutePursuitConfig | None = None,
+    start: np.ndarray | None = None,
 ) -> np.ndarray:
     """Route pursuit's command sequence (B, steps, 2) over one chunk, from what the route hint
     observes: ``route_body`` (B, 4) the near and far carrots, ``goal_body`` (B, 2) the goal, in the
     body frame of the midpoint now (x right, y ahead; the ``nearest+route`` encoding's values).
 
-    The midpoint is rolled out as a unicycle; at each step it pursues (``pursuit_command``) the near
-    carrot until within half the carrot distance of it, then the far one, and the goal within
+    The midpoint is rolled out as a unicycle (``dynamics.step_midpoint``) from ``start`` (B, 3), a
+    pose in that frame (None: the midpoint now, ``core.safety.BODY_POSE``; the safety layer's
+    lookahead starts it at each candidate's end); at each step it pursues (``pursuit_command``) the
+    near carrot until within half its starting distance of it, then the far one, and the goal within
     ``r_goal`` of it: pure pursuit of the polyline the hint gives, which the safety layer's best-of-K
     scores beside the sampled chunks (``safety_route_proposal``).
     """
@@ -131,10 +135,9 @@ def pursuit_chunk(
     route_body = np.asarray(route_body, dtype=np.float64)
     goal_body = np.asarray(goal_body, dtype=np.float64)
     B = len(route_body)
+    pose = np.tile(BODY_POSE, (B, 1)) if start is None else np.array(start, dtype=np.float64)
     near, far = route_body[:, :2], route_body[:, 2:4]
-    switch = 0.5 * np.linalg.norm(near, axis=-1)
-    pose = np.zeros((B, 3))
-    pose[:, 2] = np.pi / 2  # the body frame's own pose: at the origin, facing +y
+    switch = 0.5 * np.linalg.norm(near - pose[:, :2], axis=-1)
     passed = np.zeros(B, dtype=bool)
     out = np.zeros((B, steps, 2))
     for k in range(steps):
@@ -142,9 +145,6 @@ def pursuit_chunk(
         aim = np.where(passed[:, None], far, near)
         d_goal = np.linalg.norm(goal_body - pose[:, :2], axis=-1)
         aim = np.where((d_goal < config.r_goal)[:, None], goal_body, aim)
-        cmd = pursuit_command(world_to_body(aim, pose), d_goal, config, omega_max)
-        out[:, k] = cmd
-        pose[:, 0] += cmd[:, 0] * np.cos(pose[:, 2]) * dt
-        pose[:, 1] += cmd[:, 0] * np.sin(pose[:, 2]) * dt
-        pose[:, 2] += cmd[:, 1] * dt
+        out[:, k] = pursuit_command(world_to_body(aim, pose), d_goal, config, omega_max)
+        pose = step_midpoint(pose, out[:, k], dt)
     return out

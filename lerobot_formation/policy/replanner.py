@@ -52,7 +52,6 @@ from torch import Tensor
 
 from lerobot_formation.core import safety
 from lerobot_formation.core.dynamics import FormationParams, rate_limit
-from lerobot_formation.core.encoding import world_to_body
 from lerobot_formation.core.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.obstacle_tracker import ObstacleTracker
@@ -127,16 +126,6 @@ class SafetyView:
             None if self.start is None else self.start[rows],
             None if self.route is None else self.route[rows],
         )
-
-
-def _route_continuation(route, goal, steps, dt, omega_max, end):
-    """Route pursuit's commands (B, P, steps, 2) from each candidate's end pose (B, P, 3) (body frame
-    of now), towards the hint's carrots ``route`` (B, 4) and the goal (B, 2) seen from there."""
-    B, P = end.shape[:2]
-    points = np.concatenate([route.reshape(B, 2, 2), goal[:, None]], axis=1)  # (B, 3, 2)
-    local = world_to_body(np.repeat(points, P, axis=0), end.reshape(B * P, 3))
-    out = pursuit_chunk(local[:, :2].reshape(B * P, 4), local[:, 2], steps, dt, omega_max)
-    return out.reshape(B, P, steps, 2)
 
 
 def check_observation(batch: dict[str, Tensor], input_features: dict, dtype: torch.dtype) -> None:
@@ -424,10 +413,15 @@ class Replanner:
             proposal = pursuit_chunk(view.route, view.goal, chunks.shape[2], dt, cfg.action_high[1])
             chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
         continuation = None
-        if cfg.safety_route_lookahead:
-            continuation = functools.partial(
-                _route_continuation, view.route, view.goal, cfg.safety_route_lookahead, dt, cfg.action_high[1]
-            )
+        if cfg.safety_route_lookahead:  # route pursuit from each candidate's end pose (B, P, 3)
+
+            def continuation(end: np.ndarray) -> np.ndarray:
+                B, P = end.shape[:2]
+                n = cfg.safety_route_lookahead
+                route, goal = np.repeat(view.route, P, axis=0), np.repeat(view.goal, P, axis=0)
+                out = pursuit_chunk(route, goal, n, dt, cfg.action_high[1], start=end.reshape(B * P, 3))
+                return out.reshape(B, P, n, 2)
+
         chosen, info = safety.select_chunk(
             chunks,
             view.obstacles,

@@ -160,3 +160,12 @@ def test_pursuit_chunk_follows_the_hints_polyline():
     # within r_goal of the goal it aims at the goal itself
     near_goal = pursuit_chunk(np.array([[0.0, 1.0, 0.0, 3.0]]), np.array([[0.3, 0.0]]), 3, 0.1, 1.5)
     assert near_goal[0, 0, 1] < 0  # the goal is to the right
+    # from another start pose (the safety layer's lookahead): the same as pursuing the carrots and
+    # the goal seen from that pose
+    start = np.array([[0.4, 0.7, 2.1], [-0.3, 0.2, 0.9]])
+    seen = world_to_body(np.concatenate([route.reshape(2, 2, 2), goal[:, None]], axis=1), start)
+    np.testing.assert_allclose(
+        pursuit_chunk(route, goal, 15, 0.1, 1.5, start=start),
+        pursuit_chunk(seen[:, :2].reshape(2, 4), seen[:, 2], 15, 0.1, 1.5),
+        atol=1e-9,
+    )
