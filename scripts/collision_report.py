@@ -4,21 +4,23 @@ and how long the team had already been that close.
     python scripts/collision_report.py --policy.path pretrained/formation_diffusion_safe \
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
         [--safety-margin 0.11] [--layer-ignores-noise] [--layer-ignores-motion] \
-        [--route-proposal on|off] [--route-lookahead N]
+        [--route-proposal on|off] [--route-lookahead N] [--coherence W]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
 level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin,
 ``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing: the layer
 before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
 ``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``
-(``off`` and 0: the layer before 2026-12-04 night). One
+(``off`` and 0: the layer before 2026-12-04 night), ``--coherence`` its ``safety_coherence`` (0: the
+layer before 2026-12-04 late). One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
 nearest (the ``nearest`` encoding observes 12). The last line is the summary: success %,
 collisions, timeouts, and how many collisions came after the team was already within 2 cm of an
-obstacle in the 10 steps before (grazes, not run-ins), and how many were with a moving obstacle (its
-line gives that obstacle's speed over the last step and the part of it towards the agent it hit).
+obstacle in the 10 steps before (grazes, not run-ins), how many were with a moving obstacle (its
+line gives that obstacle's speed over the last step and the part of it towards the agent it hit), and
+the mean jerk and control smoothness of the successful episodes (``core.metrics``).
 ``--controller pac-privileged`` (no checkpoint) reports the privileged expert, on the true world.
 """
 
@@ -91,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
     )
+    ap.add_argument(
+        "--coherence", type=float, default=None, help="best-of-K's weight on keeping to the plan [m]"
+    )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
     add_threads_argument(ap, "torch threads")
     args = ap.parse_args(argv)
@@ -101,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench.settings import ControllerOptions
     from lerobot_formation.core.dynamics import FormationParams
     from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.metrics import episode_metrics
     from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
 
     level = get_level(args.level)  # a bad name: ValueError naming the choices
@@ -117,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["safety_route_proposal"] = args.route_proposal == "on"
     if args.route_lookahead is not None:
         overrides["safety_route_lookahead"] = args.route_lookahead
+    if args.coherence is not None:
+        overrides["safety_coherence"] = args.coherence
     params = FormationParams()
     options = ControllerOptions(
         policy_path=args.policy_path,
@@ -130,11 +138,18 @@ def main(argv: list[str] | None = None) -> int:
     lines, dwelt, movers = collision_lines(rec, scenes, params)
     print("\n".join(lines))
     n = len(scenes)
+    ok = rec.outcome == SUCCESS
+    per = episode_metrics(rec, scenes.start, scenes.goal)
+    motion = "no successful episode"
+    if ok.any():
+        motion = (
+            f"jerk {np.mean(per['jerk'][ok]):.3f}, smoothness {np.mean(per['control_smoothness'][ok]):.3f}"
+        )
     print(
         f"{args.controller} on {level.name} ({n} scenes from seed {args.seed}): success "
         f"{100 * np.mean(rec.outcome == SUCCESS):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
         f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions within 2 cm already in the 10 steps "
-        f"before; {movers} with a moving obstacle"
+        f"before; {movers} with a moving obstacle; {motion}"
     )
     return 0
 

@@ -81,3 +81,17 @@ def test_a_mover_that_runs_into_a_standing_team_is_named():
 def test_a_bad_level_names_the_value():
     with pytest.raises(ValueError, match="level9"):
         _script().main(["--policy.path", "nowhere", "--level", "level9"])
+
+
+def test_summary_line_gives_outcomes_and_the_successes_motion(capsys):
+    """The last line: success, collisions, timeouts, and jerk and smoothness over the successes (none
+    in 30 steps, which it says)."""
+    assert (
+        _script().main(["--controller", "pac", "--level", "level0", "--scenes", "2", "--max-steps", "30"])
+        == 0
+    )
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith(
+        "pac on level0 (2 scenes from seed 5000000): success 0.0 %, collisions 0, timeouts 2"
+    )
+    assert last.endswith("no successful episode")

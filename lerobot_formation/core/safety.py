@@ -187,6 +187,7 @@ def select_chunk(
     obstacle_velocity: np.ndarray | None = None,
     start: ChunkStart | None = None,
     continuation: Callable[[np.ndarray], np.ndarray] | None = None,
+    coherence: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -210,6 +211,11 @@ def select_chunk(
     not), unless no candidate's continuation is safe: then the chunks alone decide. Progress is then
     measured at the continuation's end, so a chunk that leaves the team facing its way scores the
     progress it makes possible (the leaders' heading matters: they cannot back up).
+    ``coherence`` = (the previous plan from now on (B, n, 2), whether there is one (B,), the action
+    ranges (2,), weight w [m]): among the safe candidates, one whose first n commands deviate from
+    the previous plan's by d (root mean square, in units of the action ranges) scores w d less
+    progress (backward coherence, as bidirectional decoding's: Liu et al. 2024): switching to
+    another of K similar samples at every replan is what makes best-of-K jerkier than one sample.
     """
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
@@ -256,6 +262,12 @@ def select_chunk(
     if continuation is not None:  # a preference: where no candidate's continuation is safe, the chunks'
         strict = viable >= floor
         safe = np.where(strict.any(axis=1, keepdims=True), strict, safe)
+    if coherence is not None:
+        previous, has_previous, ranges, weight = coherence
+        n = previous.shape[1]
+        gap = (pool[:, :, :n] - previous[:, None]) / np.asarray(ranges)
+        deviation = np.sqrt((gap**2).sum(-1).mean(-1))  # (B, P)
+        progress = progress - weight * np.where(np.asarray(has_previous)[:, None], deviation, 0.0)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()
     if escape_advantage is None:

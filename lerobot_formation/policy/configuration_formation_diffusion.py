@@ -124,6 +124,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
             and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
             counts). 0 (default): the chunk alone.
+        safety_coherence: w >= 0 [m]. With w > 0 best-of-K prefers, among the safe candidates, the
+            one closest to the rest of the plan it replaces: a candidate whose first
+            ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
+            scores w d less progress (``core.safety.select_chunk``); not after a plan the filter cut
+            short (it met a barrier). 0 (default): progress alone.
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
             j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
@@ -197,6 +202,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_pose_noise: float = 0.0
     safety_route_proposal: bool = False
     safety_route_lookahead: int = 0
+    safety_coherence: float = 0.0
     replan_on_intervention: bool = True
     warm_start_step: int = 0
     # Inference path (see the Args above; not a training setting).
@@ -334,6 +340,12 @@ class FormationDiffusionConfig(DiffusionConfig):
         ):
             raise config_error(
                 f"safety_route_lookahead must be an integer >= 0 [steps], got {self.safety_route_lookahead!r}"
+            )
+        if isinstance(self.safety_coherence, bool) or not (
+            isinstance(self.safety_coherence, (int, float)) and 0 <= self.safety_coherence < math.inf
+        ):
+            raise config_error(
+                f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
             )
         for name, value in (
             ("safety_route_proposal=true", self.safety_route_proposal),

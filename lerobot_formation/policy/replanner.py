@@ -18,7 +18,9 @@ actions ran) or whose last action the filter changed replans first:
    formation's footprint with the observed obstacles, then cost-to-go progress; escape manoeuvres
    when nothing sampled is safe); with K = 1 the sample. A "nearest+route" policy may add route
    pursuit's chunk from its route hint to the candidates (``safety_route_proposal``) and have every
-   candidate followed by route pursuit in the check (``safety_route_lookahead``);
+   candidate followed by route pursuit in the check (``safety_route_lookahead``); with
+   ``safety_coherence`` the scorer prefers the safe candidate closest to the rest of the plan it
+   replaces (``warm_start_guess`` of it from the current step), unless the filter cut that plan short;
 5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
    ``replan_on_intervention`` an episode whose action it changed replans at its next step.
 
@@ -334,7 +336,12 @@ class Replanner:
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
         if K > 1:
-            chosen, info = self.choose(view, chunks, last, has_last)
+            previous, keep_to = None, None
+            if cfg.safety_coherence:  # the plan being replaced, from now on (normalised)
+                previous = warm_start_guess(self.plan[need], self.executed[need], 1, cfg.n_action_steps)
+                # a plan the filter cut short met a barrier: nothing to keep to
+                keep_to = has_last & (self.executed[need] >= cfg.n_action_steps)
+            chosen, info = self.choose(view, chunks, last, has_last, previous, keep_to)
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             self.stats["stops"] += int(info["stopped"].sum())
@@ -396,12 +403,20 @@ class Replanner:
         return seen if isinstance(seen, SafetyView) else self.observed_obstacles(seen)
 
     def choose_raw(
-        self, seen, chunks: np.ndarray, last_action: np.ndarray | None = None, has_last=None
+        self,
+        seen,
+        chunks: np.ndarray,
+        last_action: np.ndarray | None = None,
+        has_last=None,
+        previous: np.ndarray | None = None,
+        keep_to=None,
     ) -> tuple[np.ndarray, dict]:
         """Best-of-K (``core.safety.select_chunk``) with this config: ``seen`` a ``SafetyView`` or a raw
         egocentric observation (B, D) (``observed_obstacles``), chunks (B, K, T, 2) in m/s and rad/s
         -> kept chunks (B, T, 2), info. With blending and the last executed actions (B, 2) [m/s,
-        rad/s], the escape manoeuvres are blended into them as the sampled chunks were."""
+        rad/s], the escape manoeuvres are blended into them as the sampled chunks were. ``previous``
+        (B, n, 2) [m/s, rad/s]: the plan being replaced, from now on, kept to where ``keep_to`` (B,)
+        (default: everywhere) by the ``safety_coherence`` preference; None: no such preference."""
         view = self._as_view(seen)
         template, dt, agent_radius = safety_geometry()
         cfg, ex = self.config, self.experiment
@@ -422,6 +437,11 @@ class Replanner:
                 out = pursuit_chunk(route, goal, n, dt, cfg.action_high[1], start=end.reshape(B * P, 3))
                 return out.reshape(B, P, n, 2)
 
+        coherence = None
+        if previous is not None and cfg.safety_coherence:
+            has_previous = np.ones(len(chunks), bool) if keep_to is None else np.asarray(keep_to)
+            ranges = np.asarray(cfg.action_high) - np.asarray(cfg.action_low)
+            coherence = (np.asarray(previous), has_previous, ranges, cfg.safety_coherence)
         chosen, info = safety.select_chunk(
             chunks,
             view.obstacles,
@@ -436,6 +456,7 @@ class Replanner:
             obstacle_velocity=view.velocity,
             start=view.start,
             continuation=continuation,
+            coherence=coherence,
         )
         info["proposal_kept"] = (
             info["choice"] == K if cfg.safety_route_proposal else np.zeros(len(chosen), bool)
@@ -443,7 +464,13 @@ class Replanner:
         return chosen, info
 
     def choose(
-        self, view: SafetyView, chunks: Tensor, last_action: Tensor | None = None, has_last=None
+        self,
+        view: SafetyView,
+        chunks: Tensor,
+        last_action: Tensor | None = None,
+        has_last=None,
+        previous: Tensor | None = None,
+        keep_to=None,
     ) -> tuple[Tensor, dict]:
         """``choose_raw`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept chunks
         (B, T, 2) normalised."""
@@ -452,7 +479,10 @@ class Replanner:
         if last_action is not None:
             last_action = policy.unnormalize_action(last_action).numpy().astype(np.float64)
             has_last = has_last.cpu().numpy()
-        chosen, info = self.choose_raw(view, raw, last_action, has_last)
+        if previous is not None:
+            previous = policy.unnormalize_action(previous).numpy().astype(np.float64)
+            keep_to = np.ones(len(raw), bool) if keep_to is None else np.asarray(keep_to.cpu())
+        chosen, info = self.choose_raw(view, raw, last_action, has_last, previous, keep_to)
         return policy.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
     def filter_raw(self, seen, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

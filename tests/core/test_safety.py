@@ -379,3 +379,34 @@ def test_continuation_rejects_a_chunk_that_ends_where_the_team_cannot_turn():
         chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False, continuation=ram
     )
     assert info["safe"][0].all() and info["choice"][0] == 0
+
+
+def test_coherence_keeps_the_candidate_closest_to_the_plan_it_replaces():
+    """Two safe chunks in open space, straight ahead and a gentle left arc: on progress alone the
+    straight one wins; with the previous plan an arc and a coherence weight above the progress gap,
+    the arc is kept. Rows without a previous plan, a zero weight, and unsafe candidates are left as
+    progress and safety alone decide."""
+    obstacles = np.array([[[FAR, FAR, 0.0]]])
+    goal = np.array([[0.0, 6.0]])
+    straight = np.tile([0.5, 0.0], (1, 1, 15, 1))
+    arc = np.tile([0.5, 0.3], (1, 1, 15, 1))
+    chunks = np.concatenate([straight, arc], axis=1)
+    args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
+    _, info = select_chunk(*args, escape=False)
+    assert info["choice"][0] == 0
+    gap = info["progress"][0, 0] - info["progress"][0, 1]
+    assert 0 < gap < 0.5
+    ranges = np.array([0.6, 3.0])
+    previous = np.tile([0.5, 0.3], (1, 8, 1))
+    kept, info = select_chunk(*args, escape=False, coherence=(previous, np.array([True]), ranges, 10.0))
+    assert info["choice"][0] == 1 and np.allclose(kept, arc[:, 0])
+    for has, weight in ((False, 10.0), (True, 0.0)):
+        _, info = select_chunk(*args, escape=False, coherence=(previous, np.array([has]), ranges, weight))
+        assert info["choice"][0] == 0
+    # coherence never makes an unsafe chunk safe: an obstacle the arc grazes keeps the straight one
+    wall = np.array([[[-0.9, 0.6, 0.2], [FAR, FAR, 0.0]]])
+    blocked = (chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
+    _, alone = select_chunk(*blocked, escape=False)
+    assert alone["safe"][0, 0] and not alone["safe"][0, 1]
+    _, info = select_chunk(*blocked, escape=False, coherence=(previous, np.array([True]), ranges, 10.0))
+    assert info["choice"][0] == 0

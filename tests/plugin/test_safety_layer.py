@@ -266,3 +266,74 @@ def test_route_lookahead_is_checked_with_its_value():
     with pytest.raises(ValueError, match="safety_route_lookahead > 0 needs the route hint"):
         nearest_config(safety_route_lookahead=20)
     assert nearest_config(safety_route_lookahead=20, **kw).safety_route_lookahead == 20
+
+
+def test_coherence_is_checked_with_its_value():
+    with pytest.raises(ValueError, match="safety_coherence must be a finite weight >= 0.*-1"):
+        nearest_config(safety_coherence=-1.0)
+    with pytest.raises(ValueError, match="finite.*safety_coherence=inf"):
+        nearest_config(safety_coherence=float("inf"))
+    assert nearest_config(safety_coherence=1.0).safety_coherence == 1.0
+
+
+def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypatch):
+    """``choose_raw`` with the rest of the previous plan: a large weight keeps the left arc it
+    continues over the straight chunk that makes more progress; without a previous plan, progress
+    decides. Through ``select_action`` every replan after the first hands the scorer the plan it
+    replaces, from the current step on (here n_action_steps = 8 of them)."""
+    from lerobot_formation.core import safety
+
+    env = _env_state([])
+    straight = np.tile([0.5, 0.0], (1, 1, HORIZON - N_OBS + 1, 1))
+    arc = np.tile([0.5, 0.3], (1, 1, HORIZON - N_OBS + 1, 1))
+    chunks = np.concatenate([straight, arc], axis=1)
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_coherence=10.0)).eval()
+    previous = np.tile([0.5, 0.3], (1, 8, 1))
+    kept, info = policy.replanner.choose_raw(env, chunks, np.zeros((1, 2)), np.array([True]), previous)
+    assert info["choice"][0] == 1
+    kept, info = policy.replanner.choose_raw(env, chunks)
+    assert info["choice"][0] == 0
+
+    seen = []
+    real = safety.select_chunk
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("coherence"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(safety, "select_chunk", spy)
+    torch.manual_seed(0)
+    policy.reset()
+    for _ in range(20):
+        policy.select_action(_batch(env))
+    assert len(seen) >= 3
+    first, later = seen[0], seen[1:]
+    assert not first[1].any()  # the first replan has no plan to keep to
+    for previous, has_previous, ranges, weight in later:
+        assert previous.shape == (1, 8, 2) and has_previous.all() and weight == 10.0
+        assert np.allclose(ranges, np.array(policy.config.action_high) - np.array(policy.config.action_low))
+
+
+def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
+    """A replan after a plan the filter cut short (``replan_on_intervention`` marks it used up, as
+    here by hand after 3 of its 8 actions) gets no coherence preference: that plan met a barrier. The
+    replan after a plan that ran its ``n_action_steps`` does."""
+    from lerobot_formation.core import safety
+
+    env = _env_state([])
+    kept_to = []
+    real = safety.select_chunk
+
+    def spy(*args, **kwargs):
+        kept_to.append(bool(kwargs["coherence"][1][0]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(safety, "select_chunk", spy)
+    torch.manual_seed(0)
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=4, safety_coherence=1.0)).eval()
+    for _ in range(3):
+        policy.select_action(_batch(env))
+    policy.replanner.plan_pos[:] = policy.config.n_action_steps  # what an intervention does
+    for _ in range(9):
+        policy.select_action(_batch(env))
+    assert kept_to == [False, False, True]  # the first replan, the cut one, the full one
