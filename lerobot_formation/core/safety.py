@@ -109,6 +109,34 @@ class ChunkStart:
         return rate_limit_sequence(self.velocity, commands, self.max_linear_accel, self.max_angular_accel, dt)
 
 
+@dataclass(frozen=True)
+class PlanCoherence:
+    """Best-of-K's preference for the plan it replaces (backward coherence, as in bidirectional
+    decoding: Liu et al. 2024, "Bidirectional Decoding: Improving Action Chunking via Closed-Loop
+    Resampling"). K samples of one observation differ; keeping the one with the most progress at
+    every replan switches between them, which is what makes best-of-K jerkier than one sample.
+
+    Attributes:
+        previous: (B, n, 2) [v, omega] the plan being replaced, from the current step on.
+        keep_to: (B,) where to keep to it (e.g. not where the filter cut it short: it met a barrier).
+        ranges: (2,) the action ranges, the unit of the deviation.
+        weight: w [m of progress] per unit of deviation.
+    """
+
+    previous: np.ndarray
+    keep_to: np.ndarray
+    ranges: np.ndarray
+    weight: float
+
+    def penalty(self, pool: np.ndarray) -> np.ndarray:
+        """(B, P) w d for candidates (B, P, T, 2): d the root mean square deviation of their first n
+        commands from ``previous``, in action ranges; 0 where not ``keep_to``."""
+        n = self.previous.shape[1]
+        gap = (pool[:, :, :n] - self.previous[:, None]) / np.asarray(self.ranges)
+        deviation = np.sqrt((gap**2).sum(-1).mean(-1))
+        return self.weight * np.where(np.asarray(self.keep_to)[:, None], deviation, 0.0)
+
+
 def predict_start(
     in_flight: np.ndarray,
     executed: np.ndarray,
@@ -187,7 +215,7 @@ def select_chunk(
     obstacle_velocity: np.ndarray | None = None,
     start: ChunkStart | None = None,
     continuation: Callable[[np.ndarray], np.ndarray] | None = None,
-    coherence: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None,
+    coherence: PlanCoherence | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -211,11 +239,9 @@ def select_chunk(
     not), unless no candidate's continuation is safe: then the chunks alone decide. Progress is then
     measured at the continuation's end, so a chunk that leaves the team facing its way scores the
     progress it makes possible (the leaders' heading matters: they cannot back up).
-    ``coherence`` = (the previous plan from now on (B, n, 2), whether there is one (B,), the action
-    ranges (2,), weight w [m]): among the safe candidates, one whose first n commands deviate from
-    the previous plan's by d (root mean square, in units of the action ranges) scores w d less
-    progress (backward coherence, as bidirectional decoding's: Liu et al. 2024): switching to
-    another of K similar samples at every replan is what makes best-of-K jerkier than one sample.
+    ``coherence`` (``PlanCoherence``): among the safe candidates, one whose first n commands deviate
+    from the plan being replaced by d (root mean square, in units of the action ranges) scores w d
+    less progress; it ranks safe candidates only, never makes one safe.
     """
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
@@ -263,11 +289,7 @@ def select_chunk(
         strict = viable >= floor
         safe = np.where(strict.any(axis=1, keepdims=True), strict, safe)
     if coherence is not None:
-        previous, has_previous, ranges, weight = coherence
-        n = previous.shape[1]
-        gap = (pool[:, :, :n] - previous[:, None]) / np.asarray(ranges)
-        deviation = np.sqrt((gap**2).sum(-1).mean(-1))  # (B, P)
-        progress = progress - weight * np.where(np.asarray(has_previous)[:, None], deviation, 0.0)
+        progress = progress - coherence.penalty(pool)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()
     if escape_advantage is None:

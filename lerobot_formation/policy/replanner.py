@@ -439,9 +439,12 @@ class Replanner:
 
         coherence = None
         if previous is not None and cfg.safety_coherence:
-            has_previous = np.ones(len(chunks), bool) if keep_to is None else np.asarray(keep_to)
-            ranges = np.asarray(cfg.action_high) - np.asarray(cfg.action_low)
-            coherence = (np.asarray(previous), has_previous, ranges, cfg.safety_coherence)
+            coherence = safety.PlanCoherence(
+                np.asarray(previous),
+                np.ones(len(chunks), bool) if keep_to is None else np.asarray(keep_to),
+                np.asarray(cfg.action_high) - np.asarray(cfg.action_low),
+                cfg.safety_coherence,
+            )
         chosen, info = safety.select_chunk(
             chunks,
             view.obstacles,

@@ -9,6 +9,7 @@ from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.safety import (
+    PlanCoherence,
     barrier_rows,
     cbf_filter,
     cost_to_go_progress,
@@ -398,15 +399,21 @@ def test_coherence_keeps_the_candidate_closest_to_the_plan_it_replaces():
     assert 0 < gap < 0.5
     ranges = np.array([0.6, 3.0])
     previous = np.tile([0.5, 0.3], (1, 8, 1))
-    kept, info = select_chunk(*args, escape=False, coherence=(previous, np.array([True]), ranges, 10.0))
+    kept, info = select_chunk(
+        *args, escape=False, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
+    )
     assert info["choice"][0] == 1 and np.allclose(kept, arc[:, 0])
     for has, weight in ((False, 10.0), (True, 0.0)):
-        _, info = select_chunk(*args, escape=False, coherence=(previous, np.array([has]), ranges, weight))
+        _, info = select_chunk(
+            *args, escape=False, coherence=PlanCoherence(previous, np.array([has]), ranges, weight)
+        )
         assert info["choice"][0] == 0
     # coherence never makes an unsafe chunk safe: an obstacle the arc grazes keeps the straight one
     wall = np.array([[[-0.9, 0.6, 0.2], [FAR, FAR, 0.0]]])
     blocked = (chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
     _, alone = select_chunk(*blocked, escape=False)
     assert alone["safe"][0, 0] and not alone["safe"][0, 1]
-    _, info = select_chunk(*blocked, escape=False, coherence=(previous, np.array([True]), ranges, 10.0))
+    _, info = select_chunk(
+        *blocked, escape=False, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
+    )
     assert info["choice"][0] == 0

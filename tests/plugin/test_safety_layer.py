@@ -308,10 +308,10 @@ def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypat
         policy.select_action(_batch(env))
     assert len(seen) >= 3
     first, later = seen[0], seen[1:]
-    assert not first[1].any()  # the first replan has no plan to keep to
-    for previous, has_previous, ranges, weight in later:
-        assert previous.shape == (1, 8, 2) and has_previous.all() and weight == 10.0
-        assert np.allclose(ranges, np.array(policy.config.action_high) - np.array(policy.config.action_low))
+    assert not first.keep_to.any()  # the first replan has no plan to keep to
+    for c in later:
+        assert c.previous.shape == (1, 8, 2) and c.keep_to.all() and c.weight == 10.0
+        assert np.allclose(c.ranges, np.array(policy.config.action_high) - np.array(policy.config.action_low))
 
 
 def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
@@ -325,7 +325,7 @@ def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
     real = safety.select_chunk
 
     def spy(*args, **kwargs):
-        kept_to.append(bool(kwargs["coherence"][1][0]))
+        kept_to.append(bool(kwargs["coherence"].keep_to[0]))
         return real(*args, **kwargs)
 
     monkeypatch.setattr(safety, "select_chunk", spy)
