@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(
         f"{args.controller} on {level.name} ({n} scenes from seed {args.seed}): success "
-        f"{100 * np.mean(rec.outcome == SUCCESS):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
+        f"{100 * np.mean(ok):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
         f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions within 2 cm already in the 10 steps "
         f"before; {movers} with a moving obstacle; {motion}"
     )

@@ -288,8 +288,6 @@ def select_chunk(
     if continuation is not None:  # a preference: where no candidate's continuation is safe, the chunks'
         strict = viable >= floor
         safe = np.where(strict.any(axis=1, keepdims=True), strict, safe)
-    if coherence is not None:
-        progress = progress - coherence.penalty(pool)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()
     if escape_advantage is None:
@@ -297,6 +295,8 @@ def select_chunk(
         score = progress
     else:  # a primitive must beat the best safe sampled chunk by escape_advantage metres of progress
         score = progress - np.where(np.arange(pool.shape[1]) >= K, escape_advantage, 0.0)[None, :]
+    if coherence is not None:  # ranks only: info["progress"] stays the cost-to-go progress
+        score = score - coherence.penalty(pool)
     best = np.argmax(np.where(allowed, score, -np.inf), axis=1)
     rows = np.arange(B)
     blocked = ~allowed.any(axis=1)

@@ -484,7 +484,8 @@ class Replanner:
             has_last = has_last.cpu().numpy()
         if previous is not None:
             previous = policy.unnormalize_action(previous).numpy().astype(np.float64)
-            keep_to = np.ones(len(raw), bool) if keep_to is None else np.asarray(keep_to.cpu())
+        if keep_to is not None:
+            keep_to = keep_to.cpu().numpy()
         chosen, info = self.choose_raw(view, raw, last_action, has_last, previous, keep_to)
         return policy.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
