@@ -4,7 +4,7 @@ and how long the team had already been that close.
     python scripts/collision_report.py --policy.path pretrained/formation_diffusion_safe \
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
         [--safety-margin 0.11] [--layer-ignores-noise] [--layer-ignores-motion] \
-        [--route-proposal on|off] [--route-lookahead N] [--coherence W]
+        [--route-proposal on|off] [--route-lookahead N] [--coherence W] [--proposal-blend M]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
 level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin,
@@ -12,7 +12,8 @@ level's conditions as the bench tells it); ``--safety-margin`` replaces the chec
 before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
 ``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``
 (``off`` and 0: the layer before 2026-12-04 night), ``--coherence`` its ``safety_coherence`` (0: the
-layer before 2026-12-04 late). One
+layer before 2026-12-04 late), ``--proposal-blend`` its ``safety_proposal_blend`` (0: the layer before
+2026-12-05). One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
@@ -96,6 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--coherence", type=float, default=None, help="best-of-K's weight on keeping to the plan [m]"
     )
+    ap.add_argument(
+        "--proposal-blend",
+        type=int,
+        default=None,
+        help="steps over which route pursuit's proposal is blended in",
+    )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
     add_threads_argument(ap, "torch threads")
     args = ap.parse_args(argv)
@@ -125,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides["safety_route_lookahead"] = args.route_lookahead
     if args.coherence is not None:
         overrides["safety_coherence"] = args.coherence
+    if args.proposal_blend is not None:
+        overrides["safety_proposal_blend"] = args.proposal_blend
     params = FormationParams()
     options = ControllerOptions(
         policy_path=args.policy_path,

@@ -124,6 +124,13 @@ class FormationDiffusionConfig(DiffusionConfig):
             from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
             and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
             counts). 0 (default): the chunk alone.
+        safety_proposal_blend: m >= 0 steps. With m > 0 route pursuit's proposal
+            (``safety_route_proposal``) enters from the command being executed: its first m actions
+            are blended from the last executed one (``core.replan_blend``) before it is scored, as the
+            continuous controller it comes from would move (a proposal computed from the hint alone
+            starts with a step in [v, omega]). Not with a rate-limited actuator
+            (``safety_max_linear_accel`` / ``safety_max_angular_accel``), which ramps that step by
+            itself. 0 (default): the proposal as computed.
         safety_coherence: w >= 0 [m]. With w > 0 best-of-K prefers, among the safe candidates, the
             one closest to the rest of the plan it replaces: a candidate whose first
             ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
@@ -202,6 +209,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_pose_noise: float = 0.0
     safety_route_proposal: bool = False
     safety_route_lookahead: int = 0
+    safety_proposal_blend: int = 0
     safety_coherence: float = 0.0
     replan_on_intervention: bool = True
     warm_start_step: int = 0
@@ -340,6 +348,19 @@ class FormationDiffusionConfig(DiffusionConfig):
         ):
             raise config_error(
                 f"safety_route_lookahead must be an integer >= 0 [steps], got {self.safety_route_lookahead!r}"
+            )
+        chunk_length = self.horizon - self.n_obs_steps + 1
+        if isinstance(self.safety_proposal_blend, bool) or not (
+            isinstance(self.safety_proposal_blend, int) and 0 <= self.safety_proposal_blend <= chunk_length
+        ):
+            raise config_error(
+                f"safety_proposal_blend must be an integer in [0, {chunk_length}] (the chunk's length) "
+                f"[steps], got {self.safety_proposal_blend!r}"
+            )
+        if self.safety_proposal_blend and not self.safety_route_proposal:
+            raise config_error(
+                f"safety_proposal_blend={self.safety_proposal_blend} blends route pursuit's proposal; "
+                "it needs safety_route_proposal=true"
             )
         if isinstance(self.safety_coherence, bool) or not (
             isinstance(self.safety_coherence, (int, float)) and 0 <= self.safety_coherence < math.inf

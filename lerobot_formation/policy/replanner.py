@@ -17,7 +17,8 @@ actions ran) or whose last action the filter changed replans first:
 4. choice: with K > 1 the one scorer, ``core.safety.select_chunk`` (no predicted contact of the whole
    formation's footprint with the observed obstacles, then cost-to-go progress; escape manoeuvres
    when nothing sampled is safe); with K = 1 the sample. A "nearest+route" policy may add route
-   pursuit's chunk from its route hint to the candidates (``safety_route_proposal``) and have every
+   pursuit's chunk from its route hint to the candidates (``safety_route_proposal``; with
+   ``safety_proposal_blend`` it enters from the last executed action) and have every
    candidate followed by route pursuit in the check (``safety_route_lookahead``); with
    ``safety_coherence`` the scorer prefers the safe candidate closest to the rest of the plan it
    replaces (``warm_start_guess`` of it from the current step), unless the filter cut that plan short;
@@ -240,12 +241,13 @@ class Replanner:
     @property
     def knows_actuator(self) -> bool:
         """Whether the config gives the actuator's delay or rate limits (``SafetyView.start``)."""
+        return bool(self.config.safety_action_delay or self.knows_rate_limits)
+
+    @property
+    def knows_rate_limits(self) -> bool:
+        """Whether the config gives the actuator's rate limits (it then ramps a step in [v, omega])."""
         cfg = self.config
-        return bool(
-            cfg.safety_action_delay
-            or cfg.safety_max_linear_accel is not None
-            or cfg.safety_max_angular_accel is not None
-        )
+        return cfg.safety_max_linear_accel is not None or cfg.safety_max_angular_accel is not None
 
     @property
     def knows_noise(self) -> bool:
@@ -414,7 +416,8 @@ class Replanner:
         """Best-of-K (``core.safety.select_chunk``) with this config: ``seen`` a ``SafetyView`` or a raw
         egocentric observation (B, D) (``observed_obstacles``), chunks (B, K, T, 2) in m/s and rad/s
         -> kept chunks (B, T, 2), info. With blending and the last executed actions (B, 2) [m/s,
-        rad/s], the escape manoeuvres are blended into them as the sampled chunks were. ``previous``
+        rad/s], the escape manoeuvres are blended into them as the sampled chunks were, and with
+        ``safety_proposal_blend`` route pursuit's proposal (where ``has_last``, default everywhere). ``previous``
         (B, n, 2) [m/s, rad/s]: the plan being replaced, from now on, kept to where ``keep_to`` (B,)
         (default: everywhere) by the ``safety_coherence`` preference; None: no such preference."""
         view = self._as_view(seen)
@@ -426,6 +429,10 @@ class Replanner:
         K = chunks.shape[1]
         if cfg.safety_route_proposal:  # route pursuit's chunk competes with the sampled ones
             proposal = pursuit_chunk(view.route, view.goal, chunks.shape[2], dt, cfg.action_high[1])
+            if cfg.safety_proposal_blend and last_action is not None and not self.knows_rate_limits:
+                # enter from the running command (a rate-limited actuator ramps the step by itself)
+                had = np.ones(len(proposal), bool) if has_last is None else np.asarray(has_last)
+                proposal = blend_replan(proposal, np.asarray(last_action), had, cfg.safety_proposal_blend)
             chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
         continuation = None
         if cfg.safety_route_lookahead:  # route pursuit from each candidate's end pose (B, P, 3)

@@ -258,6 +258,53 @@ def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
         nearest_config(safety_route_proposal=True)
 
 
+def test_route_proposal_blending_enters_from_the_executed_action():
+    """With ``safety_proposal_blend`` m route pursuit's proposal starts from the last executed action
+    (``core.replan_blend``): its first action lies 1 / (m + 1) of the step from it, its actions from the
+    m-th on are unchanged; without a last action (an episode's first chunk), or with a rate-limited
+    actuator, it is left as computed."""
+    inputs, outputs = formation_features(env_dim=55)
+    kw = dict(
+        input_features=inputs,
+        output_features=outputs,
+        obstacle_encoding="nearest+route",
+        safety_route_proposal=True,
+    )
+    obs = np.array([[[0.5, 1.2, 0.3], [-0.5, 1.2, 0.3]]])
+    pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
+    env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
+    chunks = np.tile([0.6, 0.0], (1, 3, HORIZON, 1))  # every sample drives into the obstacles
+    last = np.array([[0.1, 0.0]])
+    plain, _ = FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.choose_raw(env, chunks)
+    policy = FormationDiffusionPolicy(nearest_config(safety_proposal_blend=3, **kw)).eval()
+    kept, info = policy.replanner.choose_raw(env, chunks, last, np.array([True]))
+    assert info["proposal_kept"][0]
+    np.testing.assert_allclose(kept[0, 0], plain[0, 0] + 0.75 * (last[0] - plain[0, 0]))
+    np.testing.assert_allclose(kept[0, 3:], plain[0, 3:])
+    first, _ = policy.replanner.choose_raw(env, chunks, last, np.array([False]))
+    np.testing.assert_allclose(first, plain)
+    # a rate-limited actuator ramps the step itself: the proposal is left as computed
+    limited = FormationDiffusionPolicy(
+        nearest_config(safety_proposal_blend=3, safety_max_linear_accel=0.5, **kw)
+    ).eval()
+    as_computed, _ = limited.replanner.choose_raw(env, chunks, last, np.array([True]))
+    np.testing.assert_allclose(as_computed, plain)
+
+
+def test_proposal_blend_is_checked_with_its_value():
+    inputs, outputs = formation_features(env_dim=55)
+    kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
+    length = HORIZON - N_OBS + 1
+    for bad in (-1, length + 1, 2.5, True):
+        with pytest.raises(ValueError, match=rf"safety_proposal_blend must be an integer in \[0, {length}\]"):
+            nearest_config(safety_route_proposal=True, safety_proposal_blend=bad, **kw)
+    with pytest.raises(ValueError, match="safety_proposal_blend=4 .*needs safety_route_proposal=true"):
+        nearest_config(safety_proposal_blend=4, **kw)
+    assert (
+        nearest_config(safety_route_proposal=True, safety_proposal_blend=8, **kw).safety_proposal_blend == 8
+    )
+
+
 def test_route_lookahead_is_checked_with_its_value():
     inputs, outputs = formation_features(env_dim=55)
     kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")

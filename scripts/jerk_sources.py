@@ -1,0 +1,173 @@
+"""Where a diffusion controller's jerk comes from: the steps next to each kind of replan or filter event.
+
+    python scripts/jerk_sources.py --policy.path pretrained/formation_diffusion_safe --level level3 \
+        --scenes 100 [--seed 5000000] [--proposal-blend M] [--coherence W]
+
+The jerk (``core.metrics``, SPEC) at step t is the third difference of the midpoint position over
+positions t .. t+3, i.e. v_{t+2} - 2 v_{t+1} + v_t of the commands t, t+1 and t+2: a command that
+differs from the one before it at step s shows in the jerk at t = s-2 and s-1. Each jerk value of a
+successful episode is put in the class of the first event, in this order, at its step t+1 or t+2:
+
+- ``filter``: the CBF filter changed the command;
+- ``escape``: a replan kept an escape manoeuvre (nothing sampled was safe);
+- ``proposal``: a replan kept route pursuit's proposal (``safety_route_proposal``);
+- ``replan after a cut``: a replan the filter caused (the plan was cut short);
+- ``replan``: a scheduled replan that kept one of the model's samples;
+- ``none``: none of these (the chunk running on).
+
+One line per class: its share of the steps, its mean jerk and its share of all jerk (pooled over the
+successful episodes' steps), then the summary line of ``scripts/collision_report.py`` (success,
+collisions, timeouts; the mean over episodes of their mean jerk). The events are recorded by a
+``Replanner`` subclass that the bench's controller runs instead of its own; nothing else changes.
+``--proposal-blend`` and ``--coherence`` replace the checkpoint's ``safety_proposal_blend`` and
+``safety_coherence``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+
+from lerobot_formation.core.levels import TUNING_SEED_START  # noqa: E402
+from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
+
+EVENTS = ("filter", "escape", "proposal", "replan_cut", "replan")  # in order of precedence
+CLASSES = ("filter", "escape", "proposal", "replan after a cut", "replan", "none")
+
+
+def jerk_sources(positions: np.ndarray, steps: np.ndarray, events: dict[str, np.ndarray], dt: float):
+    """Per class (``CLASSES``): (number of jerk values, their sum) over episodes.
+
+    ``positions`` (B, T + 1, 2) midpoint positions, ``steps`` (B,) each episode's length (only
+    positions 0 .. steps are read), ``events`` name -> (B, T) bool per step, for every name of
+    ``EVENTS``. The jerk value at step t goes to the first event found at step t+1 or t+2 (module
+    docstring), else to "none"."""
+    count = dict.fromkeys(CLASSES, 0)
+    total = dict.fromkeys(CLASSES, 0.0)
+    for b in range(len(positions)):
+        n = int(steps[b])
+        if n < 3:
+            continue
+        jerk = np.linalg.norm(np.diff(positions[b, : n + 1], n=3, axis=0), axis=-1) / dt**3  # (n - 2,)
+        label = np.full(len(jerk), len(EVENTS))  # index into CLASSES; last: "none"
+        for k in reversed(range(len(EVENTS))):  # the first event in EVENTS wins
+            flag = events[EVENTS[k]][b]
+            near = flag[1 : len(jerk) + 1] | flag[2 : len(jerk) + 2]
+            label[near] = k
+        for k, name in enumerate(CLASSES):
+            count[name] += int(np.sum(label == k))
+            total[name] += float(np.sum(jerk[label == k]))
+    return count, total
+
+
+def event_replanner(base, max_steps: int):
+    """An instance of a ``Replanner`` subclass built like ``base`` that records, per episode and step,
+    the events of ``EVENTS`` in ``.events`` (name -> (B, max_steps) bool); B from its first ``act``."""
+    import torch
+
+    from lerobot_formation.policy.replanner import Replanner
+
+    class EventReplanner(Replanner):
+        def reset(self, batch_size=None, device="cpu"):
+            super().reset(batch_size, device)
+            self.step, self.events = -1, None
+
+        def act(self, env_now, history, rows=None, noise=None):
+            rows = torch.arange(len(env_now)) if rows is None else rows
+            if self.events is None:
+                B = len(env_now) if self.plan is None else len(self.plan)
+                self.events = {name: np.zeros((B, max_steps + 2), bool) for name in EVENTS}
+            self.step += 1
+            self._rows = rows.cpu().numpy()
+            return super().act(env_now, history, rows, noise)
+
+        def _replan(self, need, view, stacked, noise):
+            idx = need.cpu().numpy()
+            cut = (self.has_last[need] & (self.executed[need] < self.config.n_action_steps)).cpu().numpy()
+            self._need = idx
+            self.events["replan"][idx, self.step] = ~cut
+            self.events["replan_cut"][idx, self.step] = cut
+            super()._replan(need, view, stacked, noise)
+
+        def choose(self, *args, **kwargs):
+            chosen, info = super().choose(*args, **kwargs)
+            self.events["escape"][self._need, self.step] = info["escaped"]
+            self.events["proposal"][self._need, self.step] = info["proposal_kept"]
+            return chosen, info
+
+        def filter(self, view, action):
+            filtered, changed = super().filter(view, action)
+            self.events["filter"][self._rows, self.step] = changed
+            return filtered, changed
+
+    out = EventReplanner(base.policy, base.config, base.experiment)
+    out.step, out.events = -1, None
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--policy.path", dest="policy_path", required=True)
+    ap.add_argument("--level", required=True, help="level0 .. level5")
+    ap.add_argument("--scenes", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
+    ap.add_argument("--candidates", type=int, default=10)
+    ap.add_argument("--proposal-blend", type=int, default=None)
+    ap.add_argument("--coherence", type=float, default=None)
+    ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
+    add_threads_argument(ap, "torch threads")
+    args = ap.parse_args(argv)
+    apply_threads(args.threads)
+
+    from lerobot_formation.bench.controllers import make_controller
+    from lerobot_formation.bench.scene_sets import level_scenes
+    from lerobot_formation.bench.settings import ControllerOptions
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.metrics import episode_metrics
+    from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
+
+    level = get_level(args.level)
+    overrides = {}
+    if args.proposal_blend is not None:
+        overrides["safety_proposal_blend"] = args.proposal_blend
+    if args.coherence is not None:
+        overrides["safety_coherence"] = args.coherence
+    params = FormationParams()
+    options = ControllerOptions(
+        policy_path=args.policy_path,
+        candidates=args.candidates,
+        conditions=level.conditions,
+        overrides=overrides,
+    )
+    controller = make_controller("diffusion-safe", params, options)
+    max_steps = args.max_steps or params.max_steps
+    controller.replanner = event_replanner(controller.replanner, max_steps)
+    scenes = level_scenes(level.name, args.scenes, seed=args.seed)
+    rec = rollout(scenes, controller, params, max_steps=max_steps, conditions=level.conditions)
+    ok = rec.outcome == SUCCESS
+    events = {name: flags[ok] for name, flags in controller.replanner.events.items()}
+    count, total = jerk_sources(rec.poses[ok, :, :2], rec.steps[ok], events, params.dt)
+    steps, jerk = sum(count.values()), sum(total.values())
+    for name in CLASSES:
+        mean = total[name] / count[name] if count[name] else float("nan")
+        print(
+            f"{name:<19} {100 * count[name] / max(steps, 1):5.1f} % of the steps, mean jerk {mean:6.3f}, "
+            f"{100 * total[name] / max(jerk, 1e-12):5.1f} % of the jerk"
+        )
+    per = episode_metrics(rec, scenes.start, scenes.goal)
+    motion = f"jerk {np.mean(per['jerk'][ok]):.3f}" if ok.any() else "no successful episode"
+    print(
+        f"diffusion-safe on {level.name} ({len(scenes)} scenes from seed {args.seed}): success "
+        f"{100 * np.mean(ok):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
+        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {motion}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
