@@ -128,6 +128,17 @@ def test_with_plugin_names_the_lerobot_scripts_it_takes(capsys):
     assert "got 'lerobot-nope'" in err and "lerobot-edit-dataset" in err and "\n" == err[-1]
 
 
+def test_the_demo_runs_the_shipped_default_against_the_baselines():
+    """The README's main job finds the repository's pretrained default (it once looked one folder too
+    high after a move and silently ran PAC and MPPI only)."""
+    from lerobot_formation.bench import demo
+
+    defaults = demo.default_arguments()
+    assert defaults[defaults.index("--controllers") + 1] == "pac,mppi,diffusion,diffusion-bestof"
+    path = Path(defaults[defaults.index("--policy.path") + 1])
+    assert (path / "config.json").is_file() and (path / "model.safetensors").is_file()
+
+
 def test_the_demo_lists_its_figures_once_and_names_its_sets(tmp_path, capsys):
     from lerobot_formation.bench.demo import main as demo_main
 
@@ -136,6 +147,7 @@ def test_the_demo_lists_its_figures_once_and_names_its_sets(tmp_path, capsys):
     assert demo_main(argv + ["--no-progress"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert "both sets are unseen" in lines[0] and "random:2" in lines[0] and "hard:4" in lines[0]
+    assert "scene seeds from 1000000 on" in lines[0]
     assert any(line.startswith("[random:2] pac: success") for line in lines)
     figure_lines = [line for line in lines if "pac_random_trajectories.png" in line]
     assert len(figure_lines) == 1, lines

@@ -310,7 +310,13 @@ def test_the_flag_check_catches_what_a_program_refuses():
         assert check_command(cmd), line
 
 
-TOP_LEVEL = {p.name for p in REPO.iterdir() if not p.name.startswith(".") or p.name == ".ci"}
+# what the repository holds at its root, not what running it writes there (.gitignore's folders)
+WRITTEN_BY_RUNS = {"outputs", "data", "logs", "hub_folder"}
+TOP_LEVEL = {
+    p.name
+    for p in REPO.iterdir()
+    if (not p.name.startswith(".") or p.name == ".ci") and p.name not in WRITTEN_BY_RUNS
+}
 SUBPACKAGES = {
     p.name for p in (REPO / "lerobot_formation").iterdir() if p.is_dir() and p.name != "__pycache__"
 }

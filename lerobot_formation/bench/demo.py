@@ -12,27 +12,36 @@ from pathlib import Path
 
 from lerobot_formation.bench.cli import build_parser
 from lerobot_formation.bench.cli import main as bench_main
+from lerobot_formation.core.scene import UNSEEN_SEED_START
 
-PRETRAINED = Path(__file__).resolve().parent.parent / "pretrained" / "formation_diffusion_safe"
+# the repository root's pretrained/ (this file is lerobot_formation/bench/demo.py)
+PRETRAINED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_safe"
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if PRETRAINED.is_dir():
-        defaults = [
+def default_arguments() -> list[str]:
+    """The bench arguments of the demo: the default against PAC and MPPI; only PAC and MPPI when the
+    checkpoint folder is missing (an installed package without the repository)."""
+    if (PRETRAINED / "config.json").is_file():
+        return [
             "--controllers", "pac,mppi,diffusion,diffusion-bestof",
             "--policy.path", str(PRETRAINED),
             "--scenes", "random:50",
             "--unseen", "hard:20",
             "--out", "outputs/demo",
         ]  # fmt: skip
-    else:
-        defaults = ["--controllers", "pac,mppi", "--scenes", "random:100", "--out", "outputs/demo"]
+    print(f"demo: no pretrained default at {PRETRAINED}; running PAC and MPPI only")
+    return ["--controllers", "pac,mppi", "--scenes", "random:100", "--out", "outputs/demo"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    defaults = default_arguments()
     args = build_parser().parse_args(defaults + argv)
     if args.unseen:  # say what the two sets are: both unseen, the second the hard suite
         print(
             f"demo: {args.controllers} on {args.scenes}, then the diffusion controllers on {args.unseen}; "
-            f"scene seeds from {args.seed} on, which no training dataset uses (both sets are unseen)"
+            f"scene seeds from {UNSEEN_SEED_START if args.seed is None else args.seed} on, which no "
+            "training dataset uses (both sets are unseen)"
         )
     start = time.time()
     code = bench_main(defaults + argv)
