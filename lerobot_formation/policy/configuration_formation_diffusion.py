@@ -130,7 +130,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             continuous controller it comes from would move (a proposal computed from the hint alone
             starts with a step in [v, omega]). Not with a rate-limited actuator
             (``safety_max_linear_accel`` / ``safety_max_angular_accel``), which ramps that step by
-            itself. 0 (default): the proposal as computed.
+            itself, nor without the proposal (``safety_route_proposal=false`` turns both off).
+            0 (default): the proposal as computed.
         safety_coherence: w >= 0 [m]. With w > 0 best-of-K prefers, among the safe candidates, the
             one closest to the rest of the plan it replaces: a candidate whose first
             ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
@@ -356,11 +357,6 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"safety_proposal_blend must be an integer in [0, {chunk_length}] (the chunk's length) "
                 f"[steps], got {self.safety_proposal_blend!r}"
-            )
-        if self.safety_proposal_blend and not self.safety_route_proposal:
-            raise config_error(
-                f"safety_proposal_blend={self.safety_proposal_blend} blends route pursuit's proposal; "
-                "it needs safety_route_proposal=true"
             )
         if isinstance(self.safety_coherence, bool) or not (
             isinstance(self.safety_coherence, (int, float)) and 0 <= self.safety_coherence < math.inf
