@@ -350,12 +350,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"safety_route_lookahead must be an integer >= 0 [steps], got {self.safety_route_lookahead!r}"
             )
-        chunk_length = self.horizon - self.n_obs_steps + 1
         if isinstance(self.safety_proposal_blend, bool) or not (
-            isinstance(self.safety_proposal_blend, int) and 0 <= self.safety_proposal_blend <= chunk_length
+            isinstance(self.safety_proposal_blend, int)
+            and 0 <= self.safety_proposal_blend <= max_action_steps
         ):
             raise config_error(
-                f"safety_proposal_blend must be an integer in [0, {chunk_length}] (the chunk's length) "
+                f"safety_proposal_blend must be an integer in [0, {max_action_steps}] (the chunk's length) "
                 f"[steps], got {self.safety_proposal_blend!r}"
             )
         if isinstance(self.safety_coherence, bool) or not (
