@@ -13,11 +13,11 @@ before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles m
 ``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``
 (``off`` and 0: the layer before 2026-12-04 night), ``--coherence`` its ``safety_coherence`` (0: the
 layer before 2026-12-04 late), ``--proposal-blend`` its ``safety_proposal_blend`` (0: the layer before
-2026-12-05). One
+2026-12-05); these flags are ``bench.level_report``'s, shared with ``scripts/jerk_sources.py``. One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's
-nearest (the ``nearest`` encoding observes 12). The last line is the summary: success %,
+nearest (the ``nearest`` encoding observes 12). The last line is the summary (``bench.level_report``): success %,
 collisions, timeouts, and how many collisions came after the team was already within 2 cm of an
 obstacle in the 10 steps before (grazes, not run-ins), how many were with a moving obstacle (its
 line gives that obstacle's speed over the last step and the part of it towards the agent it hit), and
@@ -34,7 +34,6 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
 
-from lerobot_formation.core.levels import TUNING_SEED_START  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 
@@ -80,85 +79,35 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from lerobot_formation.bench import level_report
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--policy.path", dest="policy_path", default=None, help="for the diffusion controllers")
-    ap.add_argument("--level", required=True, help="level0 .. level5")
-    ap.add_argument("--scenes", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
+    level_report.add_arguments(ap)
     ap.add_argument("--controller", default="diffusion-safe")
-    ap.add_argument("--candidates", type=int, default=10)
-    ap.add_argument("--safety-margin", type=float, default=None)
-    ap.add_argument("--layer-ignores-noise", action="store_true")
-    ap.add_argument("--layer-ignores-motion", action="store_true")
-    ap.add_argument("--route-proposal", choices=("on", "off"), default=None)
-    ap.add_argument(
-        "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
-    )
-    ap.add_argument(
-        "--coherence", type=float, default=None, help="best-of-K's weight on keeping to the plan [m]"
-    )
-    ap.add_argument(
-        "--proposal-blend",
-        type=int,
-        default=None,
-        help="steps over which route pursuit's proposal is blended in",
-    )
-    ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
     add_threads_argument(ap, "torch threads")
     args = ap.parse_args(argv)
     apply_threads(args.threads)
-
-    from lerobot_formation.bench.controllers import make_controller, needs_policy
-    from lerobot_formation.bench.scene_sets import level_scenes
-    from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.levels import get_level
-    from lerobot_formation.core.metrics import episode_metrics
-    from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
-
-    level = get_level(args.level)  # a bad name: ValueError naming the choices
-    if needs_policy(args.controller) and not args.policy_path:
-        ap.error(f"--controller {args.controller} needs --policy.path")
-    overrides = {}
-    if args.safety_margin is not None:
-        overrides["safety_margin"] = args.safety_margin
-    if args.layer_ignores_noise:
-        overrides.update(safety_obstacle_noise=0.0, safety_pose_noise=0.0)
-    if args.layer_ignores_motion:
-        overrides["safety_moving_obstacles"] = False
-    if args.route_proposal is not None:
-        overrides["safety_route_proposal"] = args.route_proposal == "on"
-    if args.route_lookahead is not None:
-        overrides["safety_route_lookahead"] = args.route_lookahead
-    if args.coherence is not None:
-        overrides["safety_coherence"] = args.coherence
-    if args.proposal_blend is not None:
-        overrides["safety_proposal_blend"] = args.proposal_blend
-    params = FormationParams()
-    options = ControllerOptions(
-        policy_path=args.policy_path,
-        candidates=args.candidates,
-        conditions=level.conditions,
-        overrides=overrides,
-    )
-    controller = make_controller(args.controller, params, options)
-    scenes = level_scenes(level.name, args.scenes, seed=args.seed)
-    rec = rollout(scenes, controller, params, max_steps=args.max_steps, conditions=level.conditions)
-    lines, dwelt, movers = collision_lines(rec, scenes, params)
-    print("\n".join(lines))
-    n = len(scenes)
-    ok = rec.outcome == SUCCESS
-    per = episode_metrics(rec, scenes.start, scenes.goal)
-    motion = "no successful episode"
-    if ok.any():
-        motion = (
-            f"jerk {np.mean(per['jerk'][ok]):.3f}, smoothness {np.mean(per['control_smoothness'][ok]):.3f}"
+    try:
+        run = level_report.run_level(
+            args.controller,
+            args.level,
+            args.scenes,
+            seed=args.seed,
+            policy_path=args.policy_path,
+            candidates=args.candidates,
+            overrides=level_report.safety_overrides(
+                **{k: getattr(args, k) for k in level_report.SAFETY_FLAGS}
+            ),
+            max_steps=args.max_steps,
         )
+    except ValueError as e:  # a bad level name, a missing checkpoint path
+        ap.error(str(e))
+    lines, dwelt, movers = collision_lines(run.records, run.scenes, run.params)
+    print("\n".join(lines))
     print(
-        f"{args.controller} on {level.name} ({n} scenes from seed {args.seed}): success "
-        f"{100 * np.mean(ok):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
-        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {dwelt} collisions within 2 cm already in the 10 steps "
-        f"before; {movers} with a moving obstacle; {motion}"
+        run.summary(
+            f"{dwelt} collisions within 2 cm already in the 10 steps before; {movers} with a moving obstacle"
+        )
     )
     return 0
 

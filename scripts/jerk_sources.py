@@ -1,7 +1,7 @@
 """Where a diffusion controller's jerk comes from: the steps next to each kind of replan or filter event.
 
     python scripts/jerk_sources.py --policy.path pretrained/formation_diffusion_safe --level level3 \
-        --scenes 100 [--seed 5000000] [--proposal-blend M] [--coherence W]
+        --scenes 100 [--seed 5000000] [--proposal-blend M] [--coherence W] [other safety overrides]
 
 The jerk (``core.metrics``, SPEC) at step t is the third difference of the midpoint position over
 positions t .. t+3, i.e. v_{t+2} - 2 v_{t+1} + v_t of the commands t, t+1 and t+2: a command that
@@ -16,11 +16,12 @@ successful episode is put in the class of the first event, in this order, at its
 - ``none``: none of these (the chunk running on).
 
 One line per class: its share of the steps, its mean jerk and its share of all jerk (pooled over the
-successful episodes' steps), then the summary line of ``scripts/collision_report.py`` (success,
-collisions, timeouts; the mean over episodes of their mean jerk). The events are recorded by a
-``Replanner`` subclass that the bench's controller runs instead of its own; nothing else changes.
-``--proposal-blend`` and ``--coherence`` replace the checkpoint's ``safety_proposal_blend`` and
-``safety_coherence``.
+successful episodes' steps), then the summary line of ``bench.level_report`` (success, collisions,
+timeouts; the mean over episodes of their jerk and smoothness), as ``scripts/collision_report.py``
+prints it. The events are recorded by a ``Replanner`` subclass that the bench's controller runs
+instead of its own; nothing else changes. The safety overrides (``--proposal-blend``,
+``--coherence``, ``--route-proposal``, ...) are ``scripts/collision_report.py``'s
+(``bench.level_report.add_arguments``).
 """
 
 from __future__ import annotations
@@ -32,7 +33,6 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
 
-from lerobot_formation.core.levels import TUNING_SEED_START  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 EVENTS = ("filter", "escape", "proposal", "replan_cut", "replan")  # in order of precedence
@@ -110,48 +110,34 @@ def event_replanner(base, max_steps: int):
 
 
 def main(argv: list[str] | None = None) -> int:
+    from lerobot_formation.bench import level_report
+    from lerobot_formation.core.rollout import SUCCESS
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--policy.path", dest="policy_path", required=True)
-    ap.add_argument("--level", required=True, help="level0 .. level5")
-    ap.add_argument("--scenes", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
-    ap.add_argument("--candidates", type=int, default=10)
-    ap.add_argument("--proposal-blend", type=int, default=None)
-    ap.add_argument("--coherence", type=float, default=None)
-    ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
+    level_report.add_arguments(ap, policy_required=True)
     add_threads_argument(ap, "torch threads")
     args = ap.parse_args(argv)
     apply_threads(args.threads)
-
-    from lerobot_formation.bench.controllers import make_controller
-    from lerobot_formation.bench.scene_sets import level_scenes
-    from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.levels import get_level
-    from lerobot_formation.core.metrics import episode_metrics
-    from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
-
-    level = get_level(args.level)
-    overrides = {}
-    if args.proposal_blend is not None:
-        overrides["safety_proposal_blend"] = args.proposal_blend
-    if args.coherence is not None:
-        overrides["safety_coherence"] = args.coherence
-    params = FormationParams()
-    options = ControllerOptions(
-        policy_path=args.policy_path,
-        candidates=args.candidates,
-        conditions=level.conditions,
-        overrides=overrides,
-    )
-    controller = make_controller("diffusion-safe", params, options)
-    max_steps = args.max_steps or params.max_steps
-    controller.replanner = event_replanner(controller.replanner, max_steps)
-    scenes = level_scenes(level.name, args.scenes, seed=args.seed)
-    rec = rollout(scenes, controller, params, max_steps=max_steps, conditions=level.conditions)
+    try:
+        run = level_report.run_level(
+            "diffusion-safe",
+            args.level,
+            args.scenes,
+            seed=args.seed,
+            policy_path=args.policy_path,
+            candidates=args.candidates,
+            overrides=level_report.safety_overrides(
+                **{k: getattr(args, k) for k in level_report.SAFETY_FLAGS}
+            ),
+            max_steps=args.max_steps,
+            wrap_replanner=event_replanner,
+        )
+    except ValueError as e:  # a bad level name
+        ap.error(str(e))
+    rec = run.records
     ok = rec.outcome == SUCCESS
-    events = {name: flags[ok] for name, flags in controller.replanner.events.items()}
-    count, total = jerk_sources(rec.poses[ok, :, :2], rec.steps[ok], events, params.dt)
+    events = {name: flags[ok] for name, flags in run.controller.replanner.events.items()}
+    count, total = jerk_sources(rec.poses[ok, :, :2], rec.steps[ok], events, run.params.dt)
     steps, jerk = sum(count.values()), sum(total.values())
     for name in CLASSES:
         mean = total[name] / count[name] if count[name] else float("nan")
@@ -159,13 +145,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{name:<19} {100 * count[name] / max(steps, 1):5.1f} % of the steps, mean jerk {mean:6.3f}, "
             f"{100 * total[name] / max(jerk, 1e-12):5.1f} % of the jerk"
         )
-    per = episode_metrics(rec, scenes.start, scenes.goal)
-    motion = f"jerk {np.mean(per['jerk'][ok]):.3f}" if ok.any() else "no successful episode"
-    print(
-        f"diffusion-safe on {level.name} ({len(scenes)} scenes from seed {args.seed}): success "
-        f"{100 * np.mean(ok):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
-        f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {motion}"
-    )
+    print(run.summary())
     return 0
 
 

@@ -78,9 +78,16 @@ def test_a_mover_that_runs_into_a_standing_team_is_named():
     )
 
 
-def test_a_bad_level_names_the_value():
-    with pytest.raises(ValueError, match="level9"):
+def test_a_bad_level_names_the_value(capsys):
+    with pytest.raises(SystemExit):
         _script().main(["--policy.path", "nowhere", "--level", "level9"])
+    assert "level9" in capsys.readouterr().err
+
+
+def test_a_diffusion_controller_without_a_checkpoint_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        _script().main(["--level", "level0"])
+    assert "needs a policy path" in capsys.readouterr().err
 
 
 def test_summary_line_gives_outcomes_and_the_successes_motion(capsys):

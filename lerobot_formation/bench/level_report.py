@@ -1,0 +1,167 @@
+"""One controller on one level's scenes, for the per-level report scripts (``scripts/collision_report.py``,
+``scripts/jerk_sources.py``): the safety layer's setting overrides as command-line flags, the run, and
+the summary line both print.
+
+``run_level`` and ``safety_overrides`` are the library calls (typed arguments); ``add_arguments`` adds
+the scripts' shared flags, whose destinations are ``run_level``'s and ``safety_overrides``' own
+parameter names (``SAFETY_FLAGS``), so a script passes them on by name.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_formation.core.levels import TUNING_SEED_START
+
+
+@dataclass
+class LevelRun:
+    """What ``run_level`` ran and recorded: the controller (its replanner, if any, holds the safety
+    layer's counts), the scenes, the records (``core.rollout.EpisodeRecords``) and the formation's
+    parameters."""
+
+    name: str
+    level: str
+    seed: int
+    controller: object
+    scenes: object
+    records: object
+    params: object
+
+    def summary(self, detail: str = "") -> str:
+        """success %, collisions, timeouts, ``detail`` (a caller's counts), and the mean jerk and
+        control smoothness over the successful episodes (``core.metrics``)."""
+        from lerobot_formation.core.metrics import episode_metrics
+        from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT
+
+        rec = self.records
+        ok = rec.outcome == SUCCESS
+        motion = "no successful episode"
+        if ok.any():
+            per = episode_metrics(rec, self.scenes.start, self.scenes.goal)
+            motion = f"jerk {np.mean(per['jerk'][ok]):.3f}, smoothness {np.mean(per['control_smoothness'][ok]):.3f}"
+        return (
+            f"{self.name} on {self.level} ({len(ok)} scenes from seed {self.seed}): success "
+            f"{100 * np.mean(ok):.1f} %, collisions {int(np.sum(rec.outcome == COLLISION))}, "
+            f"timeouts {int(np.sum(rec.outcome == TIMEOUT))}; {detail + '; ' if detail else ''}{motion}"
+        )
+
+
+def run_level(
+    controller_name: str,
+    level_name: str,
+    scenes: int,
+    seed: int = TUNING_SEED_START,
+    policy_path: str | None = None,
+    candidates: int = 10,
+    overrides: dict | None = None,
+    max_steps: int | None = None,
+    wrap_replanner=None,
+) -> LevelRun:
+    """Run the bench's controller ``controller_name`` (``bench.controllers.make_controller``, the
+    safety layer told the level's conditions as the bench tells it) on ``scenes`` scenes of level
+    ``level_name`` from ``seed``, under the level's conditions. ``overrides``: policy config fields
+    (``safety_overrides``). ``wrap_replanner(replanner, max_steps)``: a replacement for the
+    controller's replanner (e.g. one that records events), built before the run."""
+    from lerobot_formation.bench.controllers import make_controller, needs_policy
+    from lerobot_formation.bench.scene_sets import level_scenes
+    from lerobot_formation.bench.settings import ControllerOptions
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.rollout import rollout
+
+    level = get_level(level_name)  # a bad name: ValueError naming the choices
+    if needs_policy(controller_name) and not policy_path:
+        raise ValueError(f"controller {controller_name!r} needs a policy path, got {policy_path!r}")
+    params = FormationParams()
+    options = ControllerOptions(
+        policy_path=policy_path, candidates=candidates, conditions=level.conditions, overrides=overrides or {}
+    )
+    controller = make_controller(controller_name, params, options)
+    max_steps = max_steps or params.max_steps
+    if wrap_replanner is not None:
+        if getattr(controller, "replanner", None) is None:
+            raise ValueError(f"controller {controller_name!r} has no replanner to record")
+        controller.replanner = wrap_replanner(controller.replanner, max_steps)
+    level_set = level_scenes(level.name, scenes, seed=seed)
+    rec = rollout(level_set, controller, params, max_steps=max_steps, conditions=level.conditions)
+    return LevelRun(controller_name, level.name, seed, controller, level_set, rec, params)
+
+
+SAFETY_FLAGS = (
+    "safety_margin",
+    "layer_ignores_noise",
+    "layer_ignores_motion",
+    "route_proposal",
+    "route_lookahead",
+    "coherence",
+    "proposal_blend",
+)
+
+
+def safety_overrides(
+    safety_margin: float | None = None,
+    layer_ignores_noise: bool = False,
+    layer_ignores_motion: bool = False,
+    route_proposal: bool | None = None,
+    route_lookahead: int | None = None,
+    coherence: float | None = None,
+    proposal_blend: int | None = None,
+) -> dict:
+    """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
+    ``safety_margin``; ``layer_ignores_noise``: the layer is not told the sensing noise (no smoothing,
+    the layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
+    ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: the layer before 2026-12-04
+    night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
+    2026-12-05)."""
+    out = {}
+    if safety_margin is not None:
+        out["safety_margin"] = safety_margin
+    if layer_ignores_noise:
+        out.update(safety_obstacle_noise=0.0, safety_pose_noise=0.0)
+    if layer_ignores_motion:
+        out["safety_moving_obstacles"] = False
+    if route_proposal is not None:
+        out["safety_route_proposal"] = route_proposal
+    if route_lookahead is not None:
+        out["safety_route_lookahead"] = route_lookahead
+    if coherence is not None:
+        out["safety_coherence"] = coherence
+    if proposal_blend is not None:
+        out["safety_proposal_blend"] = proposal_blend
+    return out
+
+
+def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) -> None:
+    """The report scripts' shared flags: the checkpoint, the level and its scenes, K, the safety
+    overrides (destinations ``SAFETY_FLAGS``, ``safety_overrides``' parameters) and the episode length."""
+    ap.add_argument(
+        "--policy.path", dest="policy_path", default=None, required=policy_required, help="the checkpoint"
+    )
+    ap.add_argument("--level", required=True, help="level0 .. level5")
+    ap.add_argument("--scenes", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
+    ap.add_argument("--candidates", type=int, default=10)
+    ap.add_argument("--safety-margin", type=float, default=None)
+    ap.add_argument("--layer-ignores-noise", action="store_true")
+    ap.add_argument("--layer-ignores-motion", action="store_true")
+    ap.add_argument(
+        "--route-proposal", type=lambda text: {"on": True, "off": False}.get(text, text), choices=(True, False),
+        default=None, metavar="{on,off}",
+    )  # fmt: skip
+    ap.add_argument(
+        "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
+    )
+    ap.add_argument(
+        "--coherence", type=float, default=None, help="best-of-K's weight on keeping to the plan [m]"
+    )
+    ap.add_argument(
+        "--proposal-blend",
+        type=int,
+        default=None,
+        help="steps over which route pursuit's proposal is blended in",
+    )
+    ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

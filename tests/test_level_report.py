@@ -1,0 +1,65 @@
+"""bench.level_report: the report scripts' shared flags, overrides and run."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from lerobot_formation.bench import level_report
+
+
+def _parse(*flags: str) -> argparse.Namespace:
+    ap = argparse.ArgumentParser()
+    level_report.add_arguments(ap)
+    return ap.parse_args(["--level", "level0", *flags])
+
+
+def _overrides(args: argparse.Namespace) -> dict:
+    return level_report.safety_overrides(**{k: getattr(args, k) for k in level_report.SAFETY_FLAGS})
+
+
+def test_a_bad_route_proposal_value_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        _parse("--route-proposal", "maybe")
+    assert "maybe" in capsys.readouterr().err
+
+
+def test_no_flag_keeps_the_checkpoints_settings():
+    assert _overrides(_parse()) == {}
+
+
+def test_each_flag_names_its_config_field():
+    args = _parse(
+        "--safety-margin", "0.11", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
+        "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0",
+    )  # fmt: skip
+    assert _overrides(args) == {
+        "safety_margin": 0.11,
+        "safety_obstacle_noise": 0.0,
+        "safety_pose_noise": 0.0,
+        "safety_moving_obstacles": False,
+        "safety_route_proposal": False,
+        "safety_route_lookahead": 0,
+        "safety_coherence": 0.0,
+        "safety_proposal_blend": 0,
+    }
+    assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
+
+
+def test_bad_inputs_name_the_value():
+    with pytest.raises(ValueError, match="level9"):
+        level_report.run_level("pac", "level9", 1)
+    with pytest.raises(ValueError, match="needs a policy path"):
+        level_report.run_level("diffusion-safe", "level0", 1)
+    with pytest.raises(ValueError, match="no replanner"):
+        level_report.run_level("pac", "level0", 1, wrap_replanner=lambda replanner, steps: replanner)
+
+
+def test_a_run_is_the_levels_scenes_under_its_conditions_and_its_summary_counts_them():
+    run = level_report.run_level("pac", "level4", 2, seed=5_000_000, max_steps=30)
+    assert run.level == "level4" and len(run.records.outcome) == 2
+    assert run.scenes.seeds.tolist() == [5_000_000, 5_000_001]
+    summary = run.summary("3 of something")
+    assert summary.startswith("pac on level4 (2 scenes from seed 5000000): success 0.0 %, collisions 0")
+    assert summary.endswith("timeouts 2; 3 of something; no successful episode")
