@@ -28,6 +28,7 @@ def _script(relpath: str):
             "benchmarks/bench_demo_time.py",
             ["--quick", "--threads N", "--load", "--via-run-sh", "-- DEMO ARGS"],
         ),
+        ("benchmarks/bench_unet_backends.py", ["--batch", "--repeats", "--threads N", "--policy.path"]),
         (
             "benchmarks/bench_sampling_steps.py",
             ["--quick", "--threads N", "--steps", "--scenes", "--controller", "--inference-backend", "--out"]
@@ -156,3 +157,16 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
     assert all(delay == 1 and moving for delay, moving, _ in seen), seen
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
+
+
+def test_unet_flops_counts_two_per_multiply_add():
+    import torch
+
+    m = _script("benchmarks/bench_unet_backends.py")
+    net = torch.nn.Sequential(
+        torch.nn.Conv1d(3, 4, 5, padding=2), torch.nn.Flatten(), torch.nn.Linear(4 * 16, 2)
+    )
+    x = torch.zeros(2, 3, 16)
+    conv = 2 * (2 * 4 * 16) * 3 * 5  # outputs x inputs per output
+    linear = 2 * (2 * 2) * 64
+    assert m.unet_flops(net, (x,)) == conv + linear
