@@ -3,11 +3,12 @@ and how long the team had already been that close.
 
     python scripts/collision_report.py --policy.path pretrained/formation_diffusion_safe \
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
-        [--safety-margin 0.11] [--layer-ignores-noise] [--layer-ignores-motion] \
+        [--safety-margin 0.11] [--follower-margin 0.03] [--layer-ignores-noise] [--layer-ignores-motion] \
         [--route-proposal on|off] [--route-lookahead N] [--coherence W] [--proposal-blend M]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
-level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin,
+level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin
+(``--follower-margin`` its ``safety_follower_margin``),
 ``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing: the layer
 before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
 ``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``

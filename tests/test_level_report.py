@@ -31,11 +31,12 @@ def test_no_flag_keeps_the_checkpoints_settings():
 
 def test_each_flag_names_its_config_field():
     args = _parse(
-        "--safety-margin", "0.11", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
+        "--safety-margin", "0.11", "--follower-margin", "0.03", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
         "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
+        "safety_follower_margin": 0.03,
         "safety_obstacle_noise": 0.0,
         "safety_pose_noise": 0.0,
         "safety_moving_obstacles": False,

@@ -93,6 +93,7 @@ def run_level(
 
 SAFETY_FLAGS = (
     "safety_margin",
+    "follower_margin",
     "layer_ignores_noise",
     "layer_ignores_motion",
     "route_proposal",
@@ -104,6 +105,7 @@ SAFETY_FLAGS = (
 
 def safety_overrides(
     safety_margin: float | None = None,
+    follower_margin: float | None = None,
     layer_ignores_noise: bool = False,
     layer_ignores_motion: bool = False,
     route_proposal: bool | None = None,
@@ -112,7 +114,7 @@ def safety_overrides(
     proposal_blend: int | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
-    ``safety_margin``; ``layer_ignores_noise``: the layer is not told the sensing noise (no smoothing,
+    ``safety_margin``, ``safety_follower_margin``; ``layer_ignores_noise``: the layer is not told the sensing noise (no smoothing,
     the layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
     ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: the layer before 2026-12-04
     night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
@@ -120,6 +122,8 @@ def safety_overrides(
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
+    if follower_margin is not None:
+        out["safety_follower_margin"] = follower_margin
     if layer_ignores_noise:
         out.update(safety_obstacle_noise=0.0, safety_pose_noise=0.0)
     if layer_ignores_motion:
@@ -146,6 +150,12 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
     ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
     ap.add_argument("--candidates", type=int, default=10)
     ap.add_argument("--safety-margin", type=float, default=None)
+    ap.add_argument(
+        "--follower-margin",
+        type=float,
+        default=None,
+        help="the followers' clearance on top of the margin [m]",
+    )
     ap.add_argument("--layer-ignores-noise", action="store_true")
     ap.add_argument("--layer-ignores-motion", action="store_true")
     ap.add_argument(

@@ -21,10 +21,16 @@ __all__ = ["rollout_poses", "sequence_clearance", "template_clearance"]
 
 
 def template_clearance(
-    poses: np.ndarray, obstacles: np.ndarray, template: np.ndarray, agent_radius: float, dtype=np.float64
+    poses: np.ndarray,
+    obstacles: np.ndarray,
+    template: np.ndarray,
+    agent_radius: float | np.ndarray,
+    dtype=np.float64,
 ) -> np.ndarray:
     """Smallest agent-disc clearance of the rigid formation template placed at midpoint poses
     (B, ..., 3), obstacles (B, M, 3) -> (B, ...) float64: ``body_to_world`` + ``xy_clearance``.
+    ``agent_radius``: one radius, or one per template agent (N,) (e.g. the safety layer's followers
+    with an allowance for how far they lag their slots).
 
     The one footprint check of PAC's governor, MPPI's cost and candidate scoring (``dtype=np.float32``:
     MPPI's fast path).
@@ -33,8 +39,20 @@ def template_clearance(
     x, y, phi = (poses[..., k].reshape(B, -1) for k in range(3))  # (B, P)
     column = (-1, 1, 1)  # template agents first: (N, 1, 1) against (B, P)
     ax, ay = body_to_world(template[:, 0].reshape(column), template[:, 1].reshape(column), x, y, phi, dtype)
-    clear = xy_clearance(ax, ay, obstacles, dtype, min_axis=0)  # (B, P), nearest agent
-    return (clear.astype(np.float64, copy=False) - agent_radius).reshape(shape)
+    if np.ndim(agent_radius) == 0:
+        clear = xy_clearance(ax, ay, obstacles, dtype, min_axis=0)  # (B, P), nearest agent
+        return (clear.astype(np.float64, copy=False) - agent_radius).reshape(shape)
+    radius = np.asarray(agent_radius, np.float64)
+    if radius.shape != (len(template),):
+        raise ValueError(
+            f"agent_radius must be a number or one per template agent {len(template)}, got {radius.shape}"
+        )
+    clear = None
+    for r in np.unique(radius):  # the agents of one radius together: as few square roots as above
+        group = radius == r
+        gap = xy_clearance(ax[group], ay[group], obstacles, dtype, min_axis=0).astype(np.float64) - r
+        clear = gap if clear is None else np.minimum(clear, gap)
+    return clear.reshape(shape)
 
 
 def sequence_clearance(
@@ -43,7 +61,7 @@ def sequence_clearance(
     obstacles: np.ndarray,
     template: np.ndarray,
     dt: float,
-    agent_radius: float,
+    agent_radius: float | np.ndarray,
     obstacle_velocity: np.ndarray | None = None,
     start_step: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:

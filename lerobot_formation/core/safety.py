@@ -4,7 +4,8 @@ Everything here works in the midpoint's body frame (x right, y along the heading
 origin, pose ``BODY_POSE``), which is what the egocentric ``nearest`` encoding observes, so the layer
 needs nothing but the policy's own observation: no privileged state. The followers are assumed to sit
 on their square slots (the formation template); they track them within ~0.1 m, which ``margin``
-covers.
+covers, or, where ``agent_radius`` is given per template agent, the followers' larger radius (their
+allowance for the lag) with it.
 
 ``select_chunk`` (best-of-K, the "safest" rule of adaptive sampling):
   1. roll each candidate chunk's whole horizon through the midpoint unicycle and place the rigid
@@ -204,7 +205,7 @@ def select_chunk(
     goal: np.ndarray,
     template: np.ndarray,
     dt: float,
-    agent_radius: float,
+    agent_radius: float | np.ndarray,
     margin: float,
     progress_measure: str = "cost_to_go",
     window: float = 6.0,
@@ -355,18 +356,20 @@ def cost_to_go_progress(
 def barrier_rows(
     obstacles: np.ndarray,
     template: np.ndarray,
-    agent_radius: float,
+    agent_radius: float | np.ndarray,
     margin: float,
     rate: float,
     obstacle_velocity: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CBF rows A u >= b of every agent-obstacle pair: A (B, N*M, 2), b (B, N*M), h (B, N*M); with
-    ``obstacle_velocity`` (B, M, 2), b gains n . v_j (module docstring)."""
+    ``obstacle_velocity`` (B, M, 2), b gains n . v_j (module docstring). ``agent_radius``: one radius
+    or one per template agent (N,)."""
     B, M, _ = obstacles.shape
     d = template[None, :, None, :] - obstacles[:, None, :, :2]  # (B, N, M, 2), from obstacle to agent
     dist = np.maximum(np.linalg.norm(d, axis=-1), 1e-9)
     n = d / dist[..., None]
-    h = dist - obstacles[:, None, :, 2] - agent_radius - margin
+    radius = np.asarray(agent_radius, np.float64).reshape(1, -1, 1)  # one, or one per agent
+    h = dist - obstacles[:, None, :, 2] - radius - margin
     bx, by = template[:, 0][None, :, None], template[:, 1][None, :, None]
     a_v = n[..., 1]
     a_w = -n[..., 0] * by + n[..., 1] * bx
@@ -382,7 +385,7 @@ def cbf_filter(
     action: np.ndarray,
     obstacles: np.ndarray,
     template: np.ndarray,
-    agent_radius: float,
+    agent_radius: float | np.ndarray,
     margin: float,
     rate: float,
     low: np.ndarray,

@@ -94,6 +94,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             encoding ("nearest") and ``fixed_action_bounds``; it uses only the observed obstacles.
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
             obstacle (followers lag their square slots by up to ~0.1 m).
+        safety_follower_margin: clearance [m] the safety layer keeps for the two followers on top of
+            ``safety_margin`` (the layer places them on their square slots; they lag them, most in
+            turns and under noise). 0 (default): the same margin for all four agents. Not used where
+            the layer predicts moving obstacles (``safety_moving_obstacles``): the team then needs
+            its room to get out of a mover's way.
         cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
         safety_moving_obstacles: the safety layer predicts every observed obstacle at constant
             velocity (best-of-K checks a chunk against where the obstacles will be, the filter's
@@ -201,6 +206,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     num_candidates: int = 1
     safety_filter: str = "none"
     safety_margin: float = 0.1
+    safety_follower_margin: float = 0.0
     cbf_rate: float = 2.0
     safety_moving_obstacles: bool = False
     safety_action_delay: int = 0
@@ -327,6 +333,14 @@ class FormationDiffusionConfig(DiffusionConfig):
         if self.safety_margin < 0 or self.cbf_rate <= 0:
             raise config_error(
                 f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
+            )
+        if not (
+            isinstance(self.safety_follower_margin, (int, float))
+            and not isinstance(self.safety_follower_margin, bool)
+            and 0 <= self.safety_follower_margin < float("inf")
+        ):
+            raise config_error(
+                f"safety_follower_margin must be a number >= 0 [m], got {self.safety_follower_margin!r}"
             )
         if isinstance(self.safety_action_delay, bool) or not (
             isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0

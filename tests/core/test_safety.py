@@ -417,3 +417,32 @@ def test_coherence_keeps_the_candidate_closest_to_the_plan_it_replaces():
         *blocked, escape=False, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
     )
     assert info["choice"][0] == 0
+
+
+def test_a_per_agent_radius_widens_the_followers_discs_only():
+    """One radius per template agent: equal radii give the scalar's numbers; a larger follower radius
+    lowers the clearance (and the barrier value h) where a follower is the nearest agent, and leaves it
+    where a leader is."""
+    from lerobot_formation.core.footprint import template_clearance
+
+    poses = np.array([[[0.0, 0.0, np.pi / 2]]])
+    follower_side = np.array([[[0.5, -1.6, 0.3]]])  # behind the right follower (template y = -1)
+    leader_side = np.array([[[0.5, 1.0, 0.3]]])  # in front of the right leader
+    radii = np.full(len(TEMPLATE), P.agent_radius)
+    for obs in (follower_side, leader_side):
+        np.testing.assert_allclose(
+            template_clearance(poses, obs, TEMPLATE, radii),
+            template_clearance(poses, obs, TEMPLATE, P.agent_radius),
+        )
+    radii[2:] += 0.03
+    base = template_clearance(poses, follower_side, TEMPLATE, P.agent_radius)
+    np.testing.assert_allclose(template_clearance(poses, follower_side, TEMPLATE, radii), base - 0.03)
+    np.testing.assert_allclose(
+        template_clearance(poses, leader_side, TEMPLATE, radii),
+        template_clearance(poses, leader_side, TEMPLATE, P.agent_radius),
+    )
+    _, _, h0 = barrier_rows(follower_side, TEMPLATE, P.agent_radius, 0.05, 2.0)
+    _, _, h1 = barrier_rows(follower_side, TEMPLATE, radii, 0.05, 2.0)
+    np.testing.assert_allclose(h0 - h1, [[0.0, 0.0, 0.03, 0.03]])  # rows agent-major: leaders, followers
+    with pytest.raises(ValueError, match=r"one per template agent 4, got \(3,\)"):
+        template_clearance(poses, follower_side, TEMPLATE, radii[:3])

@@ -305,6 +305,36 @@ def test_proposal_blend_is_checked_with_its_value():
     )
 
 
+def test_follower_margin_is_checked_and_widens_only_the_followers():
+    for bad in (-0.01, "0.03", True):
+        with pytest.raises(ValueError, match="safety_follower_margin must be a number >= 0"):
+            nearest_config(safety_follower_margin=bad)
+    with pytest.raises(ValueError, match="finite.*safety_follower_margin=inf"):
+        nearest_config(safety_follower_margin=float("inf"))
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_follower_margin=0.03))
+    from lerobot_formation.policy.replanner import Replanner, safety_geometry
+
+    _, _, radius = safety_geometry()
+    np.testing.assert_allclose(Replanner(policy).agent_radii, [radius, radius, radius + 0.03, radius + 0.03])
+    assert Replanner(FormationDiffusionPolicy(nearest_config(num_candidates=2))).agent_radii == radius
+    movers = nearest_config(num_candidates=2, safety_follower_margin=0.03, safety_moving_obstacles=True)
+    assert Replanner(FormationDiffusionPolicy(movers)).agent_radii == radius  # room to dodge a mover
+    # a turn that swings the right follower (template (0.5, -1)) at an obstacle h = 0.53 m from its
+    # disc: the barrier (alpha = 2) lets it approach at up to 2 h, which 1 rad/s keeps to without the
+    # allowance; with a 5 cm allowance h is 0.48 m and the filter slows the turn
+    beside_follower = _env_state([[0.5 + radius + 0.3 + 0.53, -1.0, 0.3]])
+    turn = np.array([[0.0, 1.0]])
+    plain = Replanner(FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_margin=0.0)))
+    wide = Replanner(
+        FormationDiffusionPolicy(
+            nearest_config(num_candidates=2, safety_margin=0.0, safety_follower_margin=0.05)
+        )
+    )
+    assert not plain.filter_raw(beside_follower, turn)[1][0]
+    slowed, changed = wide.filter_raw(beside_follower, turn)
+    assert changed[0] and 0.0 < slowed[0, 1] < 1.0
+
+
 def test_route_lookahead_is_checked_with_its_value():
     inputs, outputs = formation_features(env_dim=55)
     kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
