@@ -114,8 +114,9 @@ def safety_overrides(
     proposal_blend: int | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
-    ``safety_margin``, ``safety_follower_margin``; ``layer_ignores_noise``: the layer is not told the sensing noise (no smoothing,
-    the layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
+    ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
+    2026-12-05); ``layer_ignores_noise``: the layer is not told the sensing noise (no smoothing, the
+    layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
     ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: the layer before 2026-12-04
     night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
     2026-12-05)."""
