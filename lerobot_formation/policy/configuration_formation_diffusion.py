@@ -38,6 +38,11 @@ def _non_finite_fields(config) -> list[str]:
     return bad
 
 
+def _is_finite_nonnegative(value) -> bool:
+    """A finite number >= 0 (a bool is not one)."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and 0 <= value < math.inf
+
+
 def _encoding_sizes() -> str:
     return ", ".join(f"{e} {environment_state_dim(e)} values" for e in ENCODINGS)
 
@@ -334,11 +339,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
             )
-        if not (
-            isinstance(self.safety_follower_margin, (int, float))
-            and not isinstance(self.safety_follower_margin, bool)
-            and 0 <= self.safety_follower_margin < float("inf")
-        ):
+        if not _is_finite_nonnegative(self.safety_follower_margin):
             raise config_error(
                 f"safety_follower_margin must be a number >= 0 [m], got {self.safety_follower_margin!r}"
             )
@@ -372,9 +373,7 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"safety_proposal_blend must be an integer in [0, {max_action_steps}] (the chunk's length) "
                 f"[steps], got {self.safety_proposal_blend!r}"
             )
-        if isinstance(self.safety_coherence, bool) or not (
-            isinstance(self.safety_coherence, (int, float)) and 0 <= self.safety_coherence < math.inf
-        ):
+        if not _is_finite_nonnegative(self.safety_coherence):
             raise config_error(
                 f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
             )
