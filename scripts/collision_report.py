@@ -89,18 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     apply_threads(args.threads)
     try:
-        run = level_report.run_level(
-            args.controller,
-            args.level,
-            args.scenes,
-            seed=args.seed,
-            policy_path=args.policy_path,
-            candidates=args.candidates,
-            overrides=level_report.safety_overrides(
-                **{k: getattr(args, k) for k in level_report.SAFETY_FLAGS}
-            ),
-            max_steps=args.max_steps,
-        )
+        settings = {k: getattr(args, k) for k in level_report.RUN_FLAGS}
+        run = level_report.run_flags(args.controller, **settings)
     except ValueError as e:  # a bad level name, a missing checkpoint path
         ap.error(str(e))
     lines, dwelt, movers = collision_lines(run.records, run.scenes, run.params)

@@ -119,19 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     apply_threads(args.threads)
     try:
-        run = level_report.run_level(
-            "diffusion-safe",
-            args.level,
-            args.scenes,
-            seed=args.seed,
-            policy_path=args.policy_path,
-            candidates=args.candidates,
-            overrides=level_report.safety_overrides(
-                **{k: getattr(args, k) for k in level_report.SAFETY_FLAGS}
-            ),
-            max_steps=args.max_steps,
-            wrap_replanner=event_replanner,
-        )
+        settings = {k: getattr(args, k) for k in level_report.RUN_FLAGS}
+        run = level_report.run_flags("diffusion-safe", event_replanner, **settings)
     except ValueError as e:  # a bad level name
         ap.error(str(e))
     rec = run.records

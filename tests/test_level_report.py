@@ -64,3 +64,15 @@ def test_a_run_is_the_levels_scenes_under_its_conditions_and_its_summary_counts_
     summary = run.summary("3 of something")
     assert summary.startswith("pac on level4 (2 scenes from seed 5000000): success 0.0 %, collisions 0")
     assert summary.endswith("timeouts 2; 3 of something; no successful episode")
+
+
+def test_the_flags_pass_on_by_name_to_the_run():
+    """Every destination of the shared flags is a keyword of ``run_flags``, which runs what
+    ``run_level`` runs with the same settings."""
+    args = _parse("--scenes", "2", "--max-steps", "30", "--safety-margin", "0.07")
+    settings = {k: getattr(args, k) for k in level_report.RUN_FLAGS}
+    assert set(settings) == set(level_report.RUN_FLAGS)
+    run = level_report.run_flags("pac", **settings)
+    same = level_report.run_level("pac", "level0", 2, max_steps=30, overrides={"safety_margin": 0.07})
+    assert run.summary() == same.summary()
+    assert run.seed == same.seed == 5_000_000

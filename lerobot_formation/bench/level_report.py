@@ -3,8 +3,8 @@
 the summary line both print.
 
 ``run_level`` and ``safety_overrides`` are the library calls (typed arguments); ``add_arguments`` adds
-the scripts' shared flags, whose destinations are ``run_level``'s and ``safety_overrides``' own
-parameter names (``SAFETY_FLAGS``), so a script passes them on by name.
+the scripts' shared flags, whose destinations are ``run_flags``' own parameter names (``RUN_FLAGS``),
+so a script passes them on by name.
 """
 
 from __future__ import annotations
@@ -138,6 +138,36 @@ def safety_overrides(
     if proposal_blend is not None:
         out["safety_proposal_blend"] = proposal_blend
     return out
+
+
+RUN_FLAGS = ("level", "scenes", "seed", "policy_path", "candidates", "max_steps", *SAFETY_FLAGS)
+
+
+def run_flags(
+    controller_name: str,
+    wrap_replanner=None,
+    *,
+    level: str,
+    scenes: int,
+    seed: int = TUNING_SEED_START,
+    policy_path: str | None = None,
+    candidates: int = 10,
+    max_steps: int | None = None,
+    **safety,
+) -> LevelRun:
+    """``run_level`` with its settings as the flags of ``add_arguments`` hold them (their destinations,
+    ``RUN_FLAGS``): the safety overrides as ``safety_overrides``' keywords."""
+    return run_level(
+        controller_name,
+        level,
+        scenes,
+        seed=seed,
+        policy_path=policy_path,
+        candidates=candidates,
+        overrides=safety_overrides(**safety),
+        max_steps=max_steps,
+        wrap_replanner=wrap_replanner,
+    )
 
 
 def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) -> None:
