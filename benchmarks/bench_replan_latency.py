@@ -66,20 +66,10 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from lerobot_formation.bench.timing import median_seconds  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def timed(fn, repeats: int) -> float:
-    """Median seconds of fn() over repeats calls, after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def paper_policy(config_path: Path):
@@ -133,7 +123,7 @@ def stock_replan_s(policy, pre, post, env_dim: int, repeats: int) -> float:
         policy.reset()
         post(policy.select_action(pre(dict(obs))))
 
-    return timed(replan, repeats)
+    return median_seconds(replan, repeats)
 
 
 def engine_replan_s(ctrl, n: int, repeats: int) -> float:
@@ -153,7 +143,7 @@ def engine_replan_s(ctrl, n: int, repeats: int) -> float:
         ctrl.reset(scenes)
         ctrl.act(state, idx)
 
-    return timed(replan, repeats)
+    return median_seconds(replan, repeats)
 
 
 LEAN_VARIANTS = ("eager", "+inference_mode", "+DDIM precomputed", "+traced U-Net")

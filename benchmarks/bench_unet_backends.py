@@ -31,29 +31,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import time
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch  # noqa: E402
 
+from lerobot_formation.bench.timing import median_seconds  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def median_ms(fn, repeats: int) -> float:
-    """Median milliseconds of fn() over ``repeats`` calls after three warm-up calls."""
-    for _ in range(3):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
 
 
 def unet_flops(unet: torch.nn.Module, inputs: tuple) -> int:
@@ -158,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
             want = calls["trace fp32"]().float()
         times = {}
         for name, call in calls.items():
-            times[name] = median_ms(call, args.repeats)
+            times[name] = 1e3 * median_seconds(call, args.repeats, warmup=3)
             with torch.inference_mode():
                 diff = float((call().float() - want).abs().max())
             base = times["trace fp32"]

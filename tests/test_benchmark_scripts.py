@@ -170,3 +170,18 @@ def test_unet_flops_counts_two_per_multiply_add():
     conv = 2 * (2 * 4 * 16) * 3 * 5  # outputs x inputs per output
     linear = 2 * (2 * 2) * 64
     assert m.unet_flops(net, (x,)) == conv + linear
+
+
+def test_median_seconds_warms_up_then_takes_the_median_of_the_timed_calls(monkeypatch):
+    """The benchmarks' one timing rule: warm-up calls are not timed, one slow call does not move it."""
+    from lerobot_formation.bench import timing
+
+    clock = iter([0.0, 1.0, 10.0, 10.5, 20.0, 29.0])  # timed calls of 1.0, 0.5 and 9.0 s
+    monkeypatch.setattr(timing.time, "perf_counter", lambda: next(clock))
+    calls = []
+    assert timing.median_seconds(lambda: calls.append(1), repeats=3, warmup=2) == 1.0
+    assert len(calls) == 5
+    with pytest.raises(ValueError, match="repeats must be >= 1, got 0"):
+        timing.median_seconds(lambda: None, repeats=0)
+    with pytest.raises(ValueError, match="warmup must be >= 0, got -1"):
+        timing.median_seconds(lambda: None, repeats=1, warmup=-1)
