@@ -21,7 +21,8 @@ agent clearance over the 10 and 30 steps before, and the obstacle's rank among t
 nearest (the ``nearest`` encoding observes 12). The last line is the summary (``bench.level_report``): success %,
 collisions, timeouts, and how many collisions came after the team was already within 2 cm of an
 obstacle in the 10 steps before (grazes, not run-ins), how many were with a moving obstacle (its
-line gives that obstacle's speed over the last step and the part of it towards the agent it hit), and
+line gives that obstacle's speed over the last step and the part of it towards the agent it hit) and
+how many of those struck a team that was not closing on the mover (``core.metrics.mover_strikes``), and
 the mean jerk and control smoothness of the successful episodes (``core.metrics``).
 ``--controller pac-privileged`` (no checkpoint) reports the privileged expert, on the true world.
 """
@@ -43,9 +44,11 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int]:
     team was within 2 cm in the 10 steps before, and how many were with a moving obstacle."""
     from lerobot_formation.core.dynamics import desired_follower_positions
     from lerobot_formation.core.geometry import agent_clearances
+    from lerobot_formation.core.metrics import mover_strikes
     from lerobot_formation.core.rollout import COLLISION
 
     lines, dwelt, movers = [], 0, 0
+    struck = mover_strikes(rec, scenes.obstacles, scenes.mask, params.agent_radius)
     for b in np.flatnonzero(rec.outcome == COLLISION):
         t = int(rec.steps[b])
         pos = rec.positions[b, t]
@@ -71,6 +74,8 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int]:
         moving = bool(np.linalg.norm(step) > 1e-6)
         movers += int(moving)
         mover = f", a mover at {np.linalg.norm(step):.2f} m/s ({closing:+.2f} towards it)" if moving else ""
+        if struck[b]:
+            mover += ", struck: the team was not closing on it"
         lines.append(
             f"episode {b} step {t}: agent {agent} {-1e3 * gaps[agent]:.1f} mm deep, followers off their "
             f"slots {off[0]:.3f} / {off[1]:.3f} m, speed {speed:.2f} m/s, closest before {before[0]:.3f} m "
@@ -93,11 +98,17 @@ def main(argv: list[str] | None = None) -> int:
         run = level_report.run_flags(args.controller, **settings)
     except ValueError as e:  # a bad level name, a missing checkpoint path
         ap.error(str(e))
+    from lerobot_formation.core.metrics import mover_strikes
+
     lines, dwelt, movers = collision_lines(run.records, run.scenes, run.params)
+    struck = int(
+        mover_strikes(run.records, run.scenes.obstacles, run.scenes.mask, run.params.agent_radius).sum()
+    )
     print("\n".join(lines))
     print(
         run.summary(
-            f"{dwelt} collisions within 2 cm already in the 10 steps before; {movers} with a moving obstacle"
+            f"{dwelt} collisions within 2 cm already in the 10 steps before; {movers} with a moving obstacle, "
+            f"{struck} of them struck while the team was not closing"
         )
     )
     return 0

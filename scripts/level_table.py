@@ -7,12 +7,13 @@ Each folder is one ``lerobot-formation-bench --out`` run on one scene set (``lev
 folders of the same set (say, a rerun of one controller) are merged, the later folder winning for a
 controller both hold. ``FOLDER@TAG`` keys that folder's controllers ``KEY@TAG``, so another model's
 rows stand beside the default's (label them with ``--name KEY@TAG=LABEL``). One row per level and controller: success % with its Wilson 95 % interval,
-collisions / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
+collisions (with "(k struck)": k of them a moving obstacle struck a team that was not closing on
+it, ``core.metrics.mover_strikes``) / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
 the episodes' minimum clearance and, for controllers with a safety layer, the filter's
 interventions per 100 steps and the share of replans where no candidate was safe (and, with
 ``safety_route_proposal``, the share where route pursuit's proposal was kept). ``--compact``
 prints the README's form instead: one row per level, one column per controller (success % [Wilson],
-collisions/timeouts (scenes)).
+collisions (struck)/timeouts (scenes)).
 """
 
 from __future__ import annotations
@@ -32,6 +33,13 @@ NAMES = {
 }
 
 
+def _collisions(m: dict) -> str:
+    """Collisions, with how many of them a moving obstacle struck a team not closing on it
+    (``core.metrics.mover_strikes``) where a run counted them and any happened."""
+    struck = m.get("struck_by_mover")
+    return f"{m['collisions']} ({struck} struck)" if struck else f"{m['collisions']}"
+
+
 def _row(level: str, key: str, name: str, m: dict) -> str:
     lo, hi = m["success_ci95"]
     safety = m.get("safety") or {}
@@ -45,7 +53,7 @@ def _row(level: str, key: str, name: str, m: dict) -> str:
         interventions = "-"
     return (
         f"| {level} ({m['n_episodes']}) | {name} | {100 * m['success_rate']:.1f} "
-        f"[{100 * lo:.0f}, {100 * hi:.0f}] | {m['collisions']} / {m['timeouts']} | "
+        f"[{100 * lo:.0f}, {100 * hi:.0f}] | {_collisions(m)} / {m['timeouts']} | "
         f"{m['control_smoothness']['mean']:.3f} | {m['jerk']['mean']:.3f} | "
         f"{m['min_clearance']['mean']:.3f} | {interventions} |"
     )
@@ -74,7 +82,7 @@ def _compact(levels: dict[str, dict], names: dict[str, str]) -> None:
             lo, hi = m["success_ci95"]
             cells.append(
                 f"{100 * m['success_rate']:.1f} [{100 * lo:.0f}, {100 * hi:.0f}], "
-                f"{m['collisions']}/{m['timeouts']} ({m['n_episodes']})"
+                f"{_collisions(m)}/{m['timeouts']} ({m['n_episodes']})"
             )
         print(f"| {level} | " + " | ".join(cells) + " |")
 

@@ -76,6 +76,7 @@ def test_a_mover_that_runs_into_a_standing_team_is_named():
     assert (
         movers == 1 and "speed 0.00 m/s" in lines[0] and "a mover at 0.30 m/s (+0.19 towards it)" in lines[0]
     )
+    assert lines[0].endswith("struck: the team was not closing on it")
 
 
 def test_a_bad_level_names_the_value(capsys):

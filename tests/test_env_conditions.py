@@ -169,3 +169,24 @@ def test_episode_metrics_see_moving_obstacles_and_executed_actions():
     assert metrics["outcome"] == "collision"
     assert metrics["formation_min_clearance"] < 0.0  # against where the obstacle was, not where it started
     np.testing.assert_array_equal(env.unwrapped.applied_action, [[0.5, 0.0]])
+
+
+def test_episode_metrics_flag_a_mover_that_strikes_a_standing_team():
+    """``struck_by_mover`` (core.metrics.mover_strikes) in lerobot-eval's per-episode record: the team
+    leaves the start zone (movers bounce off it), stops, and a crossing obstacle runs into it."""
+    from lerobot_formation.envs.episode_metrics import INFO_KEY, FormationEpisodeMetrics
+
+    crossing = {"obstacles": [[-6.0, 4.2, 0.5]], "goal": [0.0, 10.0], "velocities": [[0.4, 0.0]]}
+    outcomes = {}
+    for stop_after in (75, None):  # stand from step 75 on (the leaders at y = 3.75), or drive on
+        env = FormationEpisodeMetrics(FormationEnv())
+        env.reset(options={"scene": crossing})
+        for t in range(300):
+            v = 0.0 if stop_after is not None and t >= stop_after else 0.5
+            _, _, term, _, info = env.step(np.array([v, 0.0], np.float32))
+            if term:
+                break
+        outcomes[stop_after] = info[INFO_KEY]
+    standing = outcomes[75]
+    assert standing["outcome"] == "collision" and standing["struck_by_mover"] is True
+    assert isinstance(outcomes[None]["struck_by_mover"], bool)

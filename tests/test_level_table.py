@@ -77,3 +77,17 @@ def test_a_tagged_folder_stands_beside_the_default_in_the_compact_table(tmp_path
     assert lines[2] == (
         "| level3 | 50.0 [40, 55], 5/0 (10) | 70.0 [60, 75], 3/0 (10) | 20.0 [10, 25], 8/0 (10) |"
     )
+
+
+def test_collisions_show_how_many_a_mover_struck_where_counted(tmp_path, capsys):
+    struck = dict(_metrics(0.5, 5), struck_by_mover=3)
+    none_struck = dict(_metrics(0.9, 1), struck_by_mover=0)
+    a = _write(tmp_path / "a", "level5:10", pac=struck, route_pursuit=none_struck)
+    _script().main([str(a)])
+    rows = capsys.readouterr().out.splitlines()[2:]
+    assert rows[0].startswith("| level5 (10) | PAC | 50.0 [40, 55] | 5 (3 struck) / 0 |")
+    assert rows[1].startswith("| level5 (10) | route pursuit | 90.0 [80, 95] | 1 / 0 |")
+    _script().main([str(a), "--compact"])
+    assert capsys.readouterr().out.splitlines()[2] == (
+        "| level5 | 50.0 [40, 55], 5 (3 struck)/0 (10) | 90.0 [80, 95], 1/0 (10) |"
+    )

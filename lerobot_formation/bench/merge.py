@@ -29,7 +29,7 @@ from lerobot_formation.bench.controllers import controller_names, needs_policy
 from lerobot_formation.bench.results import safety_rates, write_results
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS, summarize
+from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS, STRUCK_KEY, summarize
 from lerobot_formation.core.scene import SamplingReport
 
 # meta entries every shard must share (the run's settings)
@@ -79,6 +79,8 @@ def _merge_entries(entries: list[dict], where: str) -> dict:
         for key in keys
     }
     per.update({flag: np.array([e["outcome"] == flag for e in episodes], dtype=bool) for flag in FLAG_KEYS})
+    if episodes and STRUCK_KEY in episodes[0]:  # shards written before the flag existed have none
+        per[STRUCK_KEY] = np.array([bool(e.get(STRUCK_KEY)) for e in episodes], dtype=bool)
     merged = summarize(per)
     merged["episodes"] = episodes
     merged["wall_time_s"] = float(sum(entry.get("wall_time_s", 0.0) for entry in entries))

@@ -12,7 +12,8 @@ import numpy as np
 
 from lerobot_formation.bench.paper_tables import adaptive_table, three_way_table
 from lerobot_formation.bench.settings import BenchSettings
-from lerobot_formation.core.metrics import episode_metrics, summarize
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.metrics import FLAG_KEYS, STRUCK_KEY, episode_metrics, mover_strikes, summarize
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
 from lerobot_formation.core.scene import SamplingReport, Scenes
 
@@ -72,11 +73,15 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
     return "\n".join(lines)
 
 
-def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dict:
+def controller_results(
+    rec: EpisodeRecords, scenes: Scenes, indices=None, agent_radius: float = FormationParams.agent_radius
+) -> dict:
     """A controller's summary (``summarize``) plus ``episodes``: per episode its ``scene_index`` in
     the scene set (``indices[b]``, default b: a shard keeps the whole set's), seed, outcome, steps and
-    metrics."""
+    metrics, ``struck_by_mover`` among them (``core.metrics.mover_strikes`` with the agents'
+    ``agent_radius``)."""
     per = episode_metrics(rec, scenes.start, scenes.goal)
+    per[STRUCK_KEY] = mover_strikes(rec, scenes.obstacles, scenes.mask, agent_radius)
     summary = summarize(per)
     indices = np.arange(len(rec)) if indices is None else np.asarray(indices)
     episodes = []
@@ -90,7 +95,7 @@ def controller_results(rec: EpisodeRecords, scenes: Scenes, indices=None) -> dic
             "outcome": OUTCOME_NAMES[int(rec.outcome[b])],
             "steps": int(rec.steps[b]),
         }
-        e.update({k: _clean(v[b]) for k, v in per.items() if k not in ("success", "collision", "timeout")})
+        e.update({k: _clean(v[b]) for k, v in per.items() if k not in FLAG_KEYS})
         episodes.append(e)
     summary["episodes"] = episodes
     return summary

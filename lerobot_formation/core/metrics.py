@@ -31,6 +31,14 @@ midpoint positions ``p_0 .. p_n`` (``poses[..., :2]``), actions ``a_t = [v_t, om
 - ``final_follower_velocity_error`` / ``mean_follower_velocity_error``  follower velocity error at
   the last step t = n-1 / mean over t = 0..n-1.
 - Outcome flags ``success``, ``collision``, ``timeout`` (bool).
+- ``struck_by_mover`` (bool, ``mover_strikes``; the bench adds it): a collision in which a moving
+  obstacle closed the gap on a team that was not closing it. At the contact step n, with the
+  touching agent i at p_i, the touched obstacle j at c_j, and n_ij = (p_i - c_j) / |p_i - c_j|,
+  the agent's own closing speed is -n_ij . (p_i(n) - p_i(n-1)) / dt; the collision counts when
+  obstacle j moved over that step and that speed is at most ``MOVER_CLOSING_SPEED``. The leaders
+  cannot back up, so a team standing or driving away is struck. The driving benchmarks split
+  collisions the same way (nuPlan's "no at-fault collisions": a collision with a stopped ego, or
+  from behind, is not the ego's); here it is reported beside the collisions, never instead.
 
 Metrics undefined for an episode (too short, zero length) are NaN. ``summarize`` aggregates
 mean +/- std over episodes, the success rate with a Wilson 95 % interval, and counts of
@@ -48,6 +56,8 @@ from lerobot_formation.core.geometry import NO_OBSTACLE
 from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
 
 FLAG_KEYS = ("success", "collision", "timeout")
+STRUCK_KEY = "struck_by_mover"
+MOVER_CLOSING_SPEED = 0.05  # [m/s] an agent closing slower than this on the mover it touched was struck
 
 # Path and motion metrics: aggregated over successful episodes only (SPEC: "path metrics over
 # successful episodes"). A collided or timed-out episode's path is cut short or wanders, so its
@@ -231,6 +241,40 @@ def episode_metrics(
     return out
 
 
+def mover_strikes(
+    records: EpisodeRecords,
+    obstacles: np.ndarray,
+    mask: np.ndarray,
+    agent_radius: float,
+    closing_speed: float = MOVER_CLOSING_SPEED,
+) -> np.ndarray:
+    """(B,) bool: the collisions in which a moving obstacle struck a team that was not closing on it
+    (the module docstring's ``struck_by_mover``). ``obstacles`` (B, M, 3): the scenes' obstacles (their
+    radii; their centres where ``records.obstacle_paths`` is None: nothing moved), ``mask`` (B, M) the
+    real ones. The touching pair is the agent and obstacle of the smallest clearance at the contact."""
+    outcome = np.asarray(records.outcome)
+    struck = np.zeros(len(outcome), dtype=bool)
+    paths = records.obstacle_paths
+    if paths is None:
+        return struck
+    obstacles, mask = np.asarray(obstacles, np.float64), np.asarray(mask, bool)
+    for b in np.flatnonzero(outcome == COLLISION):
+        n = int(records.steps[b])
+        if n < 1:
+            continue
+        pos, before = records.positions[b, n], records.positions[b, n - 1]  # (N, 2)
+        centre, centre_before = paths[b, n], paths[b, n - 1]  # (M, 2)
+        gap = np.linalg.norm(pos[:, None] - centre[None], axis=-1) - obstacles[b, :, 2] - agent_radius
+        i, j = np.unravel_index(np.argmin(np.where(mask[b][None], gap, np.inf)), gap.shape)
+        if not np.any(centre[j] != centre_before[j]):
+            continue  # a static obstacle: the team ran into it
+        normal = pos[i] - centre[j]
+        normal = normal / max(float(np.linalg.norm(normal)), 1e-9)
+        agent_closing = -float(normal @ (pos[i] - before[i])) / float(records.dt)
+        struck[b] = agent_closing <= closing_speed
+    return struck
+
+
 def _mean_std(x: np.ndarray) -> dict[str, float | None]:
     x = np.asarray(x, dtype=np.float64)
     x = x[np.isfinite(x)]
@@ -245,7 +289,8 @@ def summarize(
     """Aggregate ``episode_metrics`` output into a JSON-friendly dict of plain Python values.
 
     Keys: ``n_episodes``, ``success_rate`` (0-1), ``success_ci95`` [lo, hi] (Wilson, z = 1.96),
-    ``collisions``, ``timeouts`` (counts), ``collision_rate``, ``timeout_rate``, then for every
+    ``collisions``, ``timeouts`` (counts), ``collision_rate``, ``timeout_rate``, ``struck_by_mover``
+    (the count of those collisions, where ``per_episode`` has the flag), then for every
     continuous metric ``{"mean": float, "std": float}`` (population std over the episodes whose
     value is finite; ``None`` for both if there is none).
 
@@ -271,10 +316,12 @@ def summarize(
         "collision_rate": n_coll / n if n else None,
         "timeout_rate": n_time / n if n else None,
     }
+    if STRUCK_KEY in per_episode:
+        summary[STRUCK_KEY] = int(np.asarray(per_episode[STRUCK_KEY], dtype=bool).sum())
     succ_keys = set(successes_only_keys)
     over: dict[str, list[str]] = {"successes": [], "all": []}
     for key, values in per_episode.items():
-        if key in FLAG_KEYS:
+        if key in FLAG_KEYS or key == STRUCK_KEY:
             continue
         values = np.asarray(values, dtype=np.float64)
         if key in succ_keys:

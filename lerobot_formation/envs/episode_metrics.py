@@ -27,8 +27,9 @@ episode ends:
    lines unless ``episode_metrics_exists`` is ``"append"`` or ``"overwrite"``; the runs a process
    has started itself (every in-training evaluation of one ``lerobot-train``) append.
 
-Episode metrics key list: ``core.metrics.METRIC_KEYS`` and ``FLAG_KEYS`` (``success``,
-``collision``, ``timeout``).
+Episode metrics key list: ``core.metrics.METRIC_KEYS``, ``FLAG_KEYS`` (``success``,
+``collision``, ``timeout``) and ``struck_by_mover`` (``core.metrics.mover_strikes``: a moving
+obstacle struck a team that was not closing on it), as in the bench's ``results.json``.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from lerobot_formation.core.metrics import episode_metrics
+from lerobot_formation.core.metrics import STRUCK_KEY, episode_metrics, mover_strikes
 from lerobot_formation.core.rollout import (
     COLLISION,
     OUTCOME_NAMES,
@@ -123,6 +124,7 @@ class FormationEpisodeMetrics(gym.Wrapper):
         self._reset_seed = None if seed is None else int(seed)
         base = self.env.unwrapped
         self._frames = [frame_record(base.state, base.teams.scenes.obstacles, base.params)]
+        self._paths = [base.teams.scenes.obstacles[0, :, :2].copy()]  # moving obstacles move in place
         self._steps = []
         return obs, info
 
@@ -135,6 +137,7 @@ class FormationEpisodeMetrics(gym.Wrapper):
         action = base.applied_action  # what ran: under conditions, the delayed, noisy, rate-limited command
         self._steps.append(step_record(prev_pose, base.state, action, base.params))
         self._frames.append(frame_record(base.state, base.teams.scenes.obstacles, base.params))
+        self._paths.append(base.teams.scenes.obstacles[0, :, :2].copy())
         if terminated or truncated:
             record = self._finish(info)
             record["episode_index"] = self.episodes_done
@@ -155,6 +158,9 @@ class FormationEpisodeMetrics(gym.Wrapper):
         base = self.env.unwrapped
         rec = EpisodeRecords.single(self._frames, self._steps, outcome, base.params.dt)
         metrics = episode_metrics(rec, base.scene.start, base.scene.goal)
+        rec.obstacle_paths = np.stack(self._paths)[None]
+        scenes = base.teams.scenes
+        metrics[STRUCK_KEY] = mover_strikes(rec, scenes.obstacles, scenes.mask, base.params.agent_radius)
         record: dict[str, Any] = {
             "outcome": OUTCOME_NAMES[outcome],
             "steps": len(self._steps),

@@ -232,3 +232,58 @@ def test_summarize_without_successes_gives_none():
     assert s["success_rate"] == 0.0
     assert s["path_length"] == {"mean": None, "std": None}
     assert s["formation_min_clearance"]["mean"] == pytest.approx(1.0)
+
+
+def _contact_records(agent_step, obstacle_step, outcome=COLLISION):
+    """One two-step episode ending in contact: agent 0 ends at the origin after moving by
+    ``agent_step`` over the last step, the one obstacle (radius 0.5) ends touching it after moving by
+    ``obstacle_step``; the other agents are far."""
+    rec = make_records([dict(straight(2), outcome=outcome)])
+    agent_step, obstacle_step = np.asarray(agent_step, float), np.asarray(obstacle_step, float)
+    rec.positions[0] = 10.0 + np.arange(4)[None, :, None]  # agents 1-3 far from everything
+    rec.positions[0, 2, 0] = 0.0
+    rec.positions[0, 1, 0] = -agent_step
+    centre = np.array([0.59, 0.0])  # 0.5 + agent radius 0.1 - 1 cm: 1 cm deep
+    rec.obstacle_paths = np.full((1, 3, 1, 2), np.nan)
+    rec.obstacle_paths[0, 2, 0] = centre
+    rec.obstacle_paths[0, 1, 0] = centre - obstacle_step
+    rec.obstacle_paths[0, 0, 0] = centre - 2 * obstacle_step
+    obstacles = np.array([[[0.59, 0.0, 0.5]]])
+    return rec, obstacles, np.ones((1, 1), bool)
+
+
+@pytest.mark.parametrize(
+    "agent_step, obstacle_step, struck",
+    [
+        ((0.0, 0.0), (-0.03, 0.0), True),  # a standing team, the mover came at it
+        ((-0.02, 0.0), (-0.03, 0.0), True),  # the team drove away, the mover was faster
+        ((0.004, 0.0), (-0.03, 0.0), True),  # closing at 0.04 m/s: below MOVER_CLOSING_SPEED
+        ((0.03, 0.0), (-0.03, 0.0), False),  # the team drove at it too
+        ((0.03, 0.0), (0.0, 0.0), False),  # a static obstacle: the team ran into it
+        ((0.0, 0.0), (0.0, 0.0), False),  # static, grazed at a standstill: still the team's
+    ],
+)
+def test_mover_strikes_counts_a_moving_obstacle_closing_on_a_team_that_was_not(
+    agent_step, obstacle_step, struck
+):
+    from lerobot_formation.core.metrics import mover_strikes
+
+    rec, obstacles, mask = _contact_records(agent_step, obstacle_step)
+    assert mover_strikes(rec, obstacles, mask, agent_radius=0.1).tolist() == [struck]
+
+
+def test_mover_strikes_needs_a_collision_and_moving_obstacles_and_summarize_counts_them():
+    from lerobot_formation.core.metrics import STRUCK_KEY, mover_strikes
+
+    rec, obstacles, mask = _contact_records((0.0, 0.0), (-0.03, 0.0), outcome=TIMEOUT)
+    assert not mover_strikes(rec, obstacles, mask, 0.1).any()  # no collision: nothing struck
+    rec, obstacles, mask = _contact_records((0.0, 0.0), (-0.03, 0.0))
+    assert mover_strikes(rec, obstacles, mask, 0.1).all()
+    rec.obstacle_paths = None  # a run without moving obstacles records no paths
+    assert not mover_strikes(rec, obstacles, mask, 0.1).any()
+    per = episode_metrics(rec, np.zeros((1, 3)), np.ones((1, 2)))
+    assert "collisions" in summarize(per) and STRUCK_KEY not in summarize(per)
+    per[STRUCK_KEY] = np.array([True])
+    s = summarize(per)
+    assert s["collisions"] == 1 and s[STRUCK_KEY] == 1
+    assert STRUCK_KEY not in s["aggregated_over"]["all"] + s["aggregated_over"]["successes"]
