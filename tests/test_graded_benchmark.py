@@ -378,7 +378,7 @@ def test_three_shards_merge_to_the_whole_run(tmp_path, capsys):
     assert not (tmp_path / "m2").exists()
 
 
-def test_a_level_with_movers_counts_the_collisions_a_mover_struck_and_shards_merge_them(tmp_path):
+def test_a_level_with_movers_counts_the_collisions_a_mover_struck_and_shards_merge_them(tmp_path, capsys):
     """``struck_by_mover`` (core.metrics.mover_strikes): in results.json per episode and counted in
     the summary, and a merge of shards recounts it from the episodes."""
     argv = ["--controllers", "route-pursuit", "--scenes", "level5:6", "--no-figures", "--no-progress"]
@@ -389,11 +389,29 @@ def test_a_level_with_movers_counts_the_collisions_a_mover_struck_and_shards_mer
     assert whole["struck_by_mover"] == sum(flags) >= 1  # route pursuit meets level5's movers
     assert all(e["outcome"] == "collision" for e in whole["episodes"] if e["struck_by_mover"])
     assert whole["collisions"] >= whole["struck_by_mover"]
+    printed = f"(collisions {whole['collisions']} ({whole['struck_by_mover']} struck by a mover), timeouts"
+    assert printed in capsys.readouterr().out
     for i in range(2):
         assert bench_main([*argv, "--shard", f"{i}/2", "--out", str(tmp_path / f"s{i}")]) == 0
     assert merge_main([str(tmp_path / "s0"), str(tmp_path / "s1"), "--out", str(tmp_path / "m")]) == 0
     merged = json.loads((tmp_path / "m" / "results.json").read_text())["route-pursuit"]
     assert merged["struck_by_mover"] == whole["struck_by_mover"]
+    assert printed in capsys.readouterr().out  # the merge prints it too
+    assert (
+        bench_main(
+            [
+                "--controllers",
+                "route-pursuit",
+                "--scenes",
+                "level0:2",
+                "--no-figures",
+                "--out",
+                str(tmp_path / "l0"),
+            ]
+        )
+        == 0
+    )
+    assert "(collisions 0, timeouts" in capsys.readouterr().out  # nothing struck: nothing said
 
 
 @pytest.mark.parametrize("shard", ["3/3", "1", "a/b", "-1/2"])

@@ -58,7 +58,7 @@ import numpy as np
 from lerobot_formation.bench.controllers import controller_names, make_controller, needs_policy
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import draw_bench_figures
-from lerobot_formation.bench.results import controller_results, safety_rates, write_results
+from lerobot_formation.bench.results import collisions_text, controller_results, safety_rates, write_results
 from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
@@ -116,7 +116,7 @@ def run_set(
         lo, hi = entry["success_ci95"]
         print(  # the set by its spec (random:50, hard:20, dataset:100): "unseen" is not what it is
             f"[{spec or label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
-            f"(collisions {entry['collisions']}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
+            f"({collisions_text(entry)}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
             flush=True,
         )
     return results

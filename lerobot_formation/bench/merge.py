@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.bench.controllers import controller_names, needs_policy
-from lerobot_formation.bench.results import safety_rates, write_results
+from lerobot_formation.bench.results import collisions_text, safety_rates, write_results
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS, STRUCK_KEY, summarize
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
             lo, hi = entry["success_ci95"]
             print(
                 f"[{set_label}] {ctrl}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of "
-                f"{entry['n_episodes']} (collisions {entry['collisions']}, timeouts {entry['timeouts']})"
+                f"{entry['n_episodes']} ({collisions_text(entry)}, timeouts {entry['timeouts']})"
             )
     print(f"merged {len(payloads)} shards into {out / 'results.json'}, {out / 'tables.md'}")
     return 0

@@ -73,6 +73,13 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
     return "\n".join(lines)
 
 
+def collisions_text(entry: dict) -> str:
+    """ "collisions N" of a controller's summary, with "(k struck by a mover)" where k > 0 of them were
+    a moving obstacle striking a team that was not closing on it (``core.metrics.mover_strikes``)."""
+    struck = entry.get(STRUCK_KEY)
+    return f"collisions {entry['collisions']}" + (f" ({struck} struck by a mover)" if struck else "")
+
+
 def controller_results(
     rec: EpisodeRecords, scenes: Scenes, indices=None, agent_radius: float = FormationParams.agent_radius
 ) -> dict:
