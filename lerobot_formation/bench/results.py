@@ -74,8 +74,9 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
 
 
 def collisions_text(entry: dict) -> str:
-    """ "collisions N" of a controller's summary, with "(k struck by a mover)" where k > 0 of them were
-    a moving obstacle striking a team that was not closing on it (``core.metrics.mover_strikes``)."""
+    """A controller summary's collision count as printed, "collisions N", with "(k struck by a mover)"
+    where k > 0 of them were a moving obstacle striking a team that was not closing on it
+    (``core.metrics.mover_strikes``)."""
     struck = entry.get(STRUCK_KEY)
     return f"collisions {entry['collisions']}" + (f" ({struck} struck by a mover)" if struck else "")
 

@@ -258,6 +258,12 @@ def mover_strikes(
     if paths is None:
         return struck
     obstacles, mask = np.asarray(obstacles, np.float64), np.asarray(mask, bool)
+    B, M = len(outcome), paths.shape[2]
+    if obstacles.shape != (B, M, 3) or mask.shape != (B, M):
+        raise ValueError(
+            f"mover_strikes: need obstacles (B, M, 3) = ({B}, {M}, 3) and mask ({B}, {M}) for records of "
+            f"{B} episodes with {M} obstacle paths, got {obstacles.shape} and {mask.shape}"
+        )
     for b in np.flatnonzero(outcome == COLLISION):
         n = int(records.steps[b])
         if n < 1:

@@ -281,6 +281,9 @@ def test_mover_strikes_needs_a_collision_and_moving_obstacles_and_summarize_coun
     assert mover_strikes(rec, obstacles, mask, 0.1).all()
     rec.obstacle_paths = None  # a run without moving obstacles records no paths
     assert not mover_strikes(rec, obstacles, mask, 0.1).any()
+    rec, obstacles, mask = _contact_records((0.0, 0.0), (-0.03, 0.0))
+    with pytest.raises(ValueError, match=r"need obstacles \(B, M, 3\) = \(1, 1, 3\).*got \(1, 2, 3\)"):
+        mover_strikes(rec, np.zeros((1, 2, 3)), np.ones((1, 2), bool), 0.1)
     per = episode_metrics(rec, np.zeros((1, 3)), np.ones((1, 2)))
     assert "collisions" in summarize(per) and STRUCK_KEY not in summarize(per)
     per[STRUCK_KEY] = np.array([True])
