@@ -143,30 +143,19 @@ def safety_overrides(
 RUN_FLAGS = ("level", "scenes", "seed", "policy_path", "candidates", "max_steps", *SAFETY_FLAGS)
 
 
-def run_flags(
-    controller_name: str,
-    wrap_replanner=None,
-    *,
-    level: str,
-    scenes: int,
-    seed: int = TUNING_SEED_START,
-    policy_path: str | None = None,
-    candidates: int = 10,
-    max_steps: int | None = None,
-    **safety,
-) -> LevelRun:
+def run_flags(controller_name: str, wrap_replanner=None, **flags) -> LevelRun:
     """``run_level`` with its settings as the flags of ``add_arguments`` hold them (their destinations,
-    ``RUN_FLAGS``): the safety overrides as ``safety_overrides``' keywords."""
+    ``RUN_FLAGS``): ``level`` and ``scenes``, ``run_level``'s keywords by name (its defaults where a
+    flag is left out; an unknown name is refused by name), the safety overrides (``SAFETY_FLAGS``) as
+    ``safety_overrides``' keywords."""
+    safety = {k: flags.pop(k) for k in SAFETY_FLAGS if k in flags}
     return run_level(
         controller_name,
-        level,
-        scenes,
-        seed=seed,
-        policy_path=policy_path,
-        candidates=candidates,
+        flags.pop("level"),
+        flags.pop("scenes"),
         overrides=safety_overrides(**safety),
-        max_steps=max_steps,
         wrap_replanner=wrap_replanner,
+        **flags,
     )
 
 
