@@ -39,9 +39,10 @@ import numpy as np  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 
-def collision_lines(rec, scenes, params) -> tuple[list[str], int, int]:
+def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
     """One line per collision of the records ``rec`` (module docstring), how many came after the
-    team was within 2 cm in the 10 steps before, and how many were with a moving obstacle."""
+    team was within 2 cm in the 10 steps before, how many were with a moving obstacle, and how many
+    of those struck a team that was not closing on it (``core.metrics.mover_strikes``)."""
     from lerobot_formation.core.dynamics import desired_follower_positions
     from lerobot_formation.core.geometry import agent_clearances
     from lerobot_formation.core.metrics import mover_strikes
@@ -81,7 +82,7 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int]:
             f"slots {off[0]:.3f} / {off[1]:.3f} m, speed {speed:.2f} m/s, closest before {before[0]:.3f} m "
             f"(10 steps) / {before[1]:.3f} m (30), obstacle rank {rank}, radius {obstacles[hit, 2]:.2f} m{mover}"
         )
-    return lines, dwelt, movers
+    return lines, dwelt, movers, int(struck.sum())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,12 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         run = level_report.run_flags(args.controller, **settings)
     except ValueError as e:  # a bad level name, a missing checkpoint path
         ap.error(str(e))
-    from lerobot_formation.core.metrics import mover_strikes
-
-    lines, dwelt, movers = collision_lines(run.records, run.scenes, run.params)
-    struck = int(
-        mover_strikes(run.records, run.scenes.obstacles, run.scenes.mask, run.params.agent_radius).sum()
-    )
+    lines, dwelt, movers, struck = collision_lines(run.records, run.scenes, run.params)
     print("\n".join(lines))
     print(
         run.summary(

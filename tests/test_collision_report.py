@@ -54,8 +54,8 @@ def test_a_team_driven_into_an_obstacle_is_reported_by_its_leader():
     scenes = _scene([0.5, 3.0, 0.3])
     rec = rollout(scenes, _Straight(), params, max_steps=200)
     assert rec.outcome[0] == COLLISION
-    lines, dwelt, movers = _script().collision_lines(rec, scenes, params)
-    assert len(lines) == 1 and dwelt == 0 and movers == 0  # at 0.4 m/s, never close before
+    lines, dwelt, movers, struck = _script().collision_lines(rec, scenes, params)
+    assert len(lines) == 1 and dwelt == 0 and movers == 0 and struck == 0  # at 0.4 m/s, never close before
     assert "agent 1 " in lines[0] and "speed 0.40 m/s" in lines[0] and "obstacle rank 0" in lines[0]
     assert "mover" not in lines[0]
 
@@ -72,11 +72,11 @@ def test_a_mover_that_runs_into_a_standing_team_is_named():
     moving = Conditions(moving_obstacles=1, obstacle_speed=0.3)
     rec = rollout(scenes, _DriveThenStand(), params, max_steps=200, conditions=moving)
     assert rec.outcome[0] == COLLISION
-    lines, _, movers = _script().collision_lines(rec, scenes, params)
+    lines, _, movers, struck = _script().collision_lines(rec, scenes, params)
     assert (
         movers == 1 and "speed 0.00 m/s" in lines[0] and "a mover at 0.30 m/s (+0.19 towards it)" in lines[0]
     )
-    assert lines[0].endswith("struck: the team was not closing on it")
+    assert lines[0].endswith("struck: the team was not closing on it") and struck == 1
 
 
 def test_a_bad_level_names_the_value(capsys):
