@@ -40,8 +40,9 @@ Run (full size)::
 
 (e) The safety layer (``--parts e``): every replan at B=1 through ``select_action`` over whole episodes
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
-    the scorer against its whole-field baseline in the same run, and with a warm-starting checkpoint
-    all K candidates warm-started (``ReplanExperiment.warm_all_candidates``). Its headline is the last line
+    the scorer against its whole-field baseline in the same run, the policy's traced U-Net against a
+    plain trace of LeRobot's (``plain_trace``: the policy's trace until 2026-12-05) in the same run,
+    and with a warm-starting checkpoint all K candidates warm-started (``ReplanExperiment.warm_all_candidates``). Its headline is the last line
     when it runs. ``--level levelK``: the level's scenes (its first seeds) under its conditions instead,
     with the safety layer told the conditions as the bench tells it (``safety_settings``).
 
@@ -296,22 +297,34 @@ def student_part(teacher_path: str, student_path: str, candidates: list[int], re
 
 
 def episode_replans_ms(
-    policy, pre, post, encoding: str, seeds, scorer=None, env_kwargs: dict | None = None
+    policy,
+    pre,
+    post,
+    encoding: str,
+    seeds,
+    scorer=None,
+    env_kwargs: dict | None = None,
+    plain_trace: bool = False,
 ) -> tuple[list[float], list]:
     """Run one B=1 episode per seed (unseen paper scenes) through ``FormationEnv`` and the policy's
     ``select_action`` (pre/post processors), as ``lerobot-eval`` steps it; return the duration [ms] of
     every call that replanned (sampled and, with K > 1, scored a new chunk) and the actions taken.
     ``scorer``: a replacement for ``core.safety.cost_to_go_at`` (the baseline), else the shipped one.
     ``env_kwargs``: ``FormationEnv`` keyword arguments (a level's scenes and conditions). Torch's generator is seeded per episode, so two scorers that keep the same chunks take the same
-    actions."""
+    actions. ``plain_trace``: the policy's trace is a plain ``torch.jit.trace`` of LeRobot's U-Net (its
+    trace until 2026-12-05), not of ``policy.unet_inference``'s copies."""
     from lerobot.envs.utils import preprocess_observation
 
     from lerobot_formation.core import safety
     from lerobot_formation.envs.env import FormationEnv
+    from lerobot_formation.policy import modeling_formation_diffusion as modeling
 
     env = FormationEnv(**{**(env_kwargs or {}), "obstacle_encoding": encoding})
-    shipped = safety.cost_to_go_at
+    shipped, copies = safety.cost_to_go_at, modeling.inference_copy
     safety.cost_to_go_at = scorer or shipped
+    if plain_trace:
+        modeling.inference_copy = lambda module, matmul_convolutions: module
+    policy._lean.unets.clear()  # traced again, the first call (not a replan of the median) of each run
     times, actions = [], []
     try:
         for seed in seeds:
@@ -333,7 +346,8 @@ def episode_replans_ms(
                 obs, _, terminated, truncated, _ = env.step(a)
                 done = terminated or truncated
     finally:
-        safety.cost_to_go_at = shipped
+        safety.cost_to_go_at, modeling.inference_copy = shipped, copies
+        policy._lean.unets.clear()
     return times, actions
 
 
@@ -371,17 +385,21 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows)
 
     runs = {}
+    plain = f"K={k}, plain trace"
     variants = [
-        ("K=1", 1, None, False),
-        (f"K={k}", k, None, False),
-        (f"K={k}, whole field", k, whole_field, False),
+        ("K=1", 1, None, False, False),
+        (f"K={k}", k, None, False, False),
+        (f"K={k}, whole field", k, whole_field, False, False),
+        (plain, k, None, False, True),
     ]
     if cfg.warm_start_step:  # the real-time best-of-K: every candidate warm-started, j fewer denoiser calls
-        variants.append((f"K={k}, all candidates warm", k, None, True))
-    for label, kk, scorer, all_warm in variants:
+        variants.append((f"K={k}, all candidates warm", k, None, True, False))
+    for label, kk, scorer, all_warm, plain_trace in variants:
         policy.reconfigure(num_candidates=kk)
         policy.replanner = Replanner(policy, experiment=ReplanExperiment(warm_all_candidates=all_warm))
-        runs[label] = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, scorer, env_kwargs)
+        runs[label] = episode_replans_ms(
+            policy, pre, post, cfg.obstacle_encoding, seeds, scorer, env_kwargs, plain_trace
+        )
     same = np.array_equal(np.asarray(runs[f"K={k}"][1]), np.asarray(runs[f"K={k}, whole field"][1]))
     print(
         f"(e) safety layer: every replan at B=1 through select_action (pre/post processors) over whole "
@@ -401,7 +419,8 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     fast_text = "" if fast is None else f", all candidates warm {fast:.1f} ms"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
-        f"{fast_text} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x), K=1 {med['K=1']:.1f} ms "
+        f"{fast_text} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x; plain trace "
+        f"{med[plain]:.1f} ms, ratio {med[plain] / ours:.2f}x), K=1 {med['K=1']:.1f} ms "
         f"(medians; {torch.get_num_threads()} thread(s))"
     )
 

@@ -143,18 +143,20 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     import torch
 
     bench = _script("benchmarks/bench_replan_latency.py")
-    seen = []
+    seen, plain = [], []
     real = bench.episode_replans_ms
 
     def spy(policy, *args, **kwargs):
         seen.append((policy.config.safety_action_delay, policy.config.safety_moving_obstacles, args[5]))
+        plain.append(args[6])
         return real(policy, *args, **kwargs)
 
     bench.episode_replans_ms = spy
     torch.set_num_threads(1)
     headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
-    assert "K=2 with the safety layer" in headline
+    assert "K=2 with the safety layer" in headline and "plain trace" in headline
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
+    assert plain.count(True) == 1  # the policy's trace against a plain one, in the same run
     assert all(delay == 1 and moving for delay, moving, _ in seen), seen
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
 

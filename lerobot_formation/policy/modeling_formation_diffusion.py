@@ -24,7 +24,8 @@ unchanged): "lean" samples under ``torch.inference_mode`` with the DDIM steps pr
 (``_DDIMSteps``: diffusers' own timesteps and ``alphas_cumprod``, each step checked once against
 diffusers' ``step``); "trace" adds a ``torch.jit`` traced and frozen U-Net (``_TracedUnet``), built
 on the first call in eval mode and rebuilt when the weights change (an EMA update, ``load_state_dict``,
-a device move). Both live in ``_LeanCache``, a plain attribute: never in the ``state_dict`` or a
+a device move). On a CPU it traces ``policy.unet_inference``'s copies of the U-Net: matrix-product
+convolutions for calls of up to 64 rows (a B = 1 replan's K candidates), oneDNN's above. Both live in ``_LeanCache``, a plain attribute: never in the ``state_dict`` or a
 checkpoint, and a copy or pickle of the policy starts without them. ``select_action``,
 ``predict_action_chunk`` and ``sample_action_chunks`` (the engine, the safety layer) all sample
 through ``_sample``. The traced graph is not specialised to the batch size (checked at build time on
@@ -72,6 +73,7 @@ from lerobot_formation.compat.lerobot_compat import (
 )
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.replanner import Replanner, check_observation
+from lerobot_formation.policy.unet_inference import SMALL_BATCH_ROWS, inference_copy
 
 EMA_PREFIX = "ema_diffusion."
 
@@ -141,39 +143,50 @@ class _DDIMSteps:
 class _TracedUnet:
     """``torch.jit.trace`` + ``torch.jit.freeze`` of a U-Net in eval mode, on the first call's inputs.
 
-    Frozen weights are constants, so the trace remembers which tensors (and versions: every in-place
-    change bumps one) it was built from; ``current`` says whether they are unchanged. Built, then
-    checked against the eager U-Net on its own inputs and on one more batch row (the graph must not be
-    specialised to the batch size); ``fn`` is None when tracing failed (the eager U-Net is used)."""
+    On a CPU two graphs are traced from ``unet_inference.inference_copy`` copies: one with matrix-product
+    convolutions for calls of up to ``SMALL_BATCH_ROWS`` rows (a B = 1 replan's K candidates), one with
+    oneDNN's for larger batches (the batched engine); elsewhere the U-Net itself is traced. Frozen
+    weights are constants, so the trace remembers which tensors (and versions: every in-place change
+    bumps one) it was built from; ``current`` says whether they are unchanged. Each graph is built,
+    then checked against the eager U-Net on its own inputs and on one more batch row (the graph must
+    not be specialised to the batch size); ``fn`` is None when tracing failed (the eager U-Net is used).
+    """
 
     def __init__(self, unet: torch.nn.Module, sample: Tensor, timestep: Tensor, cond: Tensor):
         self.unet = unet
         self.tensors = [*unet.parameters(), *unet.buffers()]
         self.key = self._fingerprint()
         self.fn = None
+        if sample.device.type == "cpu":
+            variants = [inference_copy(unet, matmul_convolutions=True), inference_copy(unet, False)]
+        else:
+            variants = [unet]
+        graphs = []
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", torch.jit.TracerWarning)
-                # torch 2.11 deprecates torch.jit (torch.compile gains nothing here, see the
-                # benchmark); if a release removes it, this raises and the eager U-Net is kept.
-                warnings.simplefilter("ignore", DeprecationWarning)
-                traced = torch.jit.trace(unet, (sample, timestep, cond), check_trace=False)
-                fn = torch.jit.freeze(traced.eval())
-            wider = (sample, timestep, cond)
-            wider = tuple(torch.cat([x, x[:1]]) for x in wider)
-            for args in ((sample, timestep, cond), wider):
-                want = unet(*args)
-                for _ in range(2):  # the JIT's profiling run, then its optimised graph
-                    got = fn(*args)
-                    if got.shape != want.shape or not torch.allclose(got, want, rtol=1e-5, atol=1e-5):
-                        raise RuntimeError(
-                            f"traced U-Net differs from the eager one by {(got - want).abs().max():.2e} "
-                            f"at batch size {len(args[0])}"
-                        )
+            for module in variants:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                    # torch 2.11 deprecates torch.jit (torch.compile gains nothing here, see the
+                    # benchmark); if a release removes it, this raises and the eager U-Net is kept.
+                    warnings.simplefilter("ignore", DeprecationWarning)
+                    traced = torch.jit.trace(module, (sample, timestep, cond), check_trace=False)
+                    fn = torch.jit.freeze(traced.eval())
+                wider = (sample, timestep, cond)
+                wider = tuple(torch.cat([x, x[:1]]) for x in wider)
+                for args in ((sample, timestep, cond), wider):
+                    want = unet(*args)
+                    for _ in range(2):  # the JIT's profiling run, then its optimised graph
+                        got = fn(*args)
+                        if got.shape != want.shape or not torch.allclose(got, want, rtol=1e-5, atol=1e-5):
+                            raise RuntimeError(
+                                f"traced U-Net differs from the eager one by {(got - want).abs().max():.2e} "
+                                f"at batch size {len(args[0])}"
+                            )
+                graphs.append(fn)
         except Exception as e:  # noqa: BLE001 (any tracing failure: keep the eager U-Net)
             logger.warning("inference_backend='trace': %s: %s; using the eager U-Net", type(e).__name__, e)
             return
-        self.fn = fn
+        self.fn = graphs[0] if len(graphs) == 1 else _ByRows(*graphs, SMALL_BATCH_ROWS)
 
     def _fingerprint(self) -> list[tuple[int, int]]:
         try:
@@ -183,6 +196,16 @@ class _TracedUnet:
 
     def current(self, unet: torch.nn.Module) -> bool:
         return unet is self.unet and self._fingerprint() == self.key
+
+
+class _ByRows:
+    """Calls ``small`` for inputs of up to ``max_rows`` rows, else ``large``."""
+
+    def __init__(self, small, large, max_rows: int):
+        self.small, self.large, self.max_rows = small, large, max_rows
+
+    def __call__(self, sample: Tensor, timestep: Tensor, cond: Tensor) -> Tensor:
+        return (self.small if len(sample) <= self.max_rows else self.large)(sample, timestep, cond)
 
 
 class _LeanCache:

@@ -276,3 +276,25 @@ def test_sample_prediction_student_same_chunks_as_eager(backend, spacing, steps)
     torch.testing.assert_close(_chunks(policy, backend, batch, 3, noise), eager, **TOL)
     (entry,) = policy._lean.steps.values()
     assert entry[2] is not None and entry[2].predicts_sample
+
+
+def test_cpu_trace_runs_matrix_product_convolutions_for_few_rows_and_onednn_for_many():
+    """On a CPU the trace holds two graphs (``policy.unet_inference``): up to ``SMALL_BATCH_ROWS`` rows
+    the matrix-product one, above it oneDNN's; both give the eager chunks."""
+    policy = _policy(inference_backend="trace")
+    for batch_size, k in [(1, 10), (modeling.SMALL_BATCH_ROWS + 1, 1)]:
+        batch, noise = history_batch(batch_size), sampling_noise(batch_size * k)
+        torch.testing.assert_close(
+            _chunks(policy, "trace", batch, k, noise), _chunks(policy, "eager", batch, k, noise), **TOL
+        )
+    (traced,) = policy._lean.unets.values()
+    assert isinstance(traced.fn, modeling._ByRows)
+    calls = []
+    for name in ("small", "large"):
+        graph = getattr(traced.fn, name)
+        setattr(traced.fn, name, lambda *args, graph=graph, name=name: calls.append(name) or graph(*args))
+    for rows in (1, modeling.SMALL_BATCH_ROWS, modeling.SMALL_BATCH_ROWS + 1):
+        batch, noise = history_batch(rows), sampling_noise(rows)
+        _chunks(policy, "trace", batch, 1, noise)
+    steps = policy.config.num_inference_steps
+    assert calls == ["small"] * 2 * steps + ["large"] * steps
