@@ -160,8 +160,9 @@ class FormationDiffusionConfig(DiffusionConfig):
             once per scheduler and step count (checked against diffusers' ``step``; other schedulers
             keep diffusers' ``step``). "trace": "lean" with a ``torch.jit`` traced and frozen U-Net,
             built on first use in eval mode, rebuilt when the weights change, never saved (the
-            ``state_dict`` is unchanged); falls back to the eager U-Net if tracing fails. Same noise,
-            same chunks within 1e-5 (modeling_formation_diffusion.py).
+            ``state_dict`` is unchanged); falls back to the eager U-Net if tracing fails. On a CPU
+            it traces ``policy.unet_inference``'s copies (matrix-product convolutions up to 64 rows).
+            Same noise, same chunks within 1e-5 (modeling_formation_diffusion.py).
         timestep_spacing: where a DDIM sampler of ``num_inference_steps`` steps puts its timesteps
             (diffusers' ``DDIMScheduler`` ``timestep_spacing``). "leading" (default, diffusers' and so
             LeRobot's): 0, T/S, 2T/S, ...; with S = 1 the only step is t = 0, which cannot denoise.

@@ -25,8 +25,9 @@ unchanged): "lean" samples under ``torch.inference_mode`` with the DDIM steps pr
 diffusers' ``step``); "trace" adds a ``torch.jit`` traced and frozen U-Net (``_TracedUnet``), built
 on the first call in eval mode and rebuilt when the weights change (an EMA update, ``load_state_dict``,
 a device move). On a CPU it traces ``policy.unet_inference``'s copies of the U-Net: matrix-product
-convolutions for calls of up to 64 rows (a B = 1 replan's K candidates), oneDNN's above. Both live in ``_LeanCache``, a plain attribute: never in the ``state_dict`` or a
-checkpoint, and a copy or pickle of the policy starts without them. ``select_action``,
+convolutions for calls of up to 64 rows (a B = 1 replan's K candidates), oneDNN's above. Both live
+in ``_LeanCache``, a plain attribute: never in the ``state_dict`` or a checkpoint, and a copy or
+pickle of the policy starts without them. ``select_action``,
 ``predict_action_chunk`` and ``sample_action_chunks`` (the engine, the safety layer) all sample
 through ``_sample``. The traced graph is not specialised to the batch size (checked at build time on
 a second size, and by the tests).
