@@ -158,24 +158,24 @@ class _TracedUnet:
         self.tensors = [*unet.parameters(), *unet.buffers()]
         self.key = self._fingerprint()
         self.fn = None
-        if sample.device.type == "cpu":
-            variants = [inference_copy(unet, matmul_convolutions=True), inference_copy(unet, False)]
-        else:
-            variants = [unet]
+        inputs = (sample, timestep, cond)
         graphs = []
         try:
+            if sample.device.type == "cpu":
+                variants = [inference_copy(unet, matmul_convolutions=True), inference_copy(unet, False)]
+            else:
+                variants = [unet]
+            wider = tuple(torch.cat([x, x[:1]]) for x in inputs)
+            expected = [(args, unet(*args)) for args in (inputs, wider)]  # the eager U-Net, once
             for module in variants:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", torch.jit.TracerWarning)
                     # torch 2.11 deprecates torch.jit (torch.compile gains nothing here, see the
                     # benchmark); if a release removes it, this raises and the eager U-Net is kept.
                     warnings.simplefilter("ignore", DeprecationWarning)
-                    traced = torch.jit.trace(module, (sample, timestep, cond), check_trace=False)
+                    traced = torch.jit.trace(module, inputs, check_trace=False)
                     fn = torch.jit.freeze(traced.eval())
-                wider = (sample, timestep, cond)
-                wider = tuple(torch.cat([x, x[:1]]) for x in wider)
-                for args in ((sample, timestep, cond), wider):
-                    want = unet(*args)
+                for args, want in expected:
                     for _ in range(2):  # the JIT's profiling run, then its optimised graph
                         got = fn(*args)
                         if got.shape != want.shape or not torch.allclose(got, want, rtol=1e-5, atol=1e-5):
