@@ -169,3 +169,35 @@ def test_pursuit_chunk_follows_the_hints_polyline():
         pursuit_chunk(seen[:, :2].reshape(2, 4), seen[:, 2], 15, 0.1, 1.5),
         atol=1e-9,
     )
+
+
+def test_pursuit_chunk_is_pursuit_command_rolled_through_the_unicycle():
+    """``pursuit_chunk`` writes its loop out on coordinate arrays; its numbers are, bit for bit, those of
+    the documented steps: aim at the near carrot until within half its starting distance, then the far
+    one, the goal within ``r_goal``; ``pursuit_command`` on the aim in the body frame
+    (``world_to_body``); one ``dynamics.step_midpoint``."""
+    from lerobot_formation.core.dynamics import step_midpoint
+    from lerobot_formation.core.route_pursuit import RoutePursuitConfig, pursuit_command
+    from lerobot_formation.core.safety import BODY_POSE
+
+    cfg = RoutePursuitConfig()
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        B = int(rng.integers(1, 50))
+        route = rng.uniform(-3, 3, (B, 4)) * rng.choice([0.2, 1.0, 3.0])
+        goal = rng.uniform(-5, 5, (B, 2)) * rng.choice([0.05, 0.3, 1.0])
+        start = (
+            None if trial % 2 else np.concatenate([rng.uniform(-2, 2, (B, 2)), rng.uniform(-4, 4, (B, 1))], 1)
+        )
+        pose = np.tile(BODY_POSE, (B, 1)) if start is None else start.copy()
+        near, far = route[:, :2], route[:, 2:]
+        switch = 0.5 * np.linalg.norm(near - pose[:, :2], axis=-1)
+        passed = np.zeros(B, dtype=bool)
+        expected = np.zeros((B, 20, 2))
+        for k in range(20):
+            passed |= np.linalg.norm(near - pose[:, :2], axis=-1) < switch
+            d_goal = np.linalg.norm(goal - pose[:, :2], axis=-1)
+            aim = np.where((d_goal < cfg.r_goal)[:, None], goal, np.where(passed[:, None], far, near))
+            expected[:, k] = pursuit_command(world_to_body(aim, pose), d_goal, cfg, 1.5)
+            pose = step_midpoint(pose, expected[:, k], 0.1)
+        assert np.array_equal(pursuit_chunk(route, goal, 20, 0.1, 1.5, start=start), expected)
