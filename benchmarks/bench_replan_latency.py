@@ -40,9 +40,13 @@ Run (full size)::
 
 (e) The safety layer (``--parts e``): every replan at B=1 through ``select_action`` over whole episodes
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
-    the scorer against its whole-field baseline in the same run, the policy's traced U-Net against a
+    the scorer against its whole-field baseline in the same run, a checkpoint whose best-of-K differs
+    from the default's before 2026-12-05 (late) (``PREVIOUS_DEFAULT``: 0.2 m progress cells read at the
+    nearest cell, the first candidate warm) against the same weights with those settings in the same
+    run, the policy's traced U-Net against a
     plain trace of LeRobot's (``plain_trace``: the policy's trace until 2026-12-05) in the same run,
-    and with a warm-starting checkpoint all K candidates warm-started (``ReplanExperiment.warm_all_candidates``). Its headline is the last line
+    and with a warm-starting checkpoint the other warm start (all K candidates warm-started, or the
+    first only: ``warm_start_all_candidates``). Its headline is the last line
     when it runs. ``--level levelK``: the level's scenes (its first seeds) under its conditions instead,
     with the safety layer told the conditions as the bench tells it (``safety_settings``).
 
@@ -71,6 +75,14 @@ from lerobot_formation.bench.timing import median_seconds  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+# the shipped default's best-of-K before 2026-12-05 (late): its progress grid and its warm start
+# (``safety_progress_resolution``, ``safety_progress_interpolation``, ``warm_start_all_candidates``),
+# timed on the same weights beside a checkpoint that sets them otherwise
+PREVIOUS_DEFAULT = {
+    "safety_progress_resolution": 0.2,
+    "safety_progress_interpolation": "nearest",
+    "warm_start_all_candidates": False,
+}
 
 
 def paper_policy(config_path: Path):
@@ -382,22 +394,28 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         cfg = policy.config
         where = f"{scenes} scenes of {level} under its conditions"
 
-    def whole_field(obstacles, goal, points, rows=None, **kw):
-        return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows)
+    def whole_field(obstacles, goal, points, rows=None, bilinear=False, **kw):
+        return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows, bilinear)
 
     runs = {}
     plain = f"K={k}, plain trace"
-    variants = [
-        ("K=1", 1, None, False, False),
-        (f"K={k}", k, None, False, False),
-        (f"K={k}, whole field", k, whole_field, False, False),
+    shipped = {name: getattr(cfg, name) for name in PREVIOUS_DEFAULT}
+    previous = f"K={k}, previous default"
+    other_warm = "first candidate warm" if cfg.warm_start_all_candidates else "all candidates warm"
+    variants = [  # label, K, scorer, config fields, plain trace
+        ("K=1", 1, None, shipped, False),
+        (f"K={k}", k, None, shipped, False),
+        (f"K={k}, whole field", k, whole_field, shipped, False),
     ]
-    if cfg.warm_start_step:  # the real-time best-of-K: every candidate warm-started, j fewer denoiser calls
-        variants.append((f"K={k}, all candidates warm", k, None, True, False))
-    variants.append((plain, k, None, False, True))  # last: it traces again on its first call
-    for label, kk, scorer, all_warm, plain_trace in variants:
-        policy.reconfigure(num_candidates=kk)
-        policy.replanner = Replanner(policy, experiment=ReplanExperiment(warm_all_candidates=all_warm))
+    if shipped != PREVIOUS_DEFAULT:  # the default's best-of-K before 2026-12-05 (late), same weights
+        variants.append((previous, k, None, PREVIOUS_DEFAULT, False))
+    if cfg.warm_start_step:  # every candidate warm-started (j fewer denoiser calls), or the first only
+        toggled = {**shipped, "warm_start_all_candidates": not cfg.warm_start_all_candidates}
+        variants.append((f"K={k}, {other_warm}", k, None, toggled, False))
+    variants.append((plain, k, None, shipped, True))  # last: it traces again on its first call
+    for label, kk, scorer, fields, plain_trace in variants:
+        policy.reconfigure(num_candidates=kk, **fields)
+        policy.replanner = Replanner(policy, experiment=ReplanExperiment())
         runs[label] = episode_replans_ms(
             policy, pre, post, cfg.obstacle_encoding, seeds, scorer, env_kwargs, plain_trace
         )
@@ -405,22 +423,27 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     print(
         f"(e) safety layer: every replan at B=1 through select_action (pre/post processors) over whole "
         f"episodes of {where}; {path} (DDIM {cfg.num_inference_steps}, warm start "
-        f"{cfg.warm_start_step}, traced U-Net):"
+        f"{cfg.warm_start_step}{', all candidates' if cfg.warm_start_all_candidates else ''}, "
+        f"{cfg.safety_progress_resolution:g} m progress grid read {cfg.safety_progress_interpolation}, "
+        "traced U-Net):"
     )
     med = {}
     for label, (times, _) in runs.items():
         med[label] = statistics.median(times)
         print(
-            f"    {label:<22} {len(times):4d} replans: median {med[label]:6.2f} ms, mean "
+            f"    {label:<28} {len(times):4d} replans: median {med[label]:6.2f} ms, mean "
             f"{statistics.fmean(times):6.2f} ms, 90th percentile {np.percentile(times, 90):6.2f} ms"
         )
     base, ours = med[f"K={k}, whole field"], med[f"K={k}"]
     print(f"    the same actions with both scorers: {same}")
-    fast = med.get(f"K={k}, all candidates warm")
-    fast_text = "" if fast is None else f", all candidates warm {fast:.1f} ms"
+    extra = ""
+    if previous in med:
+        extra += f", previous default {med[previous]:.1f} ms (ratio {med[previous] / ours:.2f}x)"
+    if f"K={k}, {other_warm}" in med:
+        extra += f", {other_warm} {med[f'K={k}, {other_warm}']:.1f} ms"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
-        f"{fast_text} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x; plain trace "
+        f"{extra} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x; plain trace "
         f"{med[plain]:.1f} ms, ratio {med[plain] / ours:.2f}x), K=1 {med['K=1']:.1f} ms "
         f"(medians; {torch.get_num_threads()} thread(s))"
     )

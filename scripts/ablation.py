@@ -26,8 +26,9 @@ executed one, ``core.replan_blend``; the other rows run without it); "+ warm sta
 noised; the other rows sample from pure noise; with ``--blend-steps 0`` these rows are named without
 "+ blending"); "+ stop": ``ReplanExperiment.blocked_fallback`` "stop"; with ``--student CKPT`` a
 distilled few-step checkpoint (``python -m lerobot_formation.policy.distill``) standard and with its best
-safety layer. The blending, escape, stop and all-candidates settings are the replanner's experiment
-settings (``policy.replanner.ReplanExperiment``), not policy config fields.
+safety layer. The blending, escape and stop settings are the replanner's experiment settings
+(``policy.replanner.ReplanExperiment``), not policy config fields; "(all candidates)" is the config
+field ``warm_start_all_candidates``.
 """
 
 from __future__ import annotations
@@ -104,7 +105,8 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                 ),
             ]
         if args.warm_start_step:
-            warm = {**blend, "warm_start_step": args.warm_start_step}
+            # the first candidate warm, the others from noise, unless a row says all candidates
+            warm = {**blend, "warm_start_step": args.warm_start_step, "warm_start_all_candidates": False}
             ws = " + blending + warm start" if args.blend_steps else " + warm start"
             k = args.candidates
             rows += [
@@ -116,7 +118,7 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                     path,
                     "diffusion-bestof",
                     None,
-                    {**adv, **warm, "warm_all_candidates": True},
+                    {**adv, **warm, "warm_start_all_candidates": True},
                 ),
                 (f"{tag}, best-of-{k} + CBF{ws}", path, "diffusion-safe", None, {**no_adv, **warm}),
             ]

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Every number in the README's results table, in order (about an hour on 2 CPU cores after the
 # training run). Logs go to outputs/results/.
-# Since issue 25 (2026-12-03) the policy fields escape_advantage, replan_blend_steps, blocked_fallback,
-# warm_start_all_candidates and egocentric_state are retired: the derive_checkpoint.py lines below that
-# set them record how the earlier results were made and now stop with an error; the same settings are
-# ReplanExperiment rows of scripts/ablation.py (--escape-advantage, --blend-steps, ...).
+# Since issue 25 (2026-12-03) the policy fields escape_advantage, replan_blend_steps, blocked_fallback
+# and egocentric_state are retired: the derive_checkpoint.py lines below that set them record how the
+# earlier results were made and now stop with an error; the same settings are ReplanExperiment rows of
+# scripts/ablation.py (--escape-advantage, --blend-steps, ...). warm_start_all_candidates, retired
+# with them, is a config field again since 2026-12-05 (late): the shipped default sets it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1

@@ -149,12 +149,19 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     def spy(policy, *args, **kwargs):
         seen.append((policy.config.safety_action_delay, policy.config.safety_moving_obstacles, args[5]))
         plain.append(args[6])
+        grids.append({name: getattr(policy.config, name) for name in bench.PREVIOUS_DEFAULT})
         return real(policy, *args, **kwargs)
 
+    grids = []
     bench.episode_replans_ms = spy
     torch.set_num_threads(1)
     headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
     assert "K=2 with the safety layer" in headline and "plain trace" in headline
+    shipped = grids[0]
+    if shipped != bench.PREVIOUS_DEFAULT:  # the previous default's best-of-K, timed in the same run
+        assert grids.count(bench.PREVIOUS_DEFAULT) == 1 and "previous default" in headline
+    toggled = {**shipped, "warm_start_all_candidates": not shipped["warm_start_all_candidates"]}
+    assert grids.count(toggled) == 1  # the other warm start
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
     assert plain.count(True) == 1  # the policy's trace against a plain one, in the same run
     assert all(delay == 1 and moving for delay, moving, _ in seen), seen

@@ -29,7 +29,6 @@ OBS_ENV_STATE = "observation.environment_state"  # lerobot.utils.constants.OBS_E
 RETIRED_FIELDS = {
     "escape_advantage": None,
     "blocked_fallback": "widest",
-    "warm_start_all_candidates": False,
     "replan_blend_steps": 0,
     "egocentric_state": False,
 }

@@ -5,6 +5,14 @@ also stalls"). PAC's path check uses this cost-to-go to pick the detour side tha
 the goal. It is a wavefront (8-connected, diagonal cost sqrt 2) on a ``resolution`` grid where
 cells within r + ``inflate`` of an obstacle cost ``wall_cost`` times more, so it is finite
 everywhere, even inside the inflated zone, and has no local minima.
+
+Reads: the value of a point is its nearest cell's, or with ``bilinear`` the bilinear interpolation of
+the four cells around it: with (i, j) the cell at or below and left of the point and (tx, ty) in
+[0, 1]^2 its offset from that cell in cells,
+
+    V = (1 - tx)(1 - ty) V[i, j] + tx (1 - ty) V[i + 1, j] + (1 - tx) ty V[i, j + 1] + tx ty V[i + 1, j + 1],
+
+continuous in the point, where a nearest read jumps by up to a cell's cost at each cell border.
 """
 
 from __future__ import annotations
@@ -29,6 +37,30 @@ def grid_size(lo: float, hi: float, resolution: float) -> int:
 def grid_cell(xy: np.ndarray, origin: float, resolution: float, n: int) -> np.ndarray:
     """Nearest cell (..., 2) int64 of points xy (..., 2) on the grid origin + resolution * [0, n)^2."""
     return np.clip(np.round((xy - origin) / resolution).astype(np.int64), 0, n - 1)
+
+
+_CORNERS = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.int64)
+
+
+def bilinear_cells(xy: np.ndarray, origin: float, resolution: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The four cells (P, 4, 2) int64 around points xy (P, 2) on the grid origin + resolution *
+    [0, n)^2, in the order of the module docstring's formula, and each point's offset (P, 2) in
+    [0, 1]^2 from the first (points off the grid: the border cells)."""
+    f = (xy - origin) / resolution
+    base = np.clip(np.floor(f), 0, n - 2)
+    frac = np.clip(f - base, 0.0, 1.0)
+    return base.astype(np.int64)[:, None, :] + _CORNERS[None], frac
+
+
+def bilinear_mix(corners: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """The module docstring's interpolation (P,) of the values (P, 4) at ``bilinear_cells``."""
+    tx, ty = frac[:, 0], frac[:, 1]
+    return (
+        (1 - tx) * (1 - ty) * corners[:, 0]
+        + tx * (1 - ty) * corners[:, 1]
+        + (1 - tx) * ty * corners[:, 2]
+        + tx * ty * corners[:, 3]
+    )
 
 
 def inflated_cells(
@@ -88,11 +120,15 @@ class CostToGo:
             ij = np.where(better[:, None], nb[bi, best], ij)
         return self.origin + self.resolution * ij.astype(np.float64)
 
-    def at(self, xy: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """Cost-to-go at points xy (P, 2); point p reads field rows[p] (default: field p)."""
-        ij = self.cell(xy)
+    def at(self, xy: np.ndarray, rows: np.ndarray | None = None, bilinear: bool = False) -> np.ndarray:
+        """Cost-to-go at points xy (P, 2); point p reads field rows[p] (default: field p); its nearest
+        cell, or with ``bilinear`` the four around it (module docstring)."""
         rows = np.arange(len(xy)) if rows is None else rows
-        return self.value[rows, ij[:, 0], ij[:, 1]]
+        if not bilinear:
+            ij = self.cell(xy)
+            return self.value[rows, ij[:, 0], ij[:, 1]]
+        cells, frac = bilinear_cells(xy, self.origin, self.resolution, self.value.shape[-1])
+        return bilinear_mix(self.value[np.asarray(rows)[:, None], cells[..., 0], cells[..., 1]], frac)
 
 
 def _grid(
@@ -162,8 +198,9 @@ def cost_to_go_at(
     resolution: float = 0.2,
     wall_cost: float = 30.0,
     bounds: tuple[float, float] = (-3.0, 9.0),
+    bilinear: bool = False,
 ) -> np.ndarray:
-    """``cost_to_go(...).at(points, rows)`` (P,), bit for bit, without finishing the whole field.
+    """``cost_to_go(...).at(points, rows, bilinear)`` (P,), bit for bit, without finishing the whole field.
 
     After r wavefront rounds a cell holds the cheapest path of at most r steps (or better); a path of
     more steps costs at least (r + 1) * ``resolution`` * (the cheapest cell cost). So once every queried
@@ -172,14 +209,19 @@ def cost_to_go_at(
     best-of-K scorer queries one start and a few dozen chunk ends per replan).
     """
     cost, value, lo, n = _grid(obstacles, goal, inflate, resolution, wall_cost, bounds)
-    ij = grid_cell(np.asarray(points, np.float64), lo, resolution, n)
-    rows = np.arange(len(ij)) if rows is None else np.asarray(rows)
+    points = np.asarray(points, np.float64)
+    rows = np.arange(len(points)) if rows is None else np.asarray(rows)
+    if bilinear:  # the four cells around each point are read, and must be exact
+        cells, frac = bilinear_cells(points, lo, resolution, n)
+        ij, rows = cells.reshape(-1, 2), np.repeat(rows, 4)
+    else:
+        ij = grid_cell(points, lo, resolution, n)
     step = resolution * min(1.0, wall_cost)  # the cheapest step
     for rounds in _relax(value, cost, resolution):
         q = value[rows, ij[:, 0], ij[:, 1]]
         if (q < (rounds + 1) * step * (1.0 - 1e-9)).all():  # margin: the bound's own rounding
             break
-    return q
+    return bilinear_mix(q.reshape(-1, 4), frac) if bilinear else q
 
 
 def batch_bounds(goal: np.ndarray, bounds: tuple[float, float] = (-3.0, 9.0)) -> tuple[float, float]:

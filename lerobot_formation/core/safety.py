@@ -217,6 +217,8 @@ def select_chunk(
     start: ChunkStart | None = None,
     continuation: Callable[[np.ndarray], np.ndarray] | None = None,
     coherence: PlanCoherence | None = None,
+    progress_resolution: float = 0.2,
+    progress_bilinear: bool = False,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -243,6 +245,8 @@ def select_chunk(
     ``coherence`` (``PlanCoherence``): among the safe candidates, one whose first n commands deviate
     from the plan being replaced by d (root mean square, in units of the action ranges) scores w d
     less progress; it ranks safe candidates only, never makes one safe.
+    ``progress_resolution``: the cost-to-go grid's cell size [m]; ``progress_bilinear``: read it
+    bilinearly, not at the nearest cell (``cost_to_go_progress``).
     """
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
@@ -278,7 +282,9 @@ def select_chunk(
         dist0 = np.linalg.norm(goal, axis=-1)
         progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
     else:
-        progress = cost_to_go_progress(obstacles, goal, end[..., :2], window)
+        progress = cost_to_go_progress(
+            obstacles, goal, end[..., :2], window, progress_resolution, progress_bilinear
+        )
     # inside the margin already (the filter holds the team at its edge): a chunk that gets no closer
     # than now counts as safe, so that the team may slide along an obstacle instead of stalling there
     now, _ = sequence_clearance(  # at the start (steps from now), standing
@@ -323,7 +329,12 @@ def select_chunk(
 
 
 def cost_to_go_progress(
-    obstacles: np.ndarray, goal: np.ndarray, end: np.ndarray, window: float
+    obstacles: np.ndarray,
+    goal: np.ndarray,
+    end: np.ndarray,
+    window: float,
+    resolution: float = 0.2,
+    bilinear: bool = False,
 ) -> np.ndarray:
     """Decrease (B, K) of a grid cost-to-go from the midpoint (the origin) to each candidate's end point
     (B, K, 2), in the body frame around the observed obstacles.
@@ -336,6 +347,12 @@ def cost_to_go_progress(
     of ``navigation.cost_to_go`` included), so one episode's scores never depend on the other episodes
     of a batch: ``select_action`` at B = 1 scores as the batched engine does. Only the start and the end
     cells are read, so the wavefront stops as soon as they are exact (``navigation.cost_to_go_at``).
+    ``resolution``: the cell size [m]; ``bilinear``: each point reads the four cells around it
+    (``navigation``'s docstring), else its nearest cell. Nearest reads make progress a staircase with
+    steps of a cell: candidates whose ends share a cell tie, and at each cell border the ranking
+    jumps; the best-of-K choice then flips from replan to replan, which shows in the jerk (level3's
+    first 100 tuning scenes: jerk 0.766 with nearest reads on 0.2 m cells, 0.909 on 0.3 m, 0.689 and
+    0.666 with bilinear reads on 0.3 and 0.4 m).
     """
     B, K = end.shape[:2]
     reach = np.abs(goal).max(axis=-1)
@@ -347,8 +364,10 @@ def cost_to_go_progress(
         points,
         rows=np.repeat(np.arange(B), K + 1),
         inflate=0.9,
+        resolution=resolution,
         wall_cost=3.0,
         bounds=(-window - 2.0, window + 2.0),
+        bilinear=bilinear,
     ).reshape(B, K + 1)
     return ctg[:, :1] - ctg[:, 1:]
 

@@ -22,6 +22,7 @@ from lerobot_formation.core.obstacle_grid import (
 
 ACTION_DIM = 2  # [v, omega]
 SAFETY_FILTERS = ("none", "cbf")
+PROGRESS_INTERPOLATIONS = ("nearest", "bilinear")  # how best-of-K reads its cost-to-go grid
 INFERENCE_BACKENDS = ("eager", "lean", "trace")
 TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
 _BOUNDS = FormationParams()
@@ -147,11 +148,28 @@ class FormationDiffusionConfig(DiffusionConfig):
             ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
             scores w d less progress (``core.safety.select_chunk``); not after a plan the filter cut
             short (it met a barrier). 0 (default): progress alone.
+        safety_progress_resolution: cell size [m] of the grid cost-to-go that best-of-K measures
+            progress on (``core.safety.cost_to_go_progress``), in [0.05, 1.0]. Its wavefront was most
+            of the scorer's time, and that falls with the cell count and the rounds (about 1 / r^2;
+            one level5 replan's query on one thread: 3.1 ms at 0.2 m, 1.3 ms at 0.3 m, 0.9 ms at
+            0.4 m with bilinear reads). 0.2 (default): the scorer before 2026-12-05; the shipped
+            default uses 0.4 with bilinear reads (chosen on tuning seeds, docs/benchmark.md).
+        safety_progress_interpolation: how a candidate's end point reads that grid: "nearest"
+            (default; the scorer before 2026-12-05) its nearest cell, "bilinear" the four cells around
+            it, so that progress is continuous in the end point (nearest reads tie the ends that
+            share a cell and flip the ranking at cell borders, which raises the jerk).
         warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
             j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
             episode's previous chunk, noised to that level (SDEdit; the module docstring of
             ``modeling_formation_diffusion``): the plan keeps its way round an obstacle from one replan
             to the next, and costs j fewer denoiser calls. Must be below ``num_inference_steps``.
+        warm_start_all_candidates: with ``warm_start_step`` j > 0 and K > 1, every best-of-K candidate
+            starts from the previous chunk (each with its own noise), not the first one only (the
+            others from pure noise): no candidate then needs the sampler's first j denoiser calls, so
+            a replan at K = 10 makes j fewer batched U-Net calls (2.2 ms of about 15 ms per level5
+            replan on one thread). The escape manoeuvres and route pursuit's proposal still offer other
+            ways. False (default): the first candidate only, the sampler before 2026-12-05 (late). No
+            effect without a warm start.
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -224,8 +242,11 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_route_lookahead: int = 0
     safety_proposal_blend: int = 0
     safety_coherence: float = 0.0
+    safety_progress_resolution: float = 0.2
+    safety_progress_interpolation: str = "nearest"
     replan_on_intervention: bool = True
     warm_start_step: int = 0
+    warm_start_all_candidates: bool = False
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"
@@ -377,6 +398,18 @@ class FormationDiffusionConfig(DiffusionConfig):
         if not _is_finite_nonnegative(self.safety_coherence):
             raise config_error(
                 f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
+            )
+        resolution = self.safety_progress_resolution
+        if isinstance(resolution, bool) or not (
+            isinstance(resolution, (int, float)) and 0.05 <= resolution <= 1.0
+        ):
+            raise config_error(
+                f"safety_progress_resolution must be a cell size in [0.05, 1.0] [m], got {resolution!r}"
+            )
+        if self.safety_progress_interpolation not in PROGRESS_INTERPOLATIONS:
+            raise config_error(
+                f"safety_progress_interpolation must be one of {PROGRESS_INTERPOLATIONS}, "
+                f"got {self.safety_progress_interpolation!r}"
             )
         for name, value in (
             ("safety_route_proposal=true", self.safety_route_proposal),

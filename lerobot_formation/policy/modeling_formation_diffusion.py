@@ -38,8 +38,11 @@ not executed, shifted to the new time and padded with its last action (``warm_st
 noised to the sampler's j-th timestep t_j, x = sqrt(abar_t_j) guess + sqrt(1 - abar_t_j) noise (the
 forward process, DDPM eq. 4), and denoised from there (SDEdit): the new plan keeps the way round an
 obstacle the last one chose unless the observation says otherwise, and the replan costs j fewer
-denoiser calls. An episode's first replan starts from pure noise. The ``Replanner`` builds the guess
-(``warm_start_guess``); ``select_action`` and the engine's controller both run it.
+denoiser calls. An episode's first replan starts from pure noise. With best-of-K the first candidate
+starts from the guess and the others from pure noise, or with ``warm_start_all_candidates`` every
+candidate starts from the guess with its own noise (the first j calls are then not made at all). The
+``Replanner`` builds the guess (``warm_start_guess``); ``select_action`` and the engine's controller
+both run it.
 
 Multi-GPU (``accelerate launch --multi_gpu --num_processes=N $(which lerobot-train) ...``): DDP
 averages the gradients, so after each optimizer step the live weights are identical on every process;

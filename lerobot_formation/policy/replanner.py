@@ -77,13 +77,11 @@ class ReplanExperiment:
             every safe sampled chunk's by that much.
         blocked_fallback: "widest" (the sampled chunk with the largest predicted clearance) or "stop"
             when nothing is safe (``core.safety.select_chunk``).
-        warm_all_candidates: warm-start all K candidates instead of the first only.
     """
 
     blend_steps: int = 0
     escape_advantage: float | None = None
     blocked_fallback: str = "widest"
-    warm_all_candidates: bool = False
 
     def __post_init__(self):
         if self.blend_steps < 0:
@@ -345,7 +343,7 @@ class Replanner:
             noise=noise,
             warm_start=warm,
             warm_start_step=cfg.warm_start_step,
-            warm_all=ex.warm_all_candidates,
+            warm_all=cfg.warm_start_all_candidates,
         ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
@@ -480,6 +478,8 @@ class Replanner:
             start=view.start,
             continuation=continuation,
             coherence=coherence,
+            progress_resolution=cfg.safety_progress_resolution,
+            progress_bilinear=cfg.safety_progress_interpolation == "bilinear",
         )
         info["proposal_kept"] = (
             info["choice"] == K if cfg.safety_route_proposal else np.zeros(len(chosen), bool)

@@ -43,10 +43,18 @@ def test_cost_to_go_is_zero_at_goal_and_has_no_local_minima(kwargs):
         assert (best_neighbour[~goal] < ctg.value[~goal]).all()  # every cell but the goal descends
 
 
-@pytest.mark.parametrize("kwargs", [{}, {"inflate": 0.9, "wall_cost": 3.0, "bounds": (-7.0, 7.0)}])
-def test_cost_to_go_at_equals_the_whole_field_bit_for_bit(kwargs):
+@pytest.mark.parametrize("bilinear", [False, True])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {},
+        {"inflate": 0.9, "wall_cost": 3.0, "bounds": (-7.0, 7.0)},
+        {"resolution": 0.3, "bounds": (-7.0, 7.0)},
+    ],
+)
+def test_cost_to_go_at_equals_the_whole_field_bit_for_bit(kwargs, bilinear):
     """The early-stopping query reads the same values as the converged field, at points near and far
-    from the goal, inside inflated zones and at the grid's edge."""
+    from the goal, inside inflated zones and at the grid's edge, at the nearest cell or bilinearly."""
     rng = np.random.default_rng(3)
     for scenes in _scenes():
         B = len(scenes)
@@ -62,19 +70,42 @@ def test_cost_to_go_at_equals_the_whole_field_bit_for_bit(kwargs):
             axis=1,
         ).reshape(B * P, 2)
         rows = np.repeat(np.arange(B), P)
-        got = cost_to_go_at(scenes.obstacles, scenes.goal, points, rows, **kwargs)
-        assert np.array_equal(got, field.at(points, rows))
+        got = cost_to_go_at(scenes.obstacles, scenes.goal, points, rows, bilinear=bilinear, **kwargs)
+        assert np.array_equal(got, field.at(points, rows, bilinear))
         # one scene alone (its own grid: the bounds follow the batch's goals), default rows
         zeros = np.zeros(P, dtype=int)
-        one = cost_to_go_at(scenes.obstacles[:1], scenes.goal[:1], points[:P], zeros, **kwargs)
+        one = cost_to_go_at(
+            scenes.obstacles[:1], scenes.goal[:1], points[:P], zeros, bilinear=bilinear, **kwargs
+        )
         field = cost_to_go(scenes.obstacles[:1], scenes.goal[:1], **kwargs)
-        assert np.array_equal(one, field.at(points[:P], zeros))
+        assert np.array_equal(one, field.at(points[:P], zeros, bilinear))
         # default rows: point p reads scene p
         first = points.reshape(B, P, 2)[:, 0]
         assert np.array_equal(
-            cost_to_go_at(scenes.obstacles, scenes.goal, first, **kwargs),
-            cost_to_go(scenes.obstacles, scenes.goal, **kwargs).at(first),
+            cost_to_go_at(scenes.obstacles, scenes.goal, first, bilinear=bilinear, **kwargs),
+            cost_to_go(scenes.obstacles, scenes.goal, **kwargs).at(first, None, bilinear),
         )
+
+
+def test_bilinear_reads_interpolate_the_four_cells_around_a_point():
+    """A bilinear read equals the nearest read at a cell's centre, the mean of two cells half-way
+    between them, and is continuous across a cell border, where the nearest read jumps."""
+    obstacles = np.array([[[2.0, 3.0, 0.5]]])
+    goal = np.array([[0.0, 6.0]])
+    field = cost_to_go(obstacles, goal, resolution=0.3, bounds=(-7.0, 7.0))
+    lo, res = field.origin, field.resolution
+    centre = np.array([[lo + 10 * res, lo + 12 * res]])
+    assert field.at(centre, bilinear=True)[0] == field.at(centre)[0]
+    between = centre + [[0.5 * res, 0.0]]
+    right = centre + [[res, 0.0]]
+    np.testing.assert_allclose(
+        field.at(between, bilinear=True), 0.5 * (field.at(centre) + field.at(right)), rtol=1e-12
+    )
+    border = centre + [[0.5 * res, 0.3 * res]]
+    eps = np.array([[1e-6, 0.0]])
+    near = field.at(border - eps)[0], field.at(border + eps)[0]
+    smooth = field.at(border - eps, bilinear=True)[0], field.at(border + eps, bilinear=True)[0]
+    assert near[0] != near[1] and abs(smooth[0] - smooth[1]) < 1e-4
 
 
 # -- candidate scoring ------------------------------------------------------------------------------

@@ -91,9 +91,12 @@ def test_select_chunk_prefers_safe_then_progress():
     assert info3["choice"][0] == np.argmax(info3["clearance"][0])
 
 
-def test_progress_goes_round_an_obstacle_not_through_it():
+@pytest.mark.parametrize("bilinear", [False, True])
+@pytest.mark.parametrize("resolution", [0.2, 0.3, 0.4])
+def test_progress_goes_round_an_obstacle_not_through_it(resolution, bilinear):
     """Cost-to-go progress prefers the chunk that starts round an obstacle on the straight line over
-    the one that heads at it (straight-line progress would pick the latter)."""
+    the one that heads at it (straight-line progress would pick the latter), on the default grid and
+    on coarser ones (``progress_resolution``)."""
     obstacles = np.array([[[0.0, 3.2, 0.8]]])
     goal = np.array([[0.0, 7.0]])
     T = 16
@@ -101,9 +104,37 @@ def test_progress_goes_round_an_obstacle_not_through_it():
     veer = np.tile([0.5, 0.35], (T, 1))
     cand = np.stack([straight, veer])[None]
     _, eu = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, "euclidean")
-    _, ctg = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    _, ctg = select_chunk(
+        cand,
+        obstacles,
+        goal,
+        TEMPLATE,
+        P.dt,
+        P.agent_radius,
+        0.1,
+        progress_resolution=resolution,
+        progress_bilinear=bilinear,
+    )
     assert eu["safe"][0].all()
     assert eu["choice"][0] == 0 and ctg["choice"][0] == 1
+
+
+def test_progress_resolution_is_the_grid_cell_size():
+    """``cost_to_go_progress`` reads the cost-to-go on a grid of ``resolution`` m cells: in free space
+    a chunk that ends d metres nearer the goal scores d to within a cell, whatever the cell size."""
+    obstacles = np.zeros((1, 1, 3))  # one empty slot
+    goal = np.array([[0.0, 5.0]])
+    end = np.array([[[0.0, 1.0], [0.0, 2.0], [0.0, -1.0]]])
+    for resolution in (0.2, 0.3, 0.5):
+        for bilinear in (False, True):
+            progress = cost_to_go_progress(obstacles, goal, end, 6.0, resolution, bilinear)[0]
+            np.testing.assert_allclose(progress, [1.0, 2.0, -1.0], atol=resolution)
+            assert progress[1] > progress[0] > 0 > progress[2]
+    # ends 5 cm apart in one cell: nearest reads tie them, bilinear reads rank them
+    close = np.array([[[0.0, 1.2], [0.0, 1.25]]])
+    tied = cost_to_go_progress(obstacles, goal, close, 6.0, 0.3)[0]
+    ranked = cost_to_go_progress(obstacles, goal, close, 6.0, 0.3, bilinear=True)[0]
+    assert tied[0] == tied[1] and ranked[1] > ranked[0]
 
 
 def test_escape_advantage_goes_round_a_team_pressed_against_an_obstacle():

@@ -353,6 +353,41 @@ def test_coherence_is_checked_with_its_value():
     assert nearest_config(safety_coherence=1.0).safety_coherence == 1.0
 
 
+def test_progress_grid_is_checked_and_reaches_the_scorer(monkeypatch):
+    """``safety_progress_resolution`` is a cell size in [0.05, 1.0] m (a bool, zero, a negative or a
+    huge one is refused with its value), ``safety_progress_interpolation`` "nearest" or "bilinear",
+    and ``choose_raw`` scores on that grid, read that way."""
+    from lerobot_formation.core import safety
+
+    for bad in (0.0, -0.2, 0.01, 2.0, True):
+        with pytest.raises(
+            ValueError, match=r"safety_progress_resolution must be a cell size in \[0.05, 1.0\]"
+        ):
+            nearest_config(safety_progress_resolution=bad)
+    with pytest.raises(ValueError, match="finite.*safety_progress_resolution=nan"):
+        nearest_config(safety_progress_resolution=float("nan"))
+    with pytest.raises(ValueError, match=r"safety_progress_interpolation must be one of .*'cubic'"):
+        nearest_config(safety_progress_interpolation="cubic")
+    default = nearest_config()
+    assert (default.safety_progress_resolution, default.safety_progress_interpolation) == (0.2, "nearest")
+    seen = []
+    real = safety.cost_to_go_progress
+
+    def spy(*args):
+        seen.append(args[4:])
+        return real(*args)
+
+    monkeypatch.setattr(safety, "cost_to_go_progress", spy)
+    env = _env_state([])
+    chunks = np.tile([0.5, 0.0], (1, 2, HORIZON - N_OBS + 1, 1))
+    for interpolation in ("nearest", "bilinear"):
+        config = nearest_config(
+            num_candidates=2, safety_progress_resolution=0.3, safety_progress_interpolation=interpolation
+        )
+        FormationDiffusionPolicy(config).eval().replanner.choose_raw(env, chunks)
+    assert seen == [(0.3, False), (0.3, True)]
+
+
 def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypatch):
     """``choose_raw`` with the rest of the previous plan: a large weight keeps the left arc it
     continues over the straight chunk that makes more progress; without a previous plan, progress
@@ -414,3 +449,28 @@ def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
     for _ in range(9):
         policy.select_action(_batch(env))
     assert kept_to == [False, False, True]  # the first replan, the cut one, the full one
+
+
+@pytest.mark.parametrize("all_warm", [False, True])
+def test_warm_start_all_candidates_skips_the_first_denoiser_calls(all_warm):
+    """``warm_start_all_candidates`` through ``select_action``: after the first replan (nothing to
+    continue yet: K cold rows, every step), a replan with warm start j warm-starts the first candidate
+    only (its first j denoiser calls run the K - 1 cold rows) or, with the field, all K (the first j
+    calls are not made)."""
+    K, j = 4, 1
+    config = nearest_config(
+        num_candidates=K, warm_start_step=j, warm_start_all_candidates=all_warm, inference_backend="lean"
+    )
+    policy = FormationDiffusionPolicy(config).eval()
+    rows = []
+    policy.inference_model.unet.register_forward_hook(lambda module, args, out: rows.append(len(args[0])))
+    env = _env_state([])
+    torch.manual_seed(0)
+    policy.reset()
+    policy.select_action(_batch(env))  # the first replan
+    assert rows == [K] * config.num_inference_steps
+    rows.clear()
+    for _ in range(config.n_action_steps):  # runs its chunk, then replans from its rest
+        policy.select_action(_batch(env))
+    later = config.num_inference_steps - j
+    assert rows == ([K] * later if all_warm else [K - 1] * j + [K] * later)
