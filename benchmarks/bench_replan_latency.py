@@ -375,7 +375,6 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     from lerobot_formation.core import navigation
     from lerobot_formation.core.scene import UNSEEN_SEED_START
     from lerobot_formation.policy.checkpoint import load_policy
-    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
 
     policy, pre, post = load_policy(path)
     policy.reconfigure(inference_backend="trace")
@@ -414,8 +413,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         variants.append((f"K={k}, {other_warm}", k, None, toggled, False))
     variants.append((plain, k, None, shipped, True))  # last: it traces again on its first call
     for label, kk, scorer, fields, plain_trace in variants:
-        policy.reconfigure(num_candidates=kk, **fields)
-        policy.replanner = Replanner(policy, experiment=ReplanExperiment())
+        policy.reconfigure(num_candidates=kk, **fields)  # a new config: a fresh replanner (reset)
         runs[label] = episode_replans_ms(
             policy, pre, post, cfg.obstacle_encoding, seeds, scorer, env_kwargs, plain_trace
         )
