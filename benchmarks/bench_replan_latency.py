@@ -42,7 +42,7 @@ Run (full size)::
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
     the scorer against its whole-field baseline in the same run, a checkpoint whose best-of-K differs
     from the default's before 2026-12-05 (late) (``PREVIOUS_DEFAULT``: 0.2 m progress cells read at the
-    nearest cell, the first candidate warm) against the same weights with those settings in the same
+    nearest cell, the first candidate warm, no chunk smoothing) against the same weights with those settings in the same
     run, the policy's traced U-Net against a
     plain trace of LeRobot's (``plain_trace``: the policy's trace until 2026-12-05) in the same run,
     and with a warm-starting checkpoint the other warm start (all K candidates warm-started, or the
@@ -82,6 +82,7 @@ PREVIOUS_DEFAULT = {
     "safety_progress_resolution": 0.2,
     "safety_progress_interpolation": "nearest",
     "warm_start_all_candidates": False,
+    "chunk_smoothing": 0,
 }
 
 
@@ -423,7 +424,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         f"episodes of {where}; {path} (DDIM {cfg.num_inference_steps}, warm start "
         f"{cfg.warm_start_step}{', all candidates' if cfg.warm_start_all_candidates else ''}, "
         f"{cfg.safety_progress_resolution:g} m progress grid read {cfg.safety_progress_interpolation}, "
-        "traced U-Net):"
+        f"{cfg.chunk_smoothing} smoothing passes, traced U-Net):"
     )
     med = {}
     for label, (times, _) in runs.items():

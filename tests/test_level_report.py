@@ -32,7 +32,7 @@ def test_no_flag_keeps_the_checkpoints_settings():
 def test_each_flag_names_its_config_field():
     args = _parse(
         "--safety-margin", "0.11", "--follower-margin", "0.03", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
-        "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0",
+        "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0", "--chunk-smoothing", "0",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
@@ -44,6 +44,7 @@ def test_each_flag_names_its_config_field():
         "safety_route_lookahead": 0,
         "safety_coherence": 0.0,
         "safety_proposal_blend": 0,
+        "chunk_smoothing": 0,
     }
     assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
 

@@ -100,6 +100,7 @@ SAFETY_FLAGS = (
     "route_lookahead",
     "coherence",
     "proposal_blend",
+    "chunk_smoothing",
 )
 
 
@@ -112,6 +113,7 @@ def safety_overrides(
     route_lookahead: int | None = None,
     coherence: float | None = None,
     proposal_blend: int | None = None,
+    chunk_smoothing: int | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
     ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
@@ -119,7 +121,7 @@ def safety_overrides(
     layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
     ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: the layer before 2026-12-04
     night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
-    2026-12-05)."""
+    2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too)."""
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
@@ -137,6 +139,8 @@ def safety_overrides(
         out["safety_coherence"] = coherence
     if proposal_blend is not None:
         out["safety_proposal_blend"] = proposal_blend
+    if chunk_smoothing is not None:
+        out["chunk_smoothing"] = chunk_smoothing
     return out
 
 
@@ -193,5 +197,11 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         type=int,
         default=None,
         help="steps over which route pursuit's proposal is blended in",
+    )
+    ap.add_argument(
+        "--chunk-smoothing",
+        type=int,
+        default=None,
+        help="passes of the [1, 2, 1] / 4 kernel over every sampled chunk (0: none)",
     )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

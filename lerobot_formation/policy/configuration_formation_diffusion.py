@@ -170,6 +170,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             replan on one thread). The escape manoeuvres and route pursuit's proposal still offer other
             ways. False (default): the first candidate only, the sampler before 2026-12-05 (late). No
             effect without a warm start.
+        chunk_smoothing: n >= 0 passes of the [1, 2, 1] / 4 kernel over every sampled chunk along
+            time, entered from the command being executed (``core.replan_blend.smooth_chunks``), before
+            best-of-K scores the candidates (so it judges what will run); with K = 1 too. A diffusion
+            sample's step-to-step noise is most of the jerk where a chunk runs on. 0 (default): the
+            samples as drawn, the policy before 2026-12-05 (evening).
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -247,6 +252,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     replan_on_intervention: bool = True
     warm_start_step: int = 0
     warm_start_all_candidates: bool = False
+    chunk_smoothing: int = 0
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"
@@ -395,6 +401,12 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"safety_proposal_blend must be an integer in [0, {max_action_steps}] (the chunk's length) "
                 f"[steps], got {self.safety_proposal_blend!r}"
             )
+        if isinstance(self.chunk_smoothing, bool) or not (
+            isinstance(self.chunk_smoothing, int) and self.chunk_smoothing >= 0
+        ):
+            raise config_error(
+                f"chunk_smoothing must be an integer >= 0 [passes], got {self.chunk_smoothing!r}"
+            )
         if not _is_finite_nonnegative(self.safety_coherence):
             raise config_error(
                 f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
@@ -439,9 +451,10 @@ class FormationDiffusionConfig(DiffusionConfig):
 
     @property
     def plans_per_episode(self) -> bool:
-        """Whether ``select_action`` runs the ``Replanner`` (safety layer or warm starts) instead of
-        LeRobot's action queue."""
-        return self.safety_layer or self.warm_start_step > 0
+        """Whether ``select_action`` runs the ``Replanner`` (safety layer, warm starts or chunk
+        smoothing: each needs the episode's own plan and last command) instead of LeRobot's action
+        queue."""
+        return self.safety_layer or self.warm_start_step > 0 or self.chunk_smoothing > 0
 
     def validate_features(self) -> None:
         """Check the formation features; the error names the feature, its shape and what was found."""

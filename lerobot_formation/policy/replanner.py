@@ -58,7 +58,7 @@ from lerobot_formation.core.dynamics import FormationParams, rate_limit
 from lerobot_formation.core.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.obstacle_tracker import ObstacleTracker
-from lerobot_formation.core.replan_blend import blend_replan
+from lerobot_formation.core.replan_blend import blend_replan, smooth_chunks
 from lerobot_formation.core.route_pursuit import pursuit_chunk
 
 STAT_KEYS = ("replans", "replans_none_safe", "escapes", "stops", "steps", "filter_interventions", "proposals")
@@ -346,6 +346,7 @@ class Replanner:
             warm_all=cfg.warm_start_all_candidates,
         ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
+        chunks = smooth_chunks(chunks, last, has_last, cfg.chunk_smoothing)  # before best-of-K scores them
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
         if K > 1:
             previous, keep_to = None, None

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from lerobot_formation.core.replan_blend import blend_replan, blend_weights
+from lerobot_formation.core.replan_blend import blend_replan, blend_weights, smooth_chunks
 
 
 def _chunks(shape, seed=0):
@@ -70,3 +70,49 @@ def test_bad_shapes_are_named():
         blend_replan(np.zeros((3, 15)), np.zeros((3, 2)), np.ones(3, bool), 2)
     with pytest.raises(ValueError, match=r"last_action must be \(3, 2\), got \(2, 2\)"):
         blend_replan(np.zeros((3, 15, 2)), np.zeros((2, 2)), np.ones(3, bool), 2)
+
+
+def _smoothed_by_convolution(chunks, last, has_last, passes):
+    """The definition: pad with the last executed action (or the first) and the last, convolve."""
+    out = chunks.copy()
+    for _ in range(passes):
+        first = np.where(has_last[:, None, None, None], last[:, None, None, :], out[..., :1, :])
+        padded = np.concatenate([first, out, out[..., -1:, :]], axis=-2)
+        out = np.apply_along_axis(lambda x: np.convolve(x, [0.25, 0.5, 0.25], "valid"), -2, padded)
+    return out
+
+
+@pytest.mark.parametrize("passes", [1, 2, 3])
+def test_smoothing_is_the_binomial_convolution_entered_from_the_last_action(passes):
+    c = _chunks((4, 3, 15, 2))
+    last = _chunks((4, 2), seed=1)
+    has = np.array([True, False, True, False])
+    out = smooth_chunks(c, last, has, passes)
+    np.testing.assert_allclose(out, _smoothed_by_convolution(c, last, has, passes), atol=1e-12)
+    np.testing.assert_allclose(smooth_chunks(c[:, 0], last, has, passes), out[:, 0], atol=1e-12)
+    as_torch = smooth_chunks(torch.from_numpy(c), torch.from_numpy(last), torch.from_numpy(has), passes)
+    np.testing.assert_allclose(as_torch.numpy(), out, atol=1e-12)
+    assert smooth_chunks(c, last, has, 0) is c
+
+
+def test_smoothing_keeps_constants_ramps_and_bounds_and_damps_the_jerk():
+    ramp = np.zeros((1, 20, 2))
+    ramp[0, :, 0] = np.linspace(0.0, 0.38, 20)
+    kept = smooth_chunks(ramp, np.array([[-0.02, 0.0]]), np.ones(1, bool), 2)  # entered from the ramp's past
+    np.testing.assert_allclose(kept[0, :-2], ramp[0, :-2], atol=1e-12)  # a ramp, away from the end
+    still = smooth_chunks(np.full((1, 20, 2), 0.3), np.full((1, 2), 0.3), np.ones(1, bool), 3)
+    np.testing.assert_allclose(still, 0.3)
+    noisy = _chunks((200, 30, 2), seed=2)  # in [-1, 1]
+    smooth = smooth_chunks(noisy, np.zeros((200, 2)), np.zeros(200, bool), 2)
+    assert smooth.min() >= -1 and smooth.max() <= 1
+    second_difference = lambda x: np.abs(np.diff(x, n=2, axis=-2)).mean()  # noqa: E731
+    assert second_difference(smooth) < 0.2 * second_difference(noisy)
+
+
+def test_smoothing_checks_its_arguments():
+    c = _chunks((2, 15, 2))
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match=f"smoothing passes must be an integer >= 0, got {bad!r}"):
+            smooth_chunks(c, np.zeros((2, 2)), np.ones(2, bool), bad)
+    with pytest.raises(ValueError, match=r"last_action must be \(2, 2\)"):
+        smooth_chunks(c, np.zeros((3, 2)), np.ones(2, bool), 1)

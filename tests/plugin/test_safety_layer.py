@@ -17,6 +17,7 @@ from plugin_helpers import (
 
 from lerobot_formation.core.conditions import Perception
 from lerobot_formation.core.obstacle_grid import environment_state
+from lerobot_formation.core.replan_blend import smooth_chunks
 from lerobot_formation.core.scene import FAR
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
@@ -474,3 +475,45 @@ def test_warm_start_all_candidates_skips_the_first_denoiser_calls(all_warm):
         policy.select_action(_batch(env))
     later = config.num_inference_steps - j
     assert rows == ([K] * later if all_warm else [K - 1] * j + [K] * later)
+
+
+@pytest.mark.parametrize("K", [1, 3])
+def test_chunk_smoothing_smooths_every_sample_from_the_executed_command(monkeypatch, K):
+    """``chunk_smoothing`` n: every sampled chunk is smoothed (``core.replan_blend.smooth_chunks``)
+    before best-of-K scores it, with K = 1 too: the first chunk from its own first command, a later one
+    entered from the command executed last. Open road: every candidate is safe and the plan kept is one
+    of the smoothed samples."""
+    n = 2
+    config = nearest_config(num_candidates=K, chunk_smoothing=n)
+    policy = FormationDiffusionPolicy(config).eval()
+    T = config.horizon - config.n_obs_steps + 1
+    drawn = []
+
+    def sample(stacked, k, **kwargs):
+        chunk = torch.rand(1, k, T, 2, generator=torch.Generator().manual_seed(len(drawn))) * 0.5
+        drawn.append(chunk)
+        return chunk
+
+    monkeypatch.setattr(policy, "sample_action_chunks", sample)
+    env = _env_state([])
+    policy.reset()
+    policy.select_action(_batch(env))
+    replanner = policy.replanner
+    first = smooth_chunks(drawn[0], torch.zeros(1, 2), torch.zeros(1, dtype=torch.bool), n)
+    assert any(torch.allclose(replanner.plan[0], first[0, k]) for k in range(K))
+    for _ in range(config.n_action_steps - 1):
+        policy.select_action(_batch(env))
+    last = replanner.last_action.clone()
+    policy.select_action(_batch(env))  # the second replan
+    second = smooth_chunks(drawn[1], last, torch.ones(1, dtype=torch.bool), n)
+    assert any(torch.allclose(replanner.plan[0], second[0, k]) for k in range(K))
+    assert not any(torch.allclose(replanner.plan[0], drawn[1][0, k]) for k in range(K))
+
+
+def test_chunk_smoothing_is_checked_with_its_value():
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(
+            ValueError, match=rf"chunk_smoothing must be an integer >= 0 \[passes\], got {bad!r}"
+        ):
+            nearest_config(chunk_smoothing=bad)
+    assert nearest_config(chunk_smoothing=3).chunk_smoothing == 3
