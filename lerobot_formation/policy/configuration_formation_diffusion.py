@@ -173,8 +173,9 @@ class FormationDiffusionConfig(DiffusionConfig):
         chunk_smoothing: n >= 0 passes of the [1, 2, 1] / 4 kernel over every sampled chunk along
             time, entered from the command being executed (``core.replan_blend.smooth_chunks``), before
             best-of-K scores the candidates (so it judges what will run); with K = 1 too. A diffusion
-            sample's step-to-step noise is most of the jerk where a chunk runs on. 0 (default): the
-            samples as drawn, the policy before 2026-12-05 (evening).
+            sample's step-to-step noise is most of the jerk where a chunk runs on. Route pursuit's
+            proposal is smoothed too where it is blended in (``safety_proposal_blend``). 0 (default):
+            the samples as drawn, the policy before 2026-12-05 (evening).
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,

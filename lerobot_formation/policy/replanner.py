@@ -428,7 +428,8 @@ class Replanner:
         egocentric observation (B, D) (``observed_obstacles``), chunks (B, K, T, 2) in m/s and rad/s
         -> kept chunks (B, T, 2), info. With blending and the last executed actions (B, 2) [m/s,
         rad/s], the escape manoeuvres are blended into them as the sampled chunks were, and with
-        ``safety_proposal_blend`` route pursuit's proposal (where ``has_last``, default everywhere). ``previous``
+        ``safety_proposal_blend`` route pursuit's proposal (where ``has_last``, default everywhere),
+        then smoothed as the sampled chunks are (``chunk_smoothing``). ``previous``
         (B, n, 2) [m/s, rad/s]: the plan being replaced, from now on, kept to where ``keep_to`` (B,)
         (default: everywhere) by the ``safety_coherence`` preference; None: no such preference."""
         view = self._as_view(seen)
@@ -445,6 +446,7 @@ class Replanner:
                 # enter from the running command (a rate-limited actuator ramps the step by itself)
                 had = np.ones(len(proposal), bool) if has_last is None else np.asarray(has_last)
                 proposal = blend_replan(proposal, np.asarray(last_action), had, cfg.safety_proposal_blend)
+                proposal = smooth_chunks(proposal, np.asarray(last_action), had, cfg.chunk_smoothing)
             chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
         continuation = None
         if cfg.safety_route_lookahead:  # route pursuit from each candidate's end pose (B, P, 3)

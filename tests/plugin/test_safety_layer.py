@@ -517,3 +517,42 @@ def test_chunk_smoothing_is_checked_with_its_value():
         ):
             nearest_config(chunk_smoothing=bad)
     assert nearest_config(chunk_smoothing=3).chunk_smoothing == 3
+
+
+def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
+    """Where route pursuit's proposal is blended in (``safety_proposal_blend``), ``chunk_smoothing``
+    smooths it after the blend, as it does the sampled chunks; under a rate-limited actuator (no blend)
+    it is left as computed."""
+    inputs, outputs = formation_features(env_dim=55)
+    kw = dict(
+        input_features=inputs,
+        output_features=outputs,
+        obstacle_encoding="nearest+route",
+        safety_route_proposal=True,
+        safety_proposal_blend=3,
+    )
+    obs = np.array([[[5.0, -5.0, 0.3]]])  # far off the way to the goal
+    pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
+    env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
+    chunks = np.zeros((1, 3, HORIZON, 2))  # every sample stands still: the proposal makes the progress
+    last, had = np.array([[0.1, 0.0]]), np.array([True])
+    blended, _ = (
+        FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.choose_raw(env, chunks, last, had)
+    )
+    policy = FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **kw)).eval()
+    kept, info = policy.replanner.choose_raw(env, chunks, last, had)
+    assert info["proposal_kept"][0]
+    np.testing.assert_allclose(kept, smooth_chunks(blended, last, had, 2))
+    assert not np.allclose(kept, blended)
+    limited = dict(kw, safety_max_linear_accel=0.5)
+    plain, _ = (
+        FormationDiffusionPolicy(nearest_config(**limited))
+        .eval()
+        .replanner.choose_raw(env, chunks, last, had)
+    )
+    as_computed, _ = (
+        FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **limited))
+        .eval()
+        .replanner.choose_raw(env, chunks, last, had)
+    )
+    np.testing.assert_allclose(as_computed, plain)
