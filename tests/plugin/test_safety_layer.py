@@ -259,18 +259,24 @@ def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
         nearest_config(safety_route_proposal=True)
 
 
+def _route_proposal_config(**fields) -> dict:
+    """Config keywords of a ``nearest+route`` policy with route pursuit's proposal, and ``fields``."""
+    inputs, outputs = formation_features(env_dim=55)
+    return dict(
+        input_features=inputs,
+        output_features=outputs,
+        obstacle_encoding="nearest+route",
+        safety_route_proposal=True,
+        **fields,
+    )
+
+
 def test_route_proposal_blending_enters_from_the_executed_action():
     """With ``safety_proposal_blend`` m route pursuit's proposal starts from the last executed action
     (``core.replan_blend``): its first action lies 1 / (m + 1) of the step from it, its actions from the
     m-th on are unchanged; without a last action (an episode's first chunk), or with a rate-limited
     actuator, it is left as computed."""
-    inputs, outputs = formation_features(env_dim=55)
-    kw = dict(
-        input_features=inputs,
-        output_features=outputs,
-        obstacle_encoding="nearest+route",
-        safety_route_proposal=True,
-    )
+    kw = _route_proposal_config()
     obs = np.array([[[0.5, 1.2, 0.3], [-0.5, 1.2, 0.3]]])
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
     env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
@@ -523,14 +529,7 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
     """Where route pursuit's proposal is blended in (``safety_proposal_blend``), ``chunk_smoothing``
     smooths it after the blend, as it does the sampled chunks; under a rate-limited actuator (no blend)
     it is left as computed."""
-    inputs, outputs = formation_features(env_dim=55)
-    kw = dict(
-        input_features=inputs,
-        output_features=outputs,
-        obstacle_encoding="nearest+route",
-        safety_route_proposal=True,
-        safety_proposal_blend=3,
-    )
+    kw = _route_proposal_config(safety_proposal_blend=3)
     obs = np.array([[[5.0, -5.0, 0.3]]])  # far off the way to the goal
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
     env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
