@@ -33,6 +33,7 @@ def test_each_flag_names_its_config_field():
     args = _parse(
         "--safety-margin", "0.11", "--follower-margin", "0.03", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
         "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0", "--chunk-smoothing", "0",
+        "--mover-uncertainty", "0", "--escape-speeds", "0,0.1,0.2,0.3", "--fallback-all", "off",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
@@ -45,6 +46,9 @@ def test_each_flag_names_its_config_field():
         "safety_coherence": 0.0,
         "safety_proposal_blend": 0,
         "chunk_smoothing": 0,
+        "safety_mover_uncertainty": 0.0,
+        "safety_escape_speeds": (0.0, 0.1, 0.2, 0.3),
+        "safety_fallback_all": False,
     }
     assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
 

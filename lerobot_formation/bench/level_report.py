@@ -101,6 +101,9 @@ SAFETY_FLAGS = (
     "coherence",
     "proposal_blend",
     "chunk_smoothing",
+    "mover_uncertainty",
+    "escape_speeds",
+    "fallback_all",
 )
 
 
@@ -114,6 +117,9 @@ def safety_overrides(
     coherence: float | None = None,
     proposal_blend: int | None = None,
     chunk_smoothing: int | None = None,
+    mover_uncertainty: float | None = None,
+    escape_speeds: tuple[float, ...] | None = None,
+    fallback_all: bool | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
     ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
@@ -121,7 +127,9 @@ def safety_overrides(
     layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
     ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: the layer before 2026-12-04
     night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
-    2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too)."""
+    2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too),
+    ``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` (0,
+    (0, 0.1, 0.2, 0.3) and off: before 2026-12-05, night)."""
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
@@ -141,6 +149,12 @@ def safety_overrides(
         out["safety_proposal_blend"] = proposal_blend
     if chunk_smoothing is not None:
         out["chunk_smoothing"] = chunk_smoothing
+    if mover_uncertainty is not None:
+        out["safety_mover_uncertainty"] = mover_uncertainty
+    if escape_speeds is not None:
+        out["safety_escape_speeds"] = tuple(escape_speeds)
+    if fallback_all is not None:
+        out["safety_fallback_all"] = fallback_all
     return out
 
 
@@ -204,4 +218,20 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         default=None,
         help="passes of the [1, 2, 1] / 4 kernel over every sampled chunk (0: none)",
     )
+    ap.add_argument(
+        "--mover-uncertainty",
+        type=float,
+        default=None,
+        help="growth of a moving obstacle's predicted radius per second ahead [m/s]",
+    )
+    ap.add_argument(
+        "--escape-speeds",
+        type=lambda text: tuple(float(v) for v in text.split(",")),
+        default=None,
+        help="the escape manoeuvres' speeds, comma-separated [m/s], e.g. 0,0.1,0.2,0.3",
+    )
+    ap.add_argument(
+        "--fallback-all", type=lambda text: {"on": True, "off": False}.get(text, text), choices=(True, False),
+        default=None, metavar="{on,off}", help="where nothing is safe, the widest of every candidate scored",
+    )  # fmt: skip
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

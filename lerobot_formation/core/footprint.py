@@ -64,19 +64,23 @@ def sequence_clearance(
     agent_radius: float | np.ndarray,
     obstacle_velocity: np.ndarray | None = None,
     start_step: int = 0,
+    mover_uncertainty: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of candidate sequences.
 
     ``obstacle_velocity`` (B, M, 2): the obstacles move at constant velocity, and the pose after
     action k is checked against them at time (``start_step`` + k + 1) dt (``start_step``: the steps
     from now until the first action runs). None: they stand still (the same numbers as all zeros).
+    ``mover_uncertainty`` [m/s]: a moving obstacle's predicted radius grows by that much per second
+    ahead (``obstacle_tracker.predict_obstacles``).
     """
     poses = rollout_poses(pose, actions, dt)  # (B, C, T, 3)
     if obstacle_velocity is None:
         clear = template_clearance(poses, obstacles, template, agent_radius)
     else:  # time folded into the batch: step k's poses against the obstacles at step k
         B, C, T, _ = poses.shape
-        moved = predict_obstacles(obstacles, obstacle_velocity, (start_step + 1 + np.arange(T)) * dt)
+        times = (start_step + 1 + np.arange(T)) * dt
+        moved = predict_obstacles(obstacles, obstacle_velocity, times, mover_uncertainty)
         at = np.ascontiguousarray(poses.transpose(0, 2, 1, 3)).reshape(B * T, C, 3)
         clear = template_clearance(at, moved.reshape(B * T, -1, 3), template, agent_radius)
         clear = clear.reshape(B, T, C).transpose(0, 2, 1)

@@ -2,7 +2,11 @@
 the observed obstacles' velocities from the ``nearest`` observation alone.
 
 Prediction (``predict_obstacles``): an obstacle [x, y, r] with velocity [vx, vy] is at
-[x + vx t, y + vy t, r] t seconds later. All in the midpoint's body frame at the current step.
+[x + vx t, y + vy t, r] t seconds later. All in the midpoint's body frame at the current step. With an
+``uncertainty`` u [m/s] a moving obstacle's predicted radius grows as r + u t min(1, |v| / MOVING_SPEED):
+a constant-velocity prediction drifts from the truth with the estimate's velocity error and with any
+turn the obstacle makes (a bounce), more the further ahead it looks; an obstacle estimated at rest
+(every static one, within the estimate's noise) keeps its radius, its prediction being exact.
 
 Tracking (``ObstacleTracker``). The ``nearest`` encoding gives the goal g_b and the obstacles o_b in
 the body frame of the observed (noisy) pose (p, a = phi - pi/2): o_b = R(-a)(o - p), g_b = R(-a)(g - p).
@@ -45,13 +49,21 @@ import functools
 
 import numpy as np
 
+MOVING_SPEED = 0.1  # [m/s] an estimated speed from which an obstacle's prediction gets the whole uncertainty
 
-def predict_obstacles(obstacles: np.ndarray, velocity: np.ndarray, times: np.ndarray) -> np.ndarray:
+
+def predict_obstacles(
+    obstacles: np.ndarray, velocity: np.ndarray, times: np.ndarray, uncertainty: float = 0.0
+) -> np.ndarray:
     """Obstacles (B, M, 3) moving at ``velocity`` (B, M, 2), at ``times`` (T,) seconds from now ->
-    (B, T, M, 3): centres + velocity * t, radii unchanged."""
+    (B, T, M, 3): centres + velocity * t; radii unchanged, or with ``uncertainty`` u [m/s] grown by
+    u t min(1, |velocity| / ``MOVING_SPEED``) (module docstring)."""
     times = np.asarray(times, dtype=np.float64)
     out = np.repeat(obstacles[:, None], len(times), axis=1)
     out[..., :2] += velocity[:, None] * times[None, :, None, None]
+    if uncertainty:
+        moving = np.minimum(1.0, np.linalg.norm(velocity, axis=-1) / MOVING_SPEED)  # (B, M)
+        out[..., 2] += uncertainty * times[None, :, None] * moving[:, None, :]
     return out
 
 

@@ -18,7 +18,7 @@ allowance for the lag) with it.
   (with a ``continuation``, e.g. route pursuit after the chunk: steps 2-3 also cover it, so that a
   chunk leaving the team nose-in at a wall it cannot turn away from loses, and progress counts the
   heading it leaves; a preference, dropped where no candidate's continuation is safe)
-  4. if none is safe, a safe escape manoeuvre (a turn in place or a slow arc, ``ESCAPE_PRIMITIVES``)
+  4. if none is safe, a safe escape manoeuvre (a turn in place or an arc, ``escape_primitives``)
      with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
      sampled candidate with the largest predicted clearance (a CBF filter then brakes); "stop", the
      chunk or manoeuvre with the largest predicted clearance if it predicts no contact, else a stop
@@ -44,7 +44,11 @@ the ``nearest+velocity`` encoding or ``core.obstacle_tracker``): ``select_chunk`
 after each action against the obstacles where they will be then, c_j + v_j t (constant velocity);
 the filter's barrier h_ij = |p_i - c_j(t)| - r_j - ... has dh_ij/dt = n_ij . (p_i' - v_j), so its
 row becomes n_ij . e_y v + n_ij . (-b_iy, b_ix) omega >= -alpha h_ij + n_ij . v_j (an approaching
-obstacle asks for more than a standing one).
+obstacle asks for more than a standing one). With a ``mover_uncertainty`` u, best-of-K grows a moving
+obstacle's radius by u t at t seconds ahead: its constant-velocity prediction is least sure at the end
+of the horizon (velocity error, bounces). The leaders cannot back up, so a mover that comes up behind
+the team is escaped only by outrunning it: the manoeuvres' speeds (``escape_primitives``) may go up to
+the action bound.
 
 Delay and rate limits (``ChunkStart``, from ``predict_start``): the commands already sent run first
 (``delay`` steps), so a new chunk (and the filtered action) starts at the pose predicted after them,
@@ -194,9 +198,20 @@ def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.nd
 # most cost-to-go progress) instead of pressing against the obstacle while the filter holds it.
 SLIDE_TOLERANCE = 0.02  # [m] how much closer than now a chunk may come when already inside the margin
 BLOCKED_FALLBACKS = ("widest", "stop")
-_ESCAPE_V = (0.0, 0.1, 0.2, 0.3)
-_ESCAPE_OMEGA = (-1.5, -1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0, 1.5)
-ESCAPE_PRIMITIVES = np.array([[v, w] for v in _ESCAPE_V for w in _ESCAPE_OMEGA if (v, w) != (0.0, 0.0)])
+ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3)  # [m/s] the lattice's speeds before 2026-12-05 (night)
+ESCAPE_TURN_RATES = (-1.5, -1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0, 1.5)  # [rad/s]
+
+
+def escape_primitives(speeds=ESCAPE_SPEEDS) -> np.ndarray:
+    """The escape manoeuvres (P, 2) [v, omega]: every speed of ``speeds`` [m/s] with every turn rate of
+    ``ESCAPE_TURN_RATES``, less the standstill. Speeds above a mover's let the team outrun one that
+    comes up behind it (a turn or a slow arc is struck)."""
+    return np.array(
+        [[v, w] for v in speeds for w in ESCAPE_TURN_RATES if (v, w) != (0.0, 0.0)], dtype=np.float64
+    )
+
+
+ESCAPE_PRIMITIVES = escape_primitives()
 
 
 def select_chunk(
@@ -219,6 +234,9 @@ def select_chunk(
     coherence: PlanCoherence | None = None,
     progress_resolution: float = 0.2,
     progress_bilinear: bool = False,
+    primitives: np.ndarray | None = None,
+    mover_uncertainty: float = 0.0,
+    fallback_all: bool = False,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -247,24 +265,46 @@ def select_chunk(
     less progress; it ranks safe candidates only, never makes one safe.
     ``progress_resolution``: the cost-to-go grid's cell size [m]; ``progress_bilinear``: read it
     bilinearly, not at the nearest cell (``cost_to_go_progress``).
+    ``primitives`` (P, 2): the escape manoeuvres (default ``ESCAPE_PRIMITIVES``, ``escape_primitives``).
+    ``fallback_all``: the
+    "widest" fallback keeps the widest of every candidate scored (sampled chunks and manoeuvres, e.g. a
+    fast arc that a mover strikes later or less deep), not of the sampled chunks only.
+    ``mover_uncertainty`` [m/s]: with ``obstacle_velocity``, a moving obstacle's predicted radius grows
+    by that much per second ahead (``core.obstacle_tracker.predict_obstacles``), over the chunk and its
+    continuation: a chunk that passes a mover closely late in the horizon, where the constant-velocity
+    prediction is least sure, is not safe.
     """
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
     B, K, T = candidates.shape[:3]
-    pool = candidates
-    if escape:
-        prim = np.broadcast_to(ESCAPE_PRIMITIVES[None, :, None, :], (B, len(ESCAPE_PRIMITIVES), T, 2))
-        if blend is not None:
-            prim = blend_replan(prim, *blend)
-        pool = np.concatenate([candidates, prim], axis=1)
-    pose, steps, run = np.broadcast_to(BODY_POSE, (B, 3)), 0, pool
-    if start is not None:  # the pool as the actuator runs it, after the commands in flight
-        pose, steps, run = start.pose, start.steps, start.executed(pool, dt)
-    clear, end = sequence_clearance(
-        pose, run, obstacles, template, dt, agent_radius, obstacle_velocity, start_step=steps
+    pose, steps = np.broadcast_to(BODY_POSE, (B, 3)), 0
+    if start is not None:  # chunks run as the actuator runs them, after the commands in flight
+        pose, steps = start.pose, start.steps
+    # inside the margin already (the filter holds the team at its edge): a chunk that gets no closer
+    # than now counts as safe, so that the team may slide along an obstacle instead of stalling there
+    now, _ = sequence_clearance(  # at the start (steps from now), standing
+        pose,
+        np.zeros((B, 1, 1, 2)),
+        obstacles,
+        template,
+        dt,
+        agent_radius,
+        obstacle_velocity,
+        steps - 1,
+        mover_uncertainty,
     )
-    if continuation is not None:  # the footprint after the chunk, too
-        more = continuation(end)
+    floor = np.minimum(margin, now - SLIDE_TOLERANCE)
+
+    def footprint(commands: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Smallest clearance (B, C) over the chunks, over chunk and continuation (None without one),
+        and the end poses (B, C, 3) progress is measured at, of command sequences (B, C, T, 2)."""
+        run = commands if start is None else start.executed(commands, dt)
+        clear, end = sequence_clearance(
+            pose, run, obstacles, template, dt, agent_radius, obstacle_velocity, steps, mover_uncertainty
+        )
+        if continuation is None:
+            return clear, None, end
+        more = continuation(end)  # the footprint after the chunk, too
         P, C = more.shape[1], more.shape[2]
         after, after_end = sequence_clearance(
             end.reshape(B * P, 3),
@@ -274,10 +314,29 @@ def select_chunk(
             dt,
             agent_radius,
             None if obstacle_velocity is None else np.repeat(obstacle_velocity, P, axis=0),
-            start_step=steps + T,
+            steps + T,
+            mover_uncertainty,
         )
-        viable = np.minimum(clear, after.reshape(B, P))
-        end = after_end.reshape(B, P, 3)  # progress counts the continuation: heading matters
+        # progress counts the continuation: heading matters
+        return clear, np.minimum(clear, after.reshape(B, P)), after_end.reshape(B, P, 3)
+
+    pool = candidates
+    clear, viable, end = footprint(candidates)
+    # The manoeuvres matter only where no sampled chunk is safe with its continuation (without an
+    # escape_advantage): elsewhere none of them could be kept, so they are scored only if some
+    # episode needs them (most replans then score 11 sequences, not 11 + the lattice).
+    sure = (clear if viable is None else viable) >= floor
+    if escape and (escape_advantage is not None or not sure.any(axis=1).all()):
+        lattice = ESCAPE_PRIMITIVES if primitives is None else np.asarray(primitives, dtype=np.float64)
+        prim = np.broadcast_to(lattice[None, :, None, :], (B, len(lattice), T, 2))
+        if blend is not None:
+            prim = blend_replan(prim, *blend)
+        prim_clear, prim_viable, prim_end = footprint(prim)
+        pool = np.concatenate([candidates, prim], axis=1)
+        clear = np.concatenate([clear, prim_clear], axis=1)
+        end = np.concatenate([end, prim_end], axis=1)
+        if viable is not None:
+            viable = np.concatenate([viable, prim_viable], axis=1)
     if progress_measure == "euclidean":
         dist0 = np.linalg.norm(goal, axis=-1)
         progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
@@ -285,14 +344,8 @@ def select_chunk(
         progress = cost_to_go_progress(
             obstacles, goal, end[..., :2], window, progress_resolution, progress_bilinear
         )
-    # inside the margin already (the filter holds the team at its edge): a chunk that gets no closer
-    # than now counts as safe, so that the team may slide along an obstacle instead of stalling there
-    now, _ = sequence_clearance(  # at the start (steps from now), standing
-        pose, np.zeros((B, 1, 1, 2)), obstacles, template, dt, agent_radius, obstacle_velocity, steps - 1
-    )
-    floor = np.minimum(margin, now - SLIDE_TOLERANCE)
     safe = clear >= floor
-    if continuation is not None:  # a preference: where no candidate's continuation is safe, the chunks'
+    if viable is not None:  # a preference: where no candidate's continuation is safe, the chunks'
         strict = viable >= floor
         safe = np.where(strict.any(axis=1, keepdims=True), strict, safe)
     sampled_safe = safe[:, :K].any(axis=1)
@@ -309,7 +362,7 @@ def select_chunk(
     blocked = ~allowed.any(axis=1)
     stopped = np.zeros(B, dtype=bool)
     if blocked_fallback == "widest":
-        fallback = np.argmax(clear[:, :K], axis=1)  # the widest sampled chunk (a filter brakes)
+        fallback = np.argmax(clear if fallback_all else clear[:, :K], axis=1)  # a filter brakes
     else:  # the widest of all if it predicts no contact, else stop
         fallback = np.argmax(clear, axis=1)
         stopped = blocked & (clear[rows, fallback] < 0.0)

@@ -111,6 +111,20 @@ class FormationDiffusionConfig(DiffusionConfig):
             barrier counts their approach): the velocities the "nearest+velocity" encoding observes,
             else those the replanner's tracker estimates from the observation history
             (``core.obstacle_tracker``). Off by default (obstacles stand still).
+        safety_mover_uncertainty: u >= 0 [m/s]. With ``safety_moving_obstacles``, best-of-K grows a
+            moving obstacle's predicted radius by u t at t seconds ahead (over the chunk and its route
+            lookahead; ``core.obstacle_tracker.predict_obstacles``): its constant-velocity prediction
+            drifts with the velocity estimate's error and with every bounce, so a chunk that passes a
+            mover closely late in the horizon is not safe. 0 (default): the prediction as exact.
+        safety_escape_speeds: the speeds [m/s] of best-of-K's escape manoeuvres (each with every turn
+            rate of ``core.safety.ESCAPE_TURN_RATES``; ``core.safety.escape_primitives``), each in
+            [0, action_high[0]]. Default (0.0, 0.1, 0.2, 0.3), the lattice before 2026-12-05 (night):
+            turns in place and slow arcs. Faster ones let a team outrun a mover that comes up behind
+            it (the leaders cannot back up); each speed adds 9 manoeuvres to score.
+        safety_fallback_all: where no candidate is safe, best-of-K keeps the one with the largest
+            predicted clearance among the sampled chunks and every manoeuvre it scored (one that
+            outruns a mover for longer), not among the sampled chunks only (false, default: the
+            layer before 2026-12-05, night).
         safety_action_delay: control steps between sending a command and its execution, a known
             property of the robot (the env's ``action_delay``): best-of-K and the filter start from
             the pose predicted after the commands already sent. 0 (default): at once.
@@ -239,6 +253,9 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_follower_margin: float = 0.0
     cbf_rate: float = 2.0
     safety_moving_obstacles: bool = False
+    safety_mover_uncertainty: float = 0.0
+    safety_escape_speeds: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3)
+    safety_fallback_all: bool = False
     safety_action_delay: int = 0
     safety_max_linear_accel: float | None = None
     safety_max_angular_accel: float | None = None
@@ -371,6 +388,20 @@ class FormationDiffusionConfig(DiffusionConfig):
         if not _is_finite_nonnegative(self.safety_follower_margin):
             raise config_error(
                 f"safety_follower_margin must be a number >= 0 [m], got {self.safety_follower_margin!r}"
+            )
+        if not _is_finite_nonnegative(self.safety_mover_uncertainty):
+            raise config_error(
+                f"safety_mover_uncertainty must be a number >= 0 [m/s], got {self.safety_mover_uncertainty!r}"
+            )
+        speeds = self.safety_escape_speeds
+        if (
+            not isinstance(speeds, (list, tuple))
+            or not speeds
+            or not all(_is_finite_nonnegative(v) and v <= self.action_high[0] for v in speeds)
+        ):
+            raise config_error(
+                f"safety_escape_speeds must be a non-empty list of speeds in [0, action_high[0] = "
+                f"{self.action_high[0]}] [m/s], got {speeds!r}"
             )
         if isinstance(self.safety_action_delay, bool) or not (
             isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0

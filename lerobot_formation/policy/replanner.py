@@ -104,6 +104,14 @@ def safety_geometry() -> tuple[np.ndarray, float, float]:
     return template, params.dt, params.agent_radius
 
 
+@functools.cache
+def _escape_lattice(speeds: tuple[float, ...]) -> np.ndarray:
+    """``core.safety.escape_primitives`` of a config's speeds, built once per lattice."""
+    lattice = safety.escape_primitives(speeds)
+    lattice.flags.writeable = False
+    return lattice
+
+
 @dataclass(frozen=True)
 class SafetyView:
     """What the safety layer sees of B episodes at one step (module docstring): goal (B, 2),
@@ -483,6 +491,9 @@ class Replanner:
             coherence=coherence,
             progress_resolution=cfg.safety_progress_resolution,
             progress_bilinear=cfg.safety_progress_interpolation == "bilinear",
+            primitives=_escape_lattice(tuple(cfg.safety_escape_speeds)),
+            mover_uncertainty=cfg.safety_mover_uncertainty,
+            fallback_all=cfg.safety_fallback_all,
         )
         info["proposal_kept"] = (
             info["choice"] == K if cfg.safety_route_proposal else np.zeros(len(chosen), bool)

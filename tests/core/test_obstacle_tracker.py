@@ -5,7 +5,12 @@ import numpy as np
 import pytest
 
 from lerobot_formation.core.encoding import encode_nearest
-from lerobot_formation.core.obstacle_tracker import ObstacleTracker, kalman_gains, predict_obstacles
+from lerobot_formation.core.obstacle_tracker import (
+    MOVING_SPEED,
+    ObstacleTracker,
+    kalman_gains,
+    predict_obstacles,
+)
 from lerobot_formation.core.safety import decode_nearest
 from lerobot_formation.core.velocity_encoding import body_velocities
 
@@ -116,6 +121,21 @@ def test_predict_obstacles_moves_centres_not_radii():
     assert moved.shape == (1, 3, 2, 3)
     np.testing.assert_allclose(moved[0, 2, 0], [1.5, 1.0, 0.3])
     np.testing.assert_array_equal(moved[0, :, 1], np.repeat(obstacles[0, 1:], 3, axis=0))
+
+
+def test_prediction_uncertainty_grows_a_movers_radius_with_time_and_speed():
+    """r + u t min(1, |v| / MOVING_SPEED): a static obstacle keeps its radius, a slow one grows in
+    proportion to its speed, a mover at MOVING_SPEED or faster by u t."""
+    obstacles = np.array([[[1.0, 2.0, 0.3], [5.0, 5.0, 0.5], [0.0, 3.0, 0.4]]])
+    velocity = np.array([[[0.3, 0.4], [0.0, 0.0], [0.5 * MOVING_SPEED, 0.0]]])
+    times = np.array([0.0, 0.5, 2.0])
+    grown = predict_obstacles(obstacles, velocity, times, uncertainty=0.1)
+    np.testing.assert_allclose(grown[0, :, 0, 2], 0.3 + 0.1 * times)
+    np.testing.assert_array_equal(grown[0, :, 1, 2], 0.5)
+    np.testing.assert_allclose(grown[0, :, 2, 2], 0.4 + 0.05 * times)
+    exact = predict_obstacles(obstacles, velocity, times)
+    np.testing.assert_array_equal(grown[..., :2], exact[..., :2])  # centres as without it
+    np.testing.assert_array_equal(exact[..., 2], np.broadcast_to(obstacles[:, None, :, 2], exact.shape[:-1]))
 
 
 def test_tracker_refuses_bad_shapes_and_settings():

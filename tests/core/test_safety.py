@@ -9,11 +9,14 @@ from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.geometry import agent_clearances
 from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.safety import (
+    ESCAPE_PRIMITIVES,
+    ESCAPE_TURN_RATES,
     PlanCoherence,
     barrier_rows,
     cbf_filter,
     cost_to_go_progress,
     decode_nearest,
+    escape_primitives,
     select_chunk,
 )
 from lerobot_formation.core.scene import FAR
@@ -238,6 +241,67 @@ def test_scorer_checks_a_chunk_against_where_a_moving_obstacle_will_be():
     # moving away from the path it is no threat
     _, away = select_chunk(*args, escape=False, obstacle_velocity=-crossing)
     assert away["safe"][0, 0]
+
+
+def test_mover_uncertainty_rejects_a_close_pass_late_in_the_horizon():
+    """A straight chunk passes a mover crossing at 0.3 m/s with 0.17 m predicted clearance after about
+    1.5 s: safe with a 0.1 m margin as an exact prediction, not with the mover's radius grown by
+    0.1 m/s (0.15 m by then). The same obstacle standing keeps every clearance: it is not moving."""
+    goal = np.array([[0.0, 8.0]])
+    obstacles = np.array([[[1.4, 0.6, 0.2], [FAR, FAR, 0.0]]])
+    crossing = np.array([[[-0.3, 0.0], [0.0, 0.0]]])
+    args = (_straight(), obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
+    _, exact = select_chunk(*args, escape=False, obstacle_velocity=crossing)
+    _, unsure = select_chunk(*args, escape=False, obstacle_velocity=crossing, mover_uncertainty=0.1)
+    assert exact["safe"][0, 0] and not unsure["safe"][0, 0]
+    assert 0.1 < exact["clearance"][0, 0] - unsure["clearance"][0, 0] <= 0.1 * 1.5 + 1e-9
+    standing = np.zeros_like(crossing)
+    _, still = select_chunk(*args, escape=False, obstacle_velocity=standing)
+    _, still_unsure = select_chunk(*args, escape=False, obstacle_velocity=standing, mover_uncertainty=0.1)
+    np.testing.assert_array_equal(still_unsure["clearance"], still["clearance"])
+
+
+def test_fast_escape_manoeuvres_outrun_a_mover_coming_up_behind():
+    """A wide obstacle (r 0.9 m) comes up behind the standing team at 0.45 m/s. The policy's chunk (a
+    stop) is struck, and so is every manoeuvre of the default lattice (turns and arcs at <= 0.3 m/s):
+    nothing is safe and the widest sampled chunk is kept. With 0.45 and 0.6 m/s in the lattice the
+    team drives away at full speed."""
+    goal = np.array([[0.0, 8.0]])
+    obstacles = np.array([[[0.0, -2.15, 0.9], [FAR, FAR, 0.0]]])
+    behind = np.array([[[0.0, 0.45], [0.0, 0.0]]])
+    stop = np.zeros((1, 1, 16, 2))
+    args = (stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
+    slow_chunk, slow = select_chunk(*args, obstacle_velocity=behind)
+    assert not slow["escaped"][0] and slow["choice"][0] == 0
+    np.testing.assert_array_equal(slow_chunk, stop[:, 0])
+    np.testing.assert_array_equal(escape_primitives(), ESCAPE_PRIMITIVES)  # the default lattice
+    lattice = escape_primitives((0.0, 0.1, 0.2, 0.3, 0.45, 0.6))
+    assert len(lattice) == 6 * len(ESCAPE_TURN_RATES) - 1  # less the standstill
+    fast_chunk, fast = select_chunk(*args, obstacle_velocity=behind, primitives=lattice)
+    assert fast["escaped"][0]
+    np.testing.assert_allclose(fast_chunk[0], np.tile([0.6, 0.0], (16, 1)))
+    # nothing safe: the widest of every candidate scored (a manoeuvre struck later), not the stop
+    _, widest = select_chunk(*args, obstacle_velocity=behind, fallback_all=True)
+    assert widest["escaped"][0] and not slow["escaped"][0]
+
+
+@pytest.mark.parametrize("with_continuation", [False, True])
+def test_an_episode_with_a_safe_sample_is_scored_as_if_the_manoeuvres_were_too(with_continuation):
+    """The lattice is scored only when some episode of the batch has no safe sampled chunk (a manoeuvre
+    could be kept only there). Episode 0 (open road) alone skips it; beside episode 1 (a wall across
+    its way, no sample safe) its lattice is scored: its choice, chunk and diagnostics are the same."""
+    rng = np.random.default_rng(3)
+    goal = np.array([[0.5, 6.0], [0.0, 6.0]])
+    obstacles = np.array([[[3.0, 4.0, 0.4], [-2.5, 1.0, 0.5]], [[0.5, 1.0, 0.4], [-0.5, 1.0, 0.4]]])
+    candidates = np.stack([np.tile([0.4, 0.0], (4, 16, 1)) + rng.normal(0, 0.05, (4, 16, 2))] * 2)
+    standing = (lambda end: np.zeros(end.shape[:2] + (5, 2))) if with_continuation else None
+    args = (TEMPLATE, P.dt, P.agent_radius, 0.05)
+    both_chunk, both = select_chunk(candidates, obstacles, goal, *args, continuation=standing)
+    one_chunk, one = select_chunk(candidates[:1], obstacles[:1], goal[:1], *args, continuation=standing)
+    assert one["any_safe"][0] and not both["any_safe"][1] and both["escaped"][1]
+    np.testing.assert_array_equal(both_chunk[:1], one_chunk)
+    for key, value in one.items():
+        np.testing.assert_array_equal(both[key][:1], value, err_msg=key)
 
 
 def test_filter_counts_an_approaching_obstacle():

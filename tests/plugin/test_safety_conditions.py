@@ -72,6 +72,23 @@ def test_safety_settings_are_checked_with_their_value():
             dict(safety_pose_noise=float("nan")),
             r"config values must be finite numbers, got safety_pose_noise=nan",
         ),
+        (
+            dict(safety_mover_uncertainty=-0.05),
+            r"safety_mover_uncertainty must be a number >= 0 \[m/s\], got -0.05",
+        ),
+        (
+            dict(safety_escape_speeds=[0.0, 0.9]),
+            r"safety_escape_speeds must be a non-empty list of speeds in \[0, action_high\[0\] = 0.6\] "
+            r"\[m/s\], got \[0.0, 0.9\]",
+        ),
+        (
+            dict(safety_escape_speeds=[]),
+            r"safety_escape_speeds must be a non-empty list .*, got \[\]",
+        ),
+        (
+            dict(safety_escape_speeds=[0.1, -0.1]),
+            r"safety_escape_speeds must be .*, got \[0.1, -0.1\]",
+        ),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
@@ -177,6 +194,38 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     plain = _policy().replanner
     plain.start(1)
     assert plain.tracker is None
+
+
+def test_mover_settings_reach_best_of_k(monkeypatch):
+    """``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` are what
+    ``select_chunk`` gets (the lattice built from the speeds); the defaults are the scorer of before:
+    the default lattice, an exact prediction, the widest sampled chunk as the fallback."""
+    from lerobot_formation.core import safety
+
+    seen = {}
+    real = safety.select_chunk
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(safety, "select_chunk", spy)
+    obstacles = np.array([[[1.0, 2.0, 0.3]]])
+    goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi / 2]])
+    env = environment_state(obstacles, np.ones((1, 1), bool), goal, "nearest", pose=pose)
+    chunks = np.zeros((1, 4, 16, 2))
+    _policy().replanner.choose_raw(env, chunks)
+    np.testing.assert_array_equal(seen["primitives"], safety.ESCAPE_PRIMITIVES)
+    assert seen["mover_uncertainty"] == 0.0
+    assert seen["fallback_all"] is False
+    tuned = _policy(
+        safety_mover_uncertainty=0.05,
+        safety_escape_speeds=[0.0, 0.3],
+        safety_fallback_all=True,
+    ).replanner
+    tuned.choose_raw(env, chunks)
+    np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives((0.0, 0.3)))
+    assert seen["mover_uncertainty"] == 0.05 and seen["fallback_all"] is True
 
 
 def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
