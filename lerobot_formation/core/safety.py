@@ -20,7 +20,8 @@ allowance for the lag) with it.
   heading it leaves; a preference, dropped where no candidate's continuation is safe)
   4. if none is safe, a safe escape manoeuvre (a turn in place or an arc, ``escape_primitives``)
      with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
-     sampled candidate with the largest predicted clearance (a CBF filter then brakes); "stop", the
+     sampled candidate with the largest predicted clearance (with ``fallback_all``, of the sampled
+     chunks and manoeuvres; a CBF filter then brakes); "stop", the
      chunk or manoeuvre with the largest predicted clearance if it predicts no contact, else a stop
      (zero actions for the chunk, not blended: the leaders are kinematic, and a stopped team stays
      clear) and a fresh draw at the next replan.
@@ -266,9 +267,9 @@ def select_chunk(
     ``progress_resolution``: the cost-to-go grid's cell size [m]; ``progress_bilinear``: read it
     bilinearly, not at the nearest cell (``cost_to_go_progress``).
     ``primitives`` (P, 2): the escape manoeuvres (default ``ESCAPE_PRIMITIVES``, ``escape_primitives``).
-    ``fallback_all``: the
-    "widest" fallback keeps the widest of every candidate scored (sampled chunks and manoeuvres, e.g. a
-    fast arc that a mover strikes later or less deep), not of the sampled chunks only.
+    ``fallback_all``: the "widest" fallback keeps the widest of every candidate scored (sampled chunks
+    and manoeuvres, e.g. a fast arc that a mover strikes later or less deep), not of the sampled
+    chunks only.
     ``mover_uncertainty`` [m/s]: with ``obstacle_velocity``, a moving obstacle's predicted radius grows
     by that much per second ahead (``core.obstacle_tracker.predict_obstacles``), over the chunk and its
     continuation: a chunk that passes a mover closely late in the horizon, where the constant-velocity
