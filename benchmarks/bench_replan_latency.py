@@ -42,9 +42,10 @@ Run (full size)::
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
     the scorer against its whole-field baseline in the same run, a checkpoint whose best-of-K differs
     from the default's before 2026-12-05 (late) (``PREVIOUS_DEFAULT``: 0.2 m progress cells read at the
-    nearest cell, the first candidate warm, no chunk smoothing, the manoeuvres of before) against the same weights with those settings in the same
-    run, the policy's traced U-Net against a
-    plain trace of LeRobot's (``plain_trace``: the policy's trace until 2026-12-05) in the same run,
+    nearest cell, the first candidate warm, no chunk smoothing, the escape lattice, mover prediction
+    and fallback of before) against the same weights with those settings in the same run, the
+    policy's traced U-Net against a plain trace of LeRobot's (``plain_trace``: the policy's trace until
+    2026-12-05) in the same run,
     and with a warm-starting checkpoint the other warm start (all K candidates warm-started, or the
     first only: ``warm_start_all_candidates``). Its headline is the last line
     when it runs. ``--level levelK``: the level's scenes (its first seeds) under its conditions instead,

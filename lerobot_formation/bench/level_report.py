@@ -177,6 +177,12 @@ def run_flags(controller_name: str, wrap_replanner=None, **flags) -> LevelRun:
     )
 
 
+def _on_off(text: str):
+    """An on/off flag's value: True, False, or the text itself (argparse's ``choices`` then refuses it
+    by name)."""
+    return {"on": True, "off": False}.get(text, text)
+
+
 def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) -> None:
     """The report scripts' shared flags: the checkpoint, the level and its scenes, K, the safety
     overrides (destinations ``SAFETY_FLAGS``, ``safety_overrides``' parameters) and the episode length."""
@@ -196,10 +202,7 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
     )
     ap.add_argument("--layer-ignores-noise", action="store_true")
     ap.add_argument("--layer-ignores-motion", action="store_true")
-    ap.add_argument(
-        "--route-proposal", type=lambda text: {"on": True, "off": False}.get(text, text), choices=(True, False),
-        default=None, metavar="{on,off}",
-    )  # fmt: skip
+    ap.add_argument("--route-proposal", type=_on_off, choices=(True, False), default=None, metavar="{on,off}")
     ap.add_argument(
         "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
     )
@@ -231,7 +234,11 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         help="the escape manoeuvres' speeds, comma-separated [m/s], e.g. 0,0.1,0.2,0.3",
     )
     ap.add_argument(
-        "--fallback-all", type=lambda text: {"on": True, "off": False}.get(text, text), choices=(True, False),
-        default=None, metavar="{on,off}", help="where nothing is safe, the widest of every candidate scored",
-    )  # fmt: skip
+        "--fallback-all",
+        type=_on_off,
+        choices=(True, False),
+        default=None,
+        metavar="{on,off}",
+        help="where nothing is safe, the widest of every candidate scored",
+    )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")
