@@ -87,6 +87,7 @@ PREVIOUS_DEFAULT = {
     "safety_mover_uncertainty": 0.0,
     "safety_escape_speeds": (0.0, 0.1, 0.2, 0.3),
     "safety_fallback_all": False,
+    "safety_recheck": False,
 }
 
 

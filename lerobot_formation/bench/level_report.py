@@ -104,6 +104,7 @@ SAFETY_FLAGS = (
     "mover_uncertainty",
     "escape_speeds",
     "fallback_all",
+    "recheck",
 )
 
 
@@ -120,6 +121,7 @@ def safety_overrides(
     mover_uncertainty: float | None = None,
     escape_speeds: tuple[float, ...] | None = None,
     fallback_all: bool | None = None,
+    recheck: bool | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
     ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
@@ -129,7 +131,8 @@ def safety_overrides(
     night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
     2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too),
     ``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` (0,
-    (0, 0.1, 0.2, 0.3) and off: before 2026-12-05, night)."""
+    (0, 0.1, 0.2, 0.3) and off: before 2026-12-05, night), ``safety_recheck`` (off: before 2026-12-05,
+    late night)."""
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
@@ -155,6 +158,8 @@ def safety_overrides(
         out["safety_escape_speeds"] = tuple(escape_speeds)
     if fallback_all is not None:
         out["safety_fallback_all"] = fallback_all
+    if recheck is not None:
+        out["safety_recheck"] = recheck
     return out
 
 
@@ -181,6 +186,19 @@ def _on_off(text: str):
     """An on/off flag's value: True, False, or the text itself (argparse's ``choices`` then refuses it
     by name)."""
     return {"on": True, "off": False}.get(text, text)
+
+
+def _speeds(text: str) -> tuple[float, ...]:
+    """Comma-separated speeds [m/s] -> a tuple; a part that is not a number is refused by name."""
+    out = []
+    for part in text.split(","):
+        try:
+            out.append(float(part))
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"speeds must be comma-separated numbers [m/s], got {part.strip()!r} in {text!r}"
+            ) from None
+    return tuple(out)
 
 
 def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) -> None:
@@ -229,7 +247,7 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
     )
     ap.add_argument(
         "--escape-speeds",
-        type=lambda text: tuple(float(v) for v in text.split(",")),
+        type=_speeds,
         default=None,
         help="the escape manoeuvres' speeds, comma-separated [m/s], e.g. 0,0.1,0.2,0.3",
     )
@@ -240,5 +258,13 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         default=None,
         metavar="{on,off}",
         help="where nothing is safe, the widest of every candidate scored",
+    )
+    ap.add_argument(
+        "--recheck",
+        type=_on_off,
+        choices=(True, False),
+        default=None,
+        metavar="{on,off}",
+        help="check a kept chunk again at every step; replan where it no longer passes",
     )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

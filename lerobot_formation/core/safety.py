@@ -215,6 +215,86 @@ def escape_primitives(speeds=ESCAPE_SPEEDS) -> np.ndarray:
 ESCAPE_PRIMITIVES = escape_primitives()
 
 
+@dataclass(frozen=True)
+class FootprintCheck:
+    """Best-of-K's check of command sequences (steps 1-2 of the module docstring), one implementation
+    for ``select_chunk`` and ``plan_is_safe``: the obstacles (B, M, 3) and their velocities (B, M, 2)
+    (None: static) in the body frame, the rigid template, ``start`` (``ChunkStart``; None: the
+    commands run from now, as commanded), ``continuation`` (what the team runs after a sequence, from
+    its end poses; ``select_chunk``) and ``mover_uncertainty`` (the growth of a mover's radius [m/s])."""
+
+    obstacles: np.ndarray
+    template: np.ndarray
+    dt: float
+    agent_radius: float | np.ndarray
+    obstacle_velocity: np.ndarray | None = None
+    start: ChunkStart | None = None
+    continuation: Callable[[np.ndarray], np.ndarray] | None = None
+    mover_uncertainty: float = 0.0
+
+    def _origin(self) -> tuple[np.ndarray, int]:
+        B = len(self.obstacles)
+        if self.start is None:
+            return np.broadcast_to(BODY_POSE, (B, 3)), 0
+        return self.start.pose, self.start.steps
+
+    def floor(self, margin: float) -> np.ndarray:
+        """(B, 1) the clearance a sequence must keep: ``margin``, or where the team is already inside
+        it (the filter holds it at its edge), no closer than now less ``SLIDE_TOLERANCE``, so that it
+        may slide along an obstacle instead of stalling there."""
+        pose, steps = self._origin()
+        now, _ = sequence_clearance(  # at the start (steps from now), standing
+            pose,
+            np.zeros((len(pose), 1, 1, 2)),
+            self.obstacles,
+            self.template,
+            self.dt,
+            self.agent_radius,
+            self.obstacle_velocity,
+            steps - 1,
+            self.mover_uncertainty,
+        )
+        return np.minimum(margin, now - SLIDE_TOLERANCE)
+
+    def footprint(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Smallest clearance (B, C) over the sequences, over sequence and continuation (None without
+        one), and the end poses (B, C, 3) progress is measured at, of commands (B, C, T, 2)."""
+        pose, steps = self._origin()
+        B, T = len(pose), commands.shape[2]
+        run = commands if self.start is None else self.start.executed(commands, self.dt)
+        obstacles, velocity, u = self.obstacles, self.obstacle_velocity, self.mover_uncertainty
+        clear, end = sequence_clearance(
+            pose, run, obstacles, self.template, self.dt, self.agent_radius, velocity, steps, u
+        )
+        if self.continuation is None:
+            return clear, None, end
+        more = self.continuation(end)  # the footprint after the sequence, too
+        P, C = more.shape[1], more.shape[2]
+        after, after_end = sequence_clearance(
+            end.reshape(B * P, 3),
+            more.reshape(B * P, 1, C, 2),
+            np.repeat(obstacles, P, axis=0),
+            self.template,
+            self.dt,
+            self.agent_radius,
+            None if velocity is None else np.repeat(velocity, P, axis=0),
+            steps + T,
+            u,
+        )
+        # progress counts the continuation: heading matters
+        return clear, np.minimum(clear, after.reshape(B, P)), after_end.reshape(B, P, 3)
+
+
+def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
+    """Whether each plan (B, T, 2) [v, omega] (e.g. the rest of the chunk being executed) still passes
+    best-of-K's check on a newer view (B,) bool: the plan and, with the check's continuation, what
+    follows it keep ``check.floor(margin)``. Where it fails the replanner replans at once
+    (``safety_recheck``): a chunk kept as safe is otherwise run for n_action_steps on the view it was
+    scored on, while a mover's estimated velocity and the sensed obstacles change under it."""
+    clear, viable, _ = check.footprint(np.asarray(plan, dtype=np.float64)[:, None])
+    return (clear if viable is None else viable)[:, 0] >= check.floor(margin)[:, 0]
+
+
 def select_chunk(
     candidates: np.ndarray,
     obstacles: np.ndarray,
@@ -278,49 +358,11 @@ def select_chunk(
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
     B, K, T = candidates.shape[:3]
-    pose, steps = np.broadcast_to(BODY_POSE, (B, 3)), 0
-    if start is not None:  # chunks run as the actuator runs them, after the commands in flight
-        pose, steps = start.pose, start.steps
-    # inside the margin already (the filter holds the team at its edge): a chunk that gets no closer
-    # than now counts as safe, so that the team may slide along an obstacle instead of stalling there
-    now, _ = sequence_clearance(  # at the start (steps from now), standing
-        pose,
-        np.zeros((B, 1, 1, 2)),
-        obstacles,
-        template,
-        dt,
-        agent_radius,
-        obstacle_velocity,
-        steps - 1,
-        mover_uncertainty,
+    check = FootprintCheck(
+        obstacles, template, dt, agent_radius, obstacle_velocity, start, continuation, mover_uncertainty
     )
-    floor = np.minimum(margin, now - SLIDE_TOLERANCE)
-
-    def footprint(commands: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Smallest clearance (B, C) over the chunks, over chunk and continuation (None without one),
-        and the end poses (B, C, 3) progress is measured at, of command sequences (B, C, T, 2)."""
-        run = commands if start is None else start.executed(commands, dt)
-        clear, end = sequence_clearance(
-            pose, run, obstacles, template, dt, agent_radius, obstacle_velocity, steps, mover_uncertainty
-        )
-        if continuation is None:
-            return clear, None, end
-        more = continuation(end)  # the footprint after the chunk, too
-        P, C = more.shape[1], more.shape[2]
-        after, after_end = sequence_clearance(
-            end.reshape(B * P, 3),
-            more.reshape(B * P, 1, C, 2),
-            np.repeat(obstacles, P, axis=0),
-            template,
-            dt,
-            agent_radius,
-            None if obstacle_velocity is None else np.repeat(obstacle_velocity, P, axis=0),
-            steps + T,
-            mover_uncertainty,
-        )
-        # progress counts the continuation: heading matters
-        return clear, np.minimum(clear, after.reshape(B, P)), after_end.reshape(B, P, 3)
-
+    floor = check.floor(margin)
+    footprint = check.footprint
     pool = candidates
     clear, viable, end = footprint(candidates)
     # The manoeuvres matter only where no sampled chunk is safe with its continuation (without an

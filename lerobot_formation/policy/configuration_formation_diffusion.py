@@ -125,6 +125,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             predicted clearance among the sampled chunks and every manoeuvre it scored (one that
             outruns a mover for longer), not among the sampled chunks only (false, default: the
             layer before 2026-12-05, night).
+        safety_recheck: with best-of-K (num_candidates > 1), at every step the rest of a chunk that
+            was kept as safe is checked again, with its route lookahead, on the newest view
+            (``core.safety.plan_is_safe``, best-of-K's own check); where it no longer passes, the
+            episode replans at once instead of running the chunk out (a mover's estimated velocity
+            and the sensed obstacles change under a chunk in n_action_steps). False (default): the
+            layer before 2026-12-05 (late night), which replans early only where the filter intervened.
         safety_action_delay: control steps between sending a command and its execution, a known
             property of the robot (the env's ``action_delay``): best-of-K and the filter start from
             the pose predicted after the commands already sent. 0 (default): at once.
@@ -256,6 +262,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_mover_uncertainty: float = 0.0
     safety_escape_speeds: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3)
     safety_fallback_all: bool = False
+    safety_recheck: bool = False
     safety_action_delay: int = 0
     safety_max_linear_accel: float | None = None
     safety_max_angular_accel: float | None = None
@@ -403,6 +410,8 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"safety_escape_speeds must be a non-empty list of speeds in [0, action_high[0] = "
                 f"{self.action_high[0]}] [m/s], got {speeds!r}"
             )
+        if not isinstance(self.safety_recheck, bool):
+            raise config_error(f"safety_recheck must be true or false, got {self.safety_recheck!r}")
         if isinstance(self.safety_action_delay, bool) or not (
             isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0
         ):

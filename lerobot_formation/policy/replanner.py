@@ -5,7 +5,8 @@ A ``Replanner`` owns, per episode of a batch, the kept chunk (normalised, the wh
 from the step it was planned at), the position of the next action in it, the actions executed since
 that replan, the last executed action and the stats. ``act(rows, env_now, history)`` returns the next
 action (normalised) of the episodes ``rows``; an episode whose chunk is used up (``n_action_steps``
-actions ran) or whose last action the filter changed replans first:
+actions ran), whose last action the filter changed, or (``safety_recheck``) whose kept chunk no longer
+passes best-of-K's check on this step's view replans first:
 
 1. warm start (``warm_start_step`` j > 0): the unexecuted rest of the episode's last chunk, shifted to
    the new window and padded with its last action (``warm_start_guess``), is the guess the sampler
@@ -23,7 +24,11 @@ actions ran) or whose last action the filter changed replans first:
    ``safety_coherence`` the scorer prefers the safe candidate closest to the rest of the plan it
    replaces (``warm_start_guess`` of it from the current step), unless the filter cut that plan short;
 5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
-   ``replan_on_intervention`` an episode whose action it changed replans at its next step.
+   ``replan_on_intervention`` an episode whose action it changed replans at its next step;
+6. recheck (``safety_recheck``, K > 1): at each step before 1-5, the rest of a chunk kept as safe is
+   checked again on the new view with best-of-K's own check (``core.safety.plan_is_safe``, with the
+   route lookahead); where it fails, the episode replans at once (a mover's estimated velocity and
+   the sensed obstacles change under a chunk in n_action_steps).
 
 What the scorer and the filter see of an episode at a step is a ``SafetyView``, built once per step
 from the raw observation: the goal and obstacles of its ``nearest`` part; with
@@ -61,7 +66,16 @@ from lerobot_formation.core.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.replan_blend import blend_replan, smooth_chunks
 from lerobot_formation.core.route_pursuit import pursuit_chunk
 
-STAT_KEYS = ("replans", "replans_none_safe", "escapes", "stops", "steps", "filter_interventions", "proposals")
+STAT_KEYS = (
+    "replans",
+    "replans_none_safe",
+    "escapes",
+    "stops",
+    "steps",
+    "filter_interventions",
+    "proposals",
+    "rechecks_failed",
+)
 
 
 @dataclass(frozen=True)
@@ -227,6 +241,7 @@ class Replanner:
         self.executed = torch.zeros(B, dtype=torch.long)  # actions run since the episode's last replan
         self.last_action = torch.zeros(B, A, device=device)  # normalised
         self.has_last = torch.zeros(B, dtype=torch.bool)
+        self.plan_safe = torch.zeros(B, dtype=torch.bool)  # best-of-K kept a chunk that passed its check
         cfg = self.config
         self.in_flight = np.zeros((B, cfg.safety_action_delay, A))  # sent, not run yet; oldest first
         self.executed_velocity = np.zeros((B, A))  # the actuator model's last executed [v, omega]
@@ -300,6 +315,8 @@ class Replanner:
         if self.plan is None:
             self.start(len(rows), env_now.device)
         view = self.view(env_now, rows) if cfg.safety_layer else None
+        if cfg.safety_recheck and cfg.num_candidates > 1:
+            self._recheck(rows, view)
         need = rows[self.plan_pos[rows] >= cfg.n_action_steps]
         if len(need):
             at = torch.nonzero(self.plan_pos[rows] >= cfg.n_action_steps).flatten()
@@ -318,6 +335,53 @@ class Replanner:
         if view is not None and (self.knows_actuator or self.knows_noise):
             self._send(rows.cpu().numpy(), action)
         return action
+
+    def _recheck(self, rows: Tensor, view: SafetyView) -> None:
+        """``safety_recheck``: episodes ``rows`` whose plan was kept as safe and is under way check its
+        rest on this step's ``view`` (``core.safety.plan_is_safe``); those where it fails replan now."""
+        cfg = self.config
+        pos = self.plan_pos[rows]
+        live = (pos > 0) & (pos < cfg.n_action_steps) & self.plan_safe[rows]
+        for p in torch.unique(pos[live]).tolist():  # the plans' rests have one length per position
+            at = torch.nonzero(live & (pos == p)).flatten()
+            sub = view[at.numpy()]
+            rest = self.policy.unnormalize_action(self.plan[rows[at], p:]).numpy().astype(np.float64)
+            safe = safety.plan_is_safe(rest, self._check(sub), cfg.safety_margin)
+            failed = rows[at[torch.from_numpy(~safe)]]
+            self.plan_pos[failed] = cfg.n_action_steps
+            self.stats["rechecks_failed"] += len(failed)
+
+    def _check(self, view: SafetyView) -> safety.FootprintCheck:
+        """Best-of-K's check (``core.safety.FootprintCheck``) on ``view`` with this config: the
+        observed obstacles and velocities, the actuator start, route pursuit's lookahead."""
+        template, dt, _ = safety_geometry()
+        return safety.FootprintCheck(
+            view.obstacles,
+            template,
+            dt,
+            self.agent_radii,
+            view.velocity,
+            view.start,
+            self._continuation(view),
+            self.config.safety_mover_uncertainty,
+        )
+
+    def _continuation(self, view: SafetyView) -> Callable[[np.ndarray], np.ndarray] | None:
+        """What best-of-K assumes the team runs after a sequence: route pursuit for
+        ``safety_route_lookahead`` steps from each end pose (B, P, 3) -> (B, P, n, 2); None without."""
+        cfg = self.config
+        if not cfg.safety_route_lookahead:
+            return None
+        _, dt, _ = safety_geometry()
+
+        def continuation(end: np.ndarray) -> np.ndarray:
+            B, P = end.shape[:2]
+            n = cfg.safety_route_lookahead
+            route, goal = np.repeat(view.route, P, axis=0), np.repeat(view.goal, P, axis=0)
+            out = pursuit_chunk(route, goal, n, dt, cfg.action_high[1], start=end.reshape(B * P, 3))
+            return out.reshape(B, P, n, 2)
+
+        return continuation
 
     def _send(self, rows: np.ndarray, action: Tensor) -> None:
         """Record the commands (normalised) sent to episodes ``rows``: the actuator model runs the
@@ -363,6 +427,7 @@ class Replanner:
                 # a plan the filter cut short met a barrier: nothing to keep to
                 keep_to = has_last & (self.executed[need] >= cfg.n_action_steps)
             chosen, info = self.choose(view, chunks, last, has_last, previous, keep_to)
+            self.plan_safe[need] = torch.from_numpy(info["any_safe"])
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             self.stats["stops"] += int(info["stopped"].sum())
@@ -453,19 +518,10 @@ class Replanner:
             if cfg.safety_proposal_blend and last_action is not None and not self.knows_rate_limits:
                 # enter from the running command (a rate-limited actuator ramps the step by itself)
                 had = np.ones(len(proposal), bool) if has_last is None else np.asarray(has_last)
-                proposal = blend_replan(proposal, np.asarray(last_action), had, cfg.safety_proposal_blend)
-                proposal = smooth_chunks(proposal, np.asarray(last_action), had, cfg.chunk_smoothing)
+                last = np.asarray(last_action)
+                proposal = blend_replan(proposal, last, had, cfg.safety_proposal_blend)
+                proposal = smooth_chunks(proposal, last, had, cfg.chunk_smoothing)
             chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
-        continuation = None
-        if cfg.safety_route_lookahead:  # route pursuit from each candidate's end pose (B, P, 3)
-
-            def continuation(end: np.ndarray) -> np.ndarray:
-                B, P = end.shape[:2]
-                n = cfg.safety_route_lookahead
-                route, goal = np.repeat(view.route, P, axis=0), np.repeat(view.goal, P, axis=0)
-                out = pursuit_chunk(route, goal, n, dt, cfg.action_high[1], start=end.reshape(B * P, 3))
-                return out.reshape(B, P, n, 2)
-
         coherence = None
         if previous is not None and cfg.safety_coherence:
             coherence = safety.PlanCoherence(
@@ -487,7 +543,7 @@ class Replanner:
             blocked_fallback=ex.blocked_fallback,
             obstacle_velocity=view.velocity,
             start=view.start,
-            continuation=continuation,
+            continuation=self._continuation(view),
             coherence=coherence,
             progress_resolution=cfg.safety_progress_resolution,
             progress_bilinear=cfg.safety_progress_interpolation == "bilinear",

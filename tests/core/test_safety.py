@@ -11,12 +11,14 @@ from lerobot_formation.core.obstacle_grid import environment_state
 from lerobot_formation.core.safety import (
     ESCAPE_PRIMITIVES,
     ESCAPE_TURN_RATES,
+    FootprintCheck,
     PlanCoherence,
     barrier_rows,
     cbf_filter,
     cost_to_go_progress,
     decode_nearest,
     escape_primitives,
+    plan_is_safe,
     select_chunk,
 )
 from lerobot_formation.core.scene import FAR
@@ -475,6 +477,35 @@ def test_continuation_rejects_a_chunk_that_ends_where_the_team_cannot_turn():
         chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False, continuation=ram
     )
     assert info["safe"][0].all() and info["choice"][0] == 0
+
+
+def test_a_plan_checked_again_fails_once_a_mover_heads_for_its_path():
+    """The rest of a straight plan (0.3 m/s, 1 s) passes an obstacle 1.5 m to its right while it
+    stands, not once it is seen crossing toward the path at 1.2 m/s; with a continuation (0.9 m
+    more ahead) the same plan fails on a wall it does not reach itself. Each verdict is best-of-K's
+    on the same sequence (``select_chunk``'s "safe" for it alone)."""
+    plan = np.tile([0.3, 0.0], (1, 10, 1))
+    obstacles = np.array([[[2.0, 0.2, 0.3], [FAR, FAR, 0.0]]])
+    args = (obstacles, TEMPLATE, P.dt, P.agent_radius)
+    crossing = np.array([[[-1.2, 0.0], [0.0, 0.0]]])
+    assert plan_is_safe(plan, FootprintCheck(*args), 0.1)[0]
+    assert not plan_is_safe(plan, FootprintCheck(*args, obstacle_velocity=crossing), 0.1)[0]
+    for velocity in (None, crossing):
+        _, info = select_chunk(
+            plan[:, None], obstacles, np.array([[0.0, 8.0]]), *args[1:], 0.1, escape=False,
+            obstacle_velocity=velocity,
+        )  # fmt: skip
+        check = FootprintCheck(*args, obstacle_velocity=velocity)
+        assert info["safe"][0, 0] == plan_is_safe(plan, check, 0.1)[0]
+    wall = np.array([[[x, 1.45, 0.3] for x in (-1.2, -0.6, 0.0, 0.6, 1.2)]])  # surface at 1.15 m
+    ahead = lambda end: np.broadcast_to([0.6, 0.0], end.shape[:2] + (15, 2)).copy()  # noqa: E731
+    wall_args = (wall, TEMPLATE, P.dt, P.agent_radius)
+    assert plan_is_safe(plan, FootprintCheck(*wall_args), 0.05)[0]
+    assert not plan_is_safe(plan, FootprintCheck(*wall_args, continuation=ahead), 0.05)[0]
+    # batched: each plan its own verdict
+    both = FootprintCheck(np.concatenate([obstacles, obstacles]), TEMPLATE, P.dt, P.agent_radius,
+                          np.concatenate([np.zeros_like(crossing), crossing]))  # fmt: skip
+    np.testing.assert_array_equal(plan_is_safe(np.concatenate([plan, plan]), both, 0.1), [True, False])
 
 
 def test_coherence_keeps_the_candidate_closest_to_the_plan_it_replaces():

@@ -89,6 +89,7 @@ def test_safety_settings_are_checked_with_their_value():
             dict(safety_escape_speeds=[0.1, -0.1]),
             r"safety_escape_speeds must be .*, got \[0.1, -0.1\]",
         ),
+        (dict(safety_recheck="yes"), r"safety_recheck must be true or false, got 'yes'"),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
@@ -226,6 +227,31 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     tuned.choose_raw(env, chunks)
     np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives((0.0, 0.3)))
     assert seen["mover_uncertainty"] == 0.05 and seen["fallback_all"] is True
+
+
+@pytest.mark.parametrize("recheck", [False, True])
+def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(recheck):
+    """Best-of-4 keeps a straight chunk on an open road. At the next step an obstacle is seen 0.3 m
+    ahead of the right leader, across the chunk's rest: with ``safety_recheck`` the episode replans
+    at that step (before the filter sees the action); without, it runs the chunk on. Where the road
+    stays open the check passes and the chunk runs on either way."""
+    policy = _policy(safety_recheck=recheck)
+    forward = policy.normalize_action(torch.tensor([0.4, 0.0]))
+    T = policy.replanner.chunk_length
+    policy.sample_action_chunks = lambda batch, num_candidates=1, **_: forward.expand(1, num_candidates, T, 2)
+    goal, pose, mask = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi / 2]]), np.ones((1, 1), bool)
+    far = torch.from_numpy(environment_state(np.array([[[4.0, 4.0, 0.3]]]), mask, goal, "nearest", pose=pose))
+    ahead = torch.from_numpy(
+        environment_state(np.array([[[0.5, 0.7, 0.3]]]), mask, goal, "nearest", pose=pose)
+    )
+    for second, replans in ((far, 1), (ahead, 1 + recheck)):
+        replanner = Replanner(policy)
+        replanner.start(1)
+        replanner.act(far, lambda rows: {})
+        assert replanner.stats["replans"] == 1 and replanner.stats["replans_none_safe"] == 0
+        replanner.act(second, lambda rows: {})
+        assert replanner.stats["replans"] == replans
+        assert replanner.stats["rechecks_failed"] == replans - 1
 
 
 def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
