@@ -86,7 +86,9 @@ def _merge_entries(entries: list[dict], where: str) -> dict:
     merged["wall_time_s"] = float(sum(entry.get("wall_time_s", 0.0) for entry in entries))
     if any("safety" in entry for entry in entries):
         counts = [entry["safety"] for entry in entries if "safety" in entry]
-        stats = {k: sum(c[k] for c in counts) for k in counts[0] if not k.endswith("_rate")}
+        # the union of the counts: a shard written before a count existed adds 0 to it
+        keys = dict.fromkeys(k for c in counts for k in c if not k.endswith("_rate"))
+        stats = {k: sum(c.get(k, 0) for c in counts) for k in keys}
         merged["safety"] = {**stats, **safety_rates(stats)}
     merged["scenes"] = entries[0]["scenes"]
     if any("figures" in entry for entry in entries):  # a shard's figures show its scenes only

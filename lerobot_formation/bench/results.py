@@ -31,10 +31,12 @@ def safety_rates(stats: dict) -> dict:
     (``policy.replanner.STAT_KEYS``): the share of steps whose action the CBF filter changed
     (``filter_intervention_rate``; x 100: per 100 steps), and the shares of replans where best-of-K
     found no safe candidate, kept an escape manoeuvre, stopped, or kept route pursuit's proposal
-    (``proposal_rate``; ``safety_route_proposal``)."""
+    (``proposal_rate``; ``safety_route_proposal``); the share of steps where a kept chunk failed its
+    check on the newer view and the episode replanned (``recheck_rate``; ``safety_recheck``)."""
     replans = max(stats["replans"], 1)
     return {
         "filter_intervention_rate": stats["filter_interventions"] / max(stats["steps"], 1),
+        "recheck_rate": stats.get("rechecks_failed", 0) / max(stats["steps"], 1),
         "replans_none_safe_rate": stats["replans_none_safe"] / replans,
         "escape_rate": stats["escapes"] / replans,
         "stop_rate": stats["stops"] / replans,
@@ -52,8 +54,8 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
         f"### Safety layer interventions on {label}",
         "",
         "| Controller | Steps | Filter interventions / 100 steps | Replans | No safe candidate % | "
-        "Escape manoeuvre % | Stop % | Route proposal % |",
-        "|---|---|---|---|---|---|---|---|",
+        "Escape manoeuvre % | Stop % | Route proposal % | Failed rechecks / 100 steps |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for n in names:
         st = results[n]["safety"]
@@ -61,13 +63,16 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
         lines.append(
             f"| {n} | {st['steps']} | {100 * rates['filter_intervention_rate']:.2f} | {st['replans']} | "
             f"{100 * rates['replans_none_safe_rate']:.1f} | {100 * rates['escape_rate']:.1f} | "
-            f"{100 * rates['stop_rate']:.1f} | {100 * rates['proposal_rate']:.1f} |"
+            f"{100 * rates['stop_rate']:.1f} | {100 * rates['proposal_rate']:.1f} | "
+            f"{100 * rates['recheck_rate']:.2f} |"
         )
     lines += [
         "",
         "Filter interventions: actions the CBF filter changed; the percentages are of best-of-K's "
         "replans (an escape manoeuvre is kept only when no sampled chunk is safe; the route proposal is "
-        "route pursuit's chunk, scored beside the sampled ones with ``safety_route_proposal``).",
+        "route pursuit's chunk, scored beside the sampled ones with ``safety_route_proposal``; a failed "
+        "recheck: a kept chunk that no longer passed the check on a newer view, replanned at once, "
+        "``safety_recheck``).",
         "",
     ]
     return "\n".join(lines)

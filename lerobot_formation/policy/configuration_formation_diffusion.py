@@ -125,12 +125,13 @@ class FormationDiffusionConfig(DiffusionConfig):
             predicted clearance among the sampled chunks and every manoeuvre it scored (one that
             outruns a mover for longer), not among the sampled chunks only (false, default: the
             layer before 2026-12-05, night).
-        safety_recheck: with best-of-K (num_candidates > 1), at every step the rest of a chunk that
-            was kept as safe is checked again, with its route lookahead, on the newest view
-            (``core.safety.plan_is_safe``, best-of-K's own check); where it no longer passes, the
+        safety_recheck: with best-of-K (num_candidates > 1), at every step the rest of the kept
+            chunk is checked again, with its route lookahead, on the newest view
+            (``core.safety.plan_is_safe``, best-of-K's own check); where it does not pass, the
             episode replans at once instead of running the chunk out (a mover's estimated velocity
-            and the sensed obstacles change under a chunk in n_action_steps). False (default): the
-            layer before 2026-12-05 (late night), which replans early only where the filter intervened.
+            and the sensed obstacles change under a chunk in n_action_steps; where nothing was safe,
+            it replans at every step until something is). False (default): the layer before
+            2026-12-05 (late night), which replans early only where the filter intervened.
         safety_action_delay: control steps between sending a command and its execution, a known
             property of the robot (the env's ``action_delay``): best-of-K and the filter start from
             the pose predicted after the commands already sent. 0 (default): at once.

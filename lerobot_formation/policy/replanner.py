@@ -25,10 +25,11 @@ passes best-of-K's check on this step's view replans first:
    replaces (``warm_start_guess`` of it from the current step), unless the filter cut that plan short;
 5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
    ``replan_on_intervention`` an episode whose action it changed replans at its next step;
-6. recheck (``safety_recheck``, K > 1): at each step before 1-5, the rest of a chunk kept as safe is
+6. recheck (``safety_recheck``, K > 1): at each step before 1-5, the rest of the kept chunk is
    checked again on the new view with best-of-K's own check (``core.safety.plan_is_safe``, with the
    route lookahead); where it fails, the episode replans at once (a mover's estimated velocity and
-   the sensed obstacles change under a chunk in n_action_steps).
+   the sensed obstacles change under a chunk in n_action_steps). A chunk kept where nothing was safe
+   fails it too, so such an episode replans at every step until a safe chunk is found.
 
 What the scorer and the filter see of an episode at a step is a ``SafetyView``, built once per step
 from the raw observation: the goal and obstacles of its ``nearest`` part; with
@@ -241,7 +242,6 @@ class Replanner:
         self.executed = torch.zeros(B, dtype=torch.long)  # actions run since the episode's last replan
         self.last_action = torch.zeros(B, A, device=device)  # normalised
         self.has_last = torch.zeros(B, dtype=torch.bool)
-        self.plan_safe = torch.zeros(B, dtype=torch.bool)  # best-of-K kept a chunk that passed its check
         cfg = self.config
         self.in_flight = np.zeros((B, cfg.safety_action_delay, A))  # sent, not run yet; oldest first
         self.executed_velocity = np.zeros((B, A))  # the actuator model's last executed [v, omega]
@@ -337,11 +337,13 @@ class Replanner:
         return action
 
     def _recheck(self, rows: Tensor, view: SafetyView) -> None:
-        """``safety_recheck``: episodes ``rows`` whose plan was kept as safe and is under way check its
-        rest on this step's ``view`` (``core.safety.plan_is_safe``); those where it fails replan now."""
+        """``safety_recheck``: episodes ``rows`` whose plan is under way check its rest on this step's
+        ``view`` (``core.safety.plan_is_safe``); those where it fails replan now (where nothing was
+        safe at the last replan, so a manoeuvre or the widest candidate was kept, that is at every
+        step until something is)."""
         cfg = self.config
         pos = self.plan_pos[rows]
-        live = (pos > 0) & (pos < cfg.n_action_steps) & self.plan_safe[rows]
+        live = (pos > 0) & (pos < cfg.n_action_steps)
         for p in torch.unique(pos[live]).tolist():  # the plans' rests have one length per position
             at = torch.nonzero(live & (pos == p)).flatten()
             sub = view[at.numpy()]
@@ -427,7 +429,6 @@ class Replanner:
                 # a plan the filter cut short met a barrier: nothing to keep to
                 keep_to = has_last & (self.executed[need] >= cfg.n_action_steps)
             chosen, info = self.choose(view, chunks, last, has_last, previous, keep_to)
-            self.plan_safe[need] = torch.from_numpy(info["any_safe"])
             self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
             self.stats["escapes"] += int(info["escaped"].sum())
             self.stats["stops"] += int(info["stopped"].sum())

@@ -234,24 +234,37 @@ def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(r
     """Best-of-4 keeps a straight chunk on an open road. At the next step an obstacle is seen 0.3 m
     ahead of the right leader, across the chunk's rest: with ``safety_recheck`` the episode replans
     at that step (before the filter sees the action); without, it runs the chunk on. Where the road
-    stays open the check passes and the chunk runs on either way."""
-    policy = _policy(safety_recheck=recheck)
+    stays open the check passes and the chunk runs on either way. Before a wall 0.6 m ahead nothing
+    is safe (the samples drive on, the only manoeuvres are 0.6 m/s arcs) and the widest sample is
+    kept: it fails the check too, so with it the episode replans at every step."""
+    torch.manual_seed(0)  # no filter: it would replan where it intervenes, recheck or not
+    config = nearest_config(num_candidates=4, safety_recheck=recheck, safety_escape_speeds=[0.6])
+    policy = FormationDiffusionPolicy(config).eval()
     forward = policy.normalize_action(torch.tensor([0.4, 0.0]))
     T = policy.replanner.chunk_length
     policy.sample_action_chunks = lambda batch, num_candidates=1, **_: forward.expand(1, num_candidates, T, 2)
-    goal, pose, mask = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi / 2]]), np.ones((1, 1), bool)
-    far = torch.from_numpy(environment_state(np.array([[[4.0, 4.0, 0.3]]]), mask, goal, "nearest", pose=pose))
-    ahead = torch.from_numpy(
-        environment_state(np.array([[[0.5, 0.7, 0.3]]]), mask, goal, "nearest", pose=pose)
-    )
-    for second, replans in ((far, 1), (ahead, 1 + recheck)):
+    goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi / 2]])
+
+    def seen(obstacles):
+        mask = np.ones((1, len(obstacles)), bool)
+        return torch.from_numpy(environment_state(np.array([obstacles]), mask, goal, "nearest", pose=pose))
+
+    far, ahead = seen([[4.0, 4.0, 0.3]]), seen([[0.5, 0.7, 0.3]])
+    wall = seen([[x, 0.9, 0.3] for x in np.linspace(-1.5, 1.5, 7)])
+    for first, second, replans, none_safe in (
+        (far, far, 1, 0),
+        (far, ahead, 1 + recheck, recheck),
+        (wall, wall, 1 + recheck, 1 + recheck),
+    ):
         replanner = Replanner(policy)
         replanner.start(1)
-        replanner.act(far, lambda rows: {})
-        assert replanner.stats["replans"] == 1 and replanner.stats["replans_none_safe"] == 0
+        replanner.act(first, lambda rows: {})
+        assert replanner.stats["replans"] == 1
         replanner.act(second, lambda rows: {})
         assert replanner.stats["replans"] == replans
         assert replanner.stats["rechecks_failed"] == replans - 1
+        assert replanner.stats["replans_none_safe"] == none_safe
+        assert replanner.stats["escapes"] == 0
 
 
 def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
@@ -334,10 +347,12 @@ def test_bench_reports_how_often_the_safety_layer_intervened():
         "steps": 400,
         "filter_interventions": 20,
         "proposals": 10,
+        "rechecks_failed": 8,
     }
     rates = safety_rates(stats)
     assert rates == {
         "filter_intervention_rate": 0.05,
+        "recheck_rate": 0.02,
         "replans_none_safe_rate": 0.2,
         "escape_rate": 0.1,
         "stop_rate": 0.02,
@@ -346,6 +361,6 @@ def test_bench_reports_how_often_the_safety_layer_intervened():
     table = safety_table(
         {"pac": {}, "diffusion-safe": {"safety": {**stats, **rates}}}, "level5 scenes (level5:20)"
     )
-    assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 | 20.0 |" in table
+    assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 | 20.0 | 2.00 |" in table
     assert "pac" not in table
     assert safety_table({"pac": {}}, "x") == ""
