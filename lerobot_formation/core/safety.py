@@ -256,9 +256,17 @@ class FootprintCheck:
         )
         return np.minimum(margin, now - SLIDE_TOLERANCE)
 
-    def footprint(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    def footprint(
+        self, commands: np.ndarray, floor: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Smallest clearance (B, C) over the sequences, over sequence and continuation (None without
-        one), and the end poses (B, C, 3) progress is measured at, of commands (B, C, T, 2)."""
+        one), and the end poses (B, C, 3) progress is measured at, of commands (B, C, T, 2).
+
+        With ``floor`` (B, 1), the continuation is rolled out only after the sequences that keep it
+        (a sequence that does not cannot be safe with any continuation): for the others the second
+        value is their own clearance and the end pose their own end. What is safe, and the progress
+        of what is, are the same; the saving is most of the escape lattice's lookahead where nothing
+        is safe."""
         pose, steps = self._origin()
         B, T = len(pose), commands.shape[2]
         run = commands if self.start is None else self.start.executed(commands, self.dt)
@@ -268,21 +276,36 @@ class FootprintCheck:
         )
         if self.continuation is None:
             return clear, None, end
-        more = self.continuation(end)  # the footprint after the sequence, too
-        P, C = more.shape[1], more.shape[2]
+        P = clear.shape[1]
+        keep = np.ones((B, P), dtype=bool) if floor is None else clear >= floor
+        W = int(keep.sum(axis=1).max())
+        if W == 0:
+            return clear, clear.copy(), end
+        # the kept sequences first in each row (a permutation, so the padding writes back what it read)
+        order = np.argsort(~keep, axis=1, kind="stable")[:, :W]
+        picked = np.take_along_axis(keep, order, axis=1)
+        at = np.take_along_axis(end, order[..., None], axis=1)  # (B, W, 3)
+        more = self.continuation(at)  # the footprint after the sequence, too
+        C = more.shape[2]
         after, after_end = sequence_clearance(
-            end.reshape(B * P, 3),
-            more.reshape(B * P, 1, C, 2),
-            np.repeat(obstacles, P, axis=0),
+            at.reshape(B * W, 3),
+            more.reshape(B * W, 1, C, 2),
+            np.repeat(obstacles, W, axis=0),
             self.template,
             self.dt,
             self.agent_radius,
-            None if velocity is None else np.repeat(velocity, P, axis=0),
+            None if velocity is None else np.repeat(velocity, W, axis=0),
             steps + T,
             u,
         )
+        own = np.take_along_axis(clear, order, axis=1)
+        viable, last = clear.copy(), end.copy()
+        np.put_along_axis(viable, order, np.where(picked, np.minimum(own, after.reshape(B, W)), own), axis=1)
         # progress counts the continuation: heading matters
-        return clear, np.minimum(clear, after.reshape(B, P)), after_end.reshape(B, P, 3)
+        np.put_along_axis(
+            last, order[..., None], np.where(picked[..., None], after_end.reshape(B, W, 3), at), axis=1
+        )
+        return clear, viable, last
 
 
 def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
@@ -291,8 +314,9 @@ def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.n
     follows it keep ``check.floor(margin)``. Where it fails the replanner replans at once
     (``safety_recheck``): a chunk kept as safe is otherwise run for n_action_steps on the view it was
     scored on, while a mover's estimated velocity and the sensed obstacles change under it."""
-    clear, viable, _ = check.footprint(np.asarray(plan, dtype=np.float64)[:, None])
-    return (clear if viable is None else viable)[:, 0] >= check.floor(margin)[:, 0]
+    floor = check.floor(margin)
+    clear, viable, _ = check.footprint(np.asarray(plan, dtype=np.float64)[:, None], floor)
+    return (clear if viable is None else viable)[:, 0] >= floor[:, 0]
 
 
 def select_chunk(
@@ -340,7 +364,9 @@ def select_chunk(
     (one that ends nose-in at a wall it cannot turn away from, the leaders unable to back up, is
     not), unless no candidate's continuation is safe: then the chunks alone decide. Progress is then
     measured at the continuation's end, so a chunk that leaves the team facing its way scores the
-    progress it makes possible (the leaders' heading matters: they cannot back up).
+    progress it makes possible (the leaders' heading matters: they cannot back up); the continuation
+    is rolled out only after the candidates that keep the margin (``FootprintCheck.footprint``), so
+    ``info["progress"]`` of one that does not is measured at its own end (it is never kept for it).
     ``coherence`` (``PlanCoherence``): among the safe candidates, one whose first n commands deviate
     from the plan being replaced by d (root mean square, in units of the action ranges) scores w d
     less progress; it ranks safe candidates only, never makes one safe.
@@ -364,7 +390,7 @@ def select_chunk(
     floor = check.floor(margin)
     footprint = check.footprint
     pool = candidates
-    clear, viable, end = footprint(candidates)
+    clear, viable, end = footprint(candidates, floor)
     # The manoeuvres matter only where no sampled chunk is safe with its continuation (without an
     # escape_advantage): elsewhere none of them could be kept, so they are scored only if some
     # episode needs them (most replans then score 11 sequences, not 11 + the lattice).
@@ -374,7 +400,7 @@ def select_chunk(
         prim = np.broadcast_to(lattice[None, :, None, :], (B, len(lattice), T, 2))
         if blend is not None:
             prim = blend_replan(prim, *blend)
-        prim_clear, prim_viable, prim_end = footprint(prim)
+        prim_clear, prim_viable, prim_end = footprint(prim, floor)
         pool = np.concatenate([candidates, prim], axis=1)
         clear = np.concatenate([clear, prim_clear], axis=1)
         end = np.concatenate([end, prim_end], axis=1)

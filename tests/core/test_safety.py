@@ -508,6 +508,33 @@ def test_a_plan_checked_again_fails_once_a_mover_heads_for_its_path():
     np.testing.assert_array_equal(plan_is_safe(np.concatenate([plan, plan]), both, 0.1), [True, False])
 
 
+def test_the_lookahead_runs_only_after_sequences_that_keep_the_floor():
+    """``footprint(commands, floor)`` rolls the continuation out only after the sequences whose own
+    clearance keeps the floor: for those the numbers are those of the full rollout, bit for bit
+    (rows of different counts padded); the others report their own clearance and end pose."""
+    rng = np.random.default_rng(5)
+    obstacles = np.array([[[0.5, 1.2, 0.3], [-1.0, 2.5, 0.4]], [[2.0, 2.0, 0.3], [FAR, FAR, 0.0]]])
+    velocity = np.array([[[0.0, -0.2], [0.1, 0.0]], [[0.0, 0.0], [0.0, 0.0]]])
+    commands = np.stack([np.tile([0.4, 0.0], (12, 16, 1)) + rng.normal(0, [0.15, 0.6], (12, 16, 2))] * 2)
+
+    def ahead(end):  # (B, P, 3) -> straight on at 0.3 m/s, turning with the heading's sine
+        return np.stack(np.broadcast_arrays(0.3, np.sin(end[..., 2:3]) + np.zeros((1, 1, 10))), -1)
+
+    check = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, velocity, continuation=ahead)
+    floor = np.array([[0.05], [0.05]])
+    clear, viable, end = check.footprint(commands)
+    clear2, viable2, end2 = check.footprint(commands, floor)
+    keep = clear >= floor
+    assert 0 < keep[0].sum() < 12 and keep[0].sum() != keep[1].sum()  # ragged rows
+    np.testing.assert_array_equal(clear2, clear)
+    np.testing.assert_array_equal(viable2[keep], viable[keep])
+    np.testing.assert_array_equal(end2[keep], end[keep])
+    np.testing.assert_array_equal(viable2[~keep], clear[~keep])
+    own_end = check.footprint(commands, np.full((2, 1), np.inf))[2]  # nothing kept: the sequences' ends
+    np.testing.assert_array_equal(end2[~keep], own_end[~keep])
+    assert not np.array_equal(own_end[keep], end[keep])
+
+
 def test_coherence_keeps_the_candidate_closest_to_the_plan_it_replaces():
     """Two safe chunks in open space, straight ahead and a gentle left arc: on progress alone the
     straight one wins; with the previous plan an arc and a coherence weight above the progress gap,
