@@ -188,6 +188,11 @@ def _on_off(text: str):
     return {"on": True, "off": False}.get(text, text)
 
 
+def _add_on_off(ap: argparse.ArgumentParser, flag: str, help: str | None = None) -> None:
+    """An on/off flag (``_on_off``), None when not given (the checkpoint's setting)."""
+    ap.add_argument(flag, type=_on_off, choices=(True, False), default=None, metavar="{on,off}", help=help)
+
+
 def _speeds(text: str) -> tuple[float, ...]:
     """Comma-separated speeds [m/s] -> a tuple; a part that is not a number is refused by name."""
     out = []
@@ -220,7 +225,7 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
     )
     ap.add_argument("--layer-ignores-noise", action="store_true")
     ap.add_argument("--layer-ignores-motion", action="store_true")
-    ap.add_argument("--route-proposal", type=_on_off, choices=(True, False), default=None, metavar="{on,off}")
+    _add_on_off(ap, "--route-proposal")
     ap.add_argument(
         "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
     )
@@ -251,20 +256,6 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         default=None,
         help="the escape manoeuvres' speeds, comma-separated [m/s], e.g. 0,0.1,0.2,0.3",
     )
-    ap.add_argument(
-        "--fallback-all",
-        type=_on_off,
-        choices=(True, False),
-        default=None,
-        metavar="{on,off}",
-        help="where nothing is safe, the widest of every candidate scored",
-    )
-    ap.add_argument(
-        "--recheck",
-        type=_on_off,
-        choices=(True, False),
-        default=None,
-        metavar="{on,off}",
-        help="check a kept chunk again at every step; replan where it no longer passes",
-    )
+    _add_on_off(ap, "--fallback-all", "where nothing is safe, the widest of every candidate scored")
+    _add_on_off(ap, "--recheck", "check a kept chunk again at every step; replan where it no longer passes")
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

@@ -342,8 +342,8 @@ class Replanner:
         safe at the last replan, so a manoeuvre or the widest candidate was kept, that is at every
         step until something is)."""
         cfg = self.config
-        pos = self.plan_pos[rows]
-        live = (pos > 0) & (pos < cfg.n_action_steps)
+        pos = self.plan_pos[rows]  # >= 1 for a plan under way: its first action ran at its replan
+        live = pos < cfg.n_action_steps
         for p in torch.unique(pos[live]).tolist():  # the plans' rests have one length per position
             at = torch.nonzero(live & (pos == p)).flatten()
             sub = view[at.numpy()]
