@@ -411,8 +411,9 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"safety_escape_speeds must be a non-empty list of speeds in [0, action_high[0] = "
                 f"{self.action_high[0]}] [m/s], got {speeds!r}"
             )
-        if not isinstance(self.safety_recheck, bool):
-            raise config_error(f"safety_recheck must be true or false, got {self.safety_recheck!r}")
+        for name in ("safety_fallback_all", "safety_recheck"):
+            if not isinstance(getattr(self, name), bool):
+                raise config_error(f"{name} must be true or false, got {getattr(self, name)!r}")
         if isinstance(self.safety_action_delay, bool) or not (
             isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0
         ):

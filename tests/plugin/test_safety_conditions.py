@@ -90,6 +90,7 @@ def test_safety_settings_are_checked_with_their_value():
             r"safety_escape_speeds must be .*, got \[0.1, -0.1\]",
         ),
         (dict(safety_recheck="yes"), r"safety_recheck must be true or false, got 'yes'"),
+        (dict(safety_fallback_all=1), r"safety_fallback_all must be true or false, got 1"),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
