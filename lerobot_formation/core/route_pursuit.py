@@ -144,19 +144,26 @@ def pursuit_chunk(
     switch = 0.5 * np.sqrt((near_x - x) ** 2 + (near_y - y) ** 2)
     passed = np.zeros(B, dtype=bool)
     out = np.empty((B, steps, 2))
+    # np.minimum/np.maximum for np.clip (the same numbers, half the call overhead on a few rows)
+    v_max, gain, d0, v_min_frac, r_goal = config.v_max, config.k, config.d0, config.v_min_frac, config.r_goal
     for k in range(steps):
         passed |= np.sqrt((near_x - x) ** 2 + (near_y - y) ** 2) < switch
         d_goal = np.sqrt((goal_x - x) ** 2 + (goal_y - y) ** 2)
-        at_goal = d_goal < config.r_goal
-        aim_x = np.where(at_goal, goal_x, np.where(passed, far_x, near_x))
-        aim_y = np.where(at_goal, goal_y, np.where(passed, far_y, near_y))
+        at_goal = d_goal < r_goal
+        if at_goal.any():
+            aim_x = np.where(at_goal, goal_x, np.where(passed, far_x, near_x))
+            aim_y = np.where(at_goal, goal_y, np.where(passed, far_y, near_y))
+        elif passed.any():
+            aim_x, aim_y = np.where(passed, far_x, near_x), np.where(passed, far_y, near_y)
+        else:
+            aim_x, aim_y = near_x, near_y
         a = phi - np.pi / 2
         c, s = np.cos(a), np.sin(a)
         dx, dy = aim_x - x, aim_y - y
         e = np.arctan2(-(dx * c + dy * s), -dx * s + dy * c)  # heading_error of the body-frame aim
-        slow = np.clip(d_goal / config.d0, config.v_min_frac, 1.0)
-        v = config.v_max * np.maximum(np.cos(e), 0.0) ** 2 * slow
-        omega = np.clip(config.k * e, -omega_max, omega_max)
+        slow = np.minimum(np.maximum(d_goal / d0, v_min_frac), 1.0)
+        v = v_max * np.maximum(np.cos(e), 0.0) ** 2 * slow
+        omega = np.minimum(np.maximum(gain * e, -omega_max), omega_max)
         out[:, k, 0], out[:, k, 1] = v, omega
         x, y, phi = x + v * np.cos(phi) * dt, y + v * np.sin(phi) * dt, phi + omega * dt
     return out
