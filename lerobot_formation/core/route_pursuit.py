@@ -150,13 +150,11 @@ def pursuit_chunk(
         passed |= np.sqrt((near_x - x) ** 2 + (near_y - y) ** 2) < switch
         d_goal = np.sqrt((goal_x - x) ** 2 + (goal_y - y) ** 2)
         at_goal = d_goal < r_goal
-        if at_goal.any():
-            aim_x = np.where(at_goal, goal_x, np.where(passed, far_x, near_x))
-            aim_y = np.where(at_goal, goal_y, np.where(passed, far_y, near_y))
-        elif passed.any():
+        aim_x, aim_y = near_x, near_y  # np.where only where some row needs it (most steps none does)
+        if passed.any():
             aim_x, aim_y = np.where(passed, far_x, near_x), np.where(passed, far_y, near_y)
-        else:
-            aim_x, aim_y = near_x, near_y
+        if at_goal.any():
+            aim_x, aim_y = np.where(at_goal, goal_x, aim_x), np.where(at_goal, goal_y, aim_y)
         a = phi - np.pi / 2
         c, s = np.cos(a), np.sin(a)
         dx, dy = aim_x - x, aim_y - y
