@@ -150,7 +150,7 @@ def pursuit_chunk(
         passed |= np.sqrt((near_x - x) ** 2 + (near_y - y) ** 2) < switch
         d_goal = np.sqrt((goal_x - x) ** 2 + (goal_y - y) ** 2)
         at_goal = d_goal < r_goal
-        aim_x, aim_y = near_x, near_y  # np.where only where some row needs it (most steps none does)
+        aim_x, aim_y = near_x, near_y  # np.where only where some row needs it
         if passed.any():
             aim_x, aim_y = np.where(passed, far_x, near_x), np.where(passed, far_y, near_y)
         if at_goal.any():

@@ -129,8 +129,9 @@ class FormationDiffusionConfig(DiffusionConfig):
             chunk is checked again, with its route lookahead, on the newest view
             (``core.safety.plan_is_safe``, best-of-K's own check); where it does not pass, the
             episode replans at once instead of running the chunk out (a mover's estimated velocity
-            and the sensed obstacles change under a chunk in n_action_steps; where nothing was safe,
-            it replans at every step until something is). False (default): the layer before
+            and the sensed obstacles change under a chunk in n_action_steps; a chunk kept where
+            nothing was safe is rechecked too, so the episode replans at every step while its rest
+            still fails). False (default): the layer before
             2026-12-05 (late night), which replans early only where the filter intervened.
         safety_action_delay: control steps between sending a command and its execution, a known
             property of the robot (the env's ``action_delay``): best-of-K and the filter start from

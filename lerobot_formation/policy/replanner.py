@@ -29,7 +29,8 @@ passes best-of-K's check on this step's view replans first:
    checked again on the new view with best-of-K's own check (``core.safety.plan_is_safe``, with the
    route lookahead); where it fails, the episode replans at once (a mover's estimated velocity and
    the sensed obstacles change under a chunk in n_action_steps). A chunk kept where nothing was safe
-   fails it too, so such an episode replans at every step until a safe chunk is found.
+   (the widest fallback) is rechecked like any other, so such an episode replans at every step while
+   its rest still fails.
 
 What the scorer and the filter see of an episode at a step is a ``SafetyView``, built once per step
 from the raw observation: the goal and obstacles of its ``nearest`` part; with
@@ -338,9 +339,9 @@ class Replanner:
 
     def _recheck(self, rows: Tensor, view: SafetyView) -> None:
         """``safety_recheck``: episodes ``rows`` whose plan is under way check its rest on this step's
-        ``view`` (``core.safety.plan_is_safe``); those where it fails replan now (where nothing was
-        safe at the last replan, so a manoeuvre or the widest candidate was kept, that is at every
-        step until something is)."""
+        ``view`` (``core.safety.plan_is_safe``); those where it fails replan now (a chunk kept where
+        nothing was safe, the widest fallback, too: such an episode replans at every step while its
+        rest still fails)."""
         cfg = self.config
         pos = self.plan_pos[rows]  # >= 1 for a plan under way: its first action ran at its replan
         live = pos < cfg.n_action_steps
