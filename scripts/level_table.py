@@ -22,11 +22,20 @@ import argparse
 import json
 from pathlib import Path
 
-ORDER = ["pac", "mppi", "route-pursuit", "diffusion", "diffusion-safe", "pac-privileged"]
+ORDER = [
+    "pac",
+    "mppi",
+    "route-pursuit",
+    "route-pursuit-safe",
+    "diffusion",
+    "diffusion-safe",
+    "pac-privileged",
+]
 NAMES = {
     "pac": "PAC",
     "mppi": "MPPI",
     "route-pursuit": "route pursuit",
+    "route-pursuit-safe": "route pursuit + the default's safety layer",
     "diffusion": "default, standard",
     "diffusion-safe": "default, best-of-10 + CBF",
     "pac-privileged": "privileged expert (reference: sees the true world)",

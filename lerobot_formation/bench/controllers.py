@@ -11,11 +11,13 @@ the policy's ``Replanner`` with the checkpoint's config and, for K and the filte
 The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
 limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
-never its noise draws.
+never its noise draws. "route-pursuit-safe" runs a checkpoint's safety layer without its network: the
+candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from collections.abc import Callable
 
@@ -46,12 +48,19 @@ def safety_settings(conditions: Conditions | None, scenes_move: bool = False) ->
     return settings
 
 
-def _diffusion(safety_filter: str | None, best_of_k: bool | None):
+def _diffusion(safety_filter: str | None, best_of_k: bool | None, sampled: bool = True):
     """A factory of a diffusion controller with the filter ``safety_filter`` and K = --candidates
-    (``best_of_k``) or 1; None for both: the checkpoint's own settings."""
+    (``best_of_k``) or 1; None for both: the checkpoint's own settings. ``sampled=False``: the
+    checkpoint's safety layer around route pursuit, its network never called
+    (``ReplanExperiment.sampled``)."""
 
     def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
         from lerobot_formation.bench.diffusion_controller import DiffusionController
+        from lerobot_formation.policy.replanner import ReplanExperiment
+
+        experiment = options.experiment
+        if not sampled:
+            experiment = dataclasses.replace(experiment or ReplanExperiment(), sampled=False)
 
         overrides = {}
         if safety_filter is not None:
@@ -69,7 +78,7 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None):
             device=options.device,
             policy_bundle=bundle,
             overrides={**overrides, **options.overrides},
-            experiment=options.experiment,
+            experiment=experiment,
             name=name,
         )
 
@@ -105,7 +114,12 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "diffusion-cbf": _diffusion("cbf", best_of_k=False),  # one sample, CBF filter on every action
     "diffusion-safe": _diffusion("cbf", best_of_k=True),  # best-of-K and the CBF filter
     "diffusion-policy": _diffusion(None, None),  # the checkpoint's config as stored
+    # the baseline of "diffusion-safe": its whole safety layer (the checkpoint's settings, K's check,
+    # escapes, filter, recheck) around route pursuit's proposal, the network never sampled
+    "route-pursuit-safe": _diffusion("cbf", best_of_k=True, sampled=False),
 }
+# Controllers that read a checkpoint (--policy.path) without a "diffusion" name: its safety settings
+SAFETY_LAYER_BASELINES = ("route-pursuit-safe",)
 CONTROLLERS = tuple(CONTROLLER_FACTORIES)
 
 
@@ -115,8 +129,9 @@ def controller_names() -> tuple[str, ...]:
 
 
 def needs_policy(name: str) -> bool:
-    """Whether controller ``name`` runs a diffusion checkpoint (``--policy.path``)."""
-    return name.startswith("diffusion")
+    """Whether controller ``name`` runs a diffusion checkpoint (``--policy.path``): its network, or
+    only its safety layer's settings (``SAFETY_LAYER_BASELINES``)."""
+    return name.startswith("diffusion") or name in SAFETY_LAYER_BASELINES
 
 
 def make_controller(name: str, params: FormationParams, options: ControllerOptions, bundle=None):

@@ -93,11 +93,16 @@ class ReplanExperiment:
             every safe sampled chunk's by that much.
         blocked_fallback: "widest" (the sampled chunk with the largest predicted clearance) or "stop"
             when nothing is safe (``core.safety.select_chunk``).
+        sampled: False: the network samples nothing; best-of-K's candidates are route pursuit's
+            proposal and the escapes, under the same check, filter and recheck. The safety layer
+            without the learned planner: the baseline the layer's rows are measured against (needs a
+            "nearest+route" config with ``safety_route_proposal``).
     """
 
     blend_steps: int = 0
     escape_advantage: float | None = None
     blocked_fallback: str = "widest"
+    sampled: bool = True
 
     def __post_init__(self):
         if self.blend_steps < 0:
@@ -220,6 +225,14 @@ class Replanner:
                 f"blend_steps must be in [0, {self.chunk_length}] (the chunk's length), "
                 f"got {self.experiment.blend_steps}"
             )
+        if not self.experiment.sampled and not (
+            self.config.safety_route_proposal and self.config.obstacle_encoding == "nearest+route"
+        ):
+            raise ValueError(
+                "a replanner that samples nothing (ReplanExperiment.sampled=False) needs route pursuit's "
+                "proposal: a 'nearest+route' config with safety_route_proposal, got obstacle_encoding="
+                f"{self.config.obstacle_encoding!r}, safety_route_proposal={self.config.safety_route_proposal}"
+            )
         self.stats = dict.fromkeys(STAT_KEYS, 0)
         self.plan: Tensor | None = None
 
@@ -288,6 +301,11 @@ class Replanner:
         """Whether the config gives the sensors' noise (then the view is smoothed)."""
         return self.config.safety_obstacle_noise > 0 or self.config.safety_pose_noise > 0
 
+    @property
+    def best_of(self) -> bool:
+        """Whether replans choose among candidates (K > 1, or no samples: the proposal and escapes)."""
+        return self.config.num_candidates > 1 or not self.experiment.sampled
+
     def needs_replan(self, rows: Tensor) -> Tensor:
         """Which of ``rows`` replan at their next ``act`` (B,) bool."""
         if self.plan is None:
@@ -316,7 +334,7 @@ class Replanner:
         if self.plan is None:
             self.start(len(rows), env_now.device)
         view = self.view(env_now, rows) if cfg.safety_layer else None
-        if cfg.safety_recheck and cfg.num_candidates > 1:
+        if cfg.safety_recheck and self.best_of:
             self._recheck(rows, view)
         need = rows[self.plan_pos[rows] >= cfg.n_action_steps]
         if len(need):
@@ -410,20 +428,23 @@ class Replanner:
         if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
             guess = warm_start_guess(self.plan[need], self.executed[need], cfg.n_obs_steps, cfg.horizon)
             warm = (guess, self.has_last[need])
-        if callable(noise):
-            noise = noise(len(need) * K)
-        chunks = self.policy.sample_action_chunks(
-            stacked,
-            K,
-            noise=noise,
-            warm_start=warm,
-            warm_start_step=cfg.warm_start_step,
-            warm_all=cfg.warm_start_all_candidates,
-        ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
+        if not ex.sampled:  # the layer alone: the proposal and the escapes are the candidates
+            chunks = self.plan.new_zeros(len(need), 0, *self.plan.shape[1:])
+        else:
+            if callable(noise):
+                noise = noise(len(need) * K)
+            chunks = self.policy.sample_action_chunks(
+                stacked,
+                K,
+                noise=noise,
+                warm_start=warm,
+                warm_start_step=cfg.warm_start_step,
+                warm_all=cfg.warm_start_all_candidates,
+            ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = smooth_chunks(chunks, last, has_last, cfg.chunk_smoothing)  # before best-of-K scores them
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
-        if K > 1:
+        if self.best_of:
             previous, keep_to = None, None
             if cfg.safety_coherence:  # the plan being replaced, from now on (normalised)
                 previous = warm_start_guess(self.plan[need], self.executed[need], 1, cfg.n_action_steps)

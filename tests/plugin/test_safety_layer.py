@@ -555,3 +555,58 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
         .replanner.choose_raw(env, chunks, last, had)
     )
     np.testing.assert_allclose(as_computed, plain)
+
+
+def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_calls_the_network(monkeypatch):
+    """``ReplanExperiment(sampled=False)`` (the "route-pursuit-safe" baseline): the network samples
+    nothing; on an open field the kept chunk is route pursuit's proposal (every replan keeps it), and
+    with obstacles across the route an escape or the proposal, never a sample. It needs the proposal."""
+    from lerobot_formation.core.route_pursuit import pursuit_chunk
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, safety_geometry
+
+    kw = _route_proposal_config(num_candidates=4, safety_filter="cbf")
+    policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("the network was sampled")
+
+    monkeypatch.setattr(policy, "sample_action_chunks", no_sampling)
+    replanner = Replanner(policy, experiment=ReplanExperiment(sampled=False))
+    pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
+    free = np.array([[[FAR, FAR, 0.0]]])
+    env = torch.from_numpy(
+        environment_state(free, free[..., 2] > 0, goal, "nearest+route", pose=pose)
+    ).float()
+    replanner.start(1)
+    actions = [replanner.act(env, lambda rows: None) for _ in range(3)]
+    view = replanner.observed_obstacles(env)
+    _, dt, _ = safety_geometry()
+    proposal = pursuit_chunk(view.route, view.goal, replanner.chunk_length, dt, policy.config.action_high[1])
+    raw = policy.unnormalize_action(torch.stack(actions, 1)).numpy()
+    np.testing.assert_allclose(raw[0], proposal[0, :3], atol=1e-5)
+    assert replanner.stats["replans"] == replanner.stats["proposals"] == 1
+
+    # obstacles across the route, close: every replan keeps the proposal or an escape
+    blocked = np.array([[[0.0, 0.9, 0.4], [-0.9, 0.9, 0.4], [0.9, 0.9, 0.4]]])
+    env = environment_state(blocked, blocked[..., 2] > 0, goal, "nearest+route", pose=pose)
+    replanner.reset(1)
+    for _ in range(6):
+        replanner.act(torch.from_numpy(env).float(), lambda rows: None)
+    stats = replanner.stats
+    assert stats["escapes"] > 0
+    assert stats["proposals"] + stats["escapes"] + stats["stops"] == stats["replans"]
+
+    with pytest.raises(ValueError, match=r"samples nothing.*safety_route_proposal=False"):
+        Replanner(
+            FormationDiffusionPolicy(
+                nearest_config(**{**_route_proposal_config(), "safety_route_proposal": False})
+            ),
+            experiment=ReplanExperiment(sampled=False),
+        )
+
+
+def test_route_pursuit_safe_is_a_controller_that_reads_a_checkpoint():
+    from lerobot_formation.bench.controllers import controller_names, needs_policy
+
+    assert "route-pursuit-safe" in controller_names()
+    assert needs_policy("route-pursuit-safe") and not needs_policy("route-pursuit")
