@@ -272,7 +272,7 @@ $PY scripts/derive_checkpoint.py $SAFE $SAFE --set safety_route_proposal=true --
   --set safety_coherence=1.0 --set safety_proposal_blend=4 --set safety_follower_margin=0.03 \
   --set safety_progress_resolution=0.4 --set safety_progress_interpolation=bilinear \
   --set warm_start_all_candidates=true --set chunk_smoothing=2 \
-  --set "safety_escape_speeds=[0,0.1,0.2,0.3,0.45,0.6]" --set safety_mover_uncertainty=0.05 --set safety_fallback_all=true \
+  --set "safety_escape_speeds=[0,0.1,0.2,0.3,0.45,0.6]" --set safety_mover_uncertainty=0.10 --set safety_fallback_all=true \
   --set safety_recheck=true --set cbf_rate=4.0
 for k in 0 1 2 3 4 5; do
   $BIN/lerobot-formation-bench --controllers pac,mppi,route-pursuit,diffusion,diffusion-safe,pac-privileged \
