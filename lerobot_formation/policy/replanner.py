@@ -225,13 +225,16 @@ class Replanner:
                 f"blend_steps must be in [0, {self.chunk_length}] (the chunk's length), "
                 f"got {self.experiment.blend_steps}"
             )
+        cfg = self.config
         if not self.experiment.sampled and not (
-            self.config.safety_route_proposal and self.config.obstacle_encoding == "nearest+route"
+            cfg.safety_layer and cfg.safety_route_proposal and cfg.obstacle_encoding == "nearest+route"
         ):
             raise ValueError(
                 "a replanner that samples nothing (ReplanExperiment.sampled=False) needs route pursuit's "
-                "proposal: a 'nearest+route' config with safety_route_proposal, got obstacle_encoding="
-                f"{self.config.obstacle_encoding!r}, safety_route_proposal={self.config.safety_route_proposal}"
+                "proposal and a safety layer: a 'nearest+route' config with safety_route_proposal and "
+                f"num_candidates > 1 or a filter, got obstacle_encoding={cfg.obstacle_encoding!r}, "
+                f"safety_route_proposal={cfg.safety_route_proposal}, num_candidates={cfg.num_candidates}, "
+                f"safety_filter={cfg.safety_filter!r}"
             )
         self.stats = dict.fromkeys(STAT_KEYS, 0)
         self.plan: Tensor | None = None

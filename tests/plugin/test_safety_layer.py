@@ -596,6 +596,18 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
     assert stats["escapes"] > 0
     assert stats["proposals"] + stats["escapes"] + stats["stops"] == stats["replans"]
 
+    with pytest.raises(ValueError, match=r"samples nothing.*num_candidates=4, safety_filter='none'"):
+        Replanner(  # a layer needs K > 1 or a filter: here K = 4 is fine, the proposal is off
+            FormationDiffusionPolicy(
+                nearest_config(**{**kw, "safety_route_proposal": False, "safety_filter": "none"})
+            ),
+            experiment=ReplanExperiment(sampled=False),
+        )
+    with pytest.raises(ValueError, match=r"samples nothing.*num_candidates=1, safety_filter='none'"):
+        Replanner(
+            FormationDiffusionPolicy(nearest_config(**_route_proposal_config())),
+            experiment=ReplanExperiment(sampled=False),
+        )
     with pytest.raises(ValueError, match=r"samples nothing.*safety_route_proposal=False"):
         Replanner(
             FormationDiffusionPolicy(
