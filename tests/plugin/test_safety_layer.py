@@ -622,3 +622,32 @@ def test_route_pursuit_safe_is_a_controller_that_reads_a_checkpoint():
 
     assert "route-pursuit-safe" in controller_names()
     assert needs_policy("route-pursuit-safe") and not needs_policy("route-pursuit")
+
+
+def test_bench_runs_route_pursuit_safe_from_a_checkpoint_without_sampling(tmp_path, monkeypatch):
+    """``lerobot-formation-bench --controllers route-pursuit-safe`` on a level with moving obstacles:
+    it loads the checkpoint for its layer's settings, never samples, and reports the layer's counts."""
+    import json
+
+    from lerobot_formation.bench import cli
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("the network was sampled")
+
+    monkeypatch.setattr(FormationDiffusionPolicy, "sample_action_chunks", no_sampling)
+    ckpt = save_nearest_checkpoint(tmp_path / "ckpt", **_route_proposal_config(safety_route_lookahead=5))
+    out = tmp_path / "out"
+    argv = ["--controllers", "route-pursuit-safe", "--policy.path", str(ckpt), "--scenes", "level5:2"]
+    assert (
+        cli.main(
+            [*argv, "--candidates", "4", "--threads", "1", "--no-figures", "--no-progress", "--out", str(out)]
+        )
+        == 0
+    )
+    res = json.loads((out / "results.json").read_text())["route-pursuit-safe"]
+    assert res["n_episodes"] == 2
+    safety = res["safety"]
+    assert (
+        safety["replans"] > 0
+        and safety["proposals"] + safety["escapes"] + safety["stops"] == safety["replans"]
+    )
