@@ -427,13 +427,13 @@ class Replanner:
     def _replan(self, need: Tensor, view: SafetyView | None, stacked: dict[str, Tensor], noise) -> None:
         cfg, ex = self.config, self.experiment
         K = cfg.num_candidates
-        warm = None
-        if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
-            guess = warm_start_guess(self.plan[need], self.executed[need], cfg.n_obs_steps, cfg.horizon)
-            warm = (guess, self.has_last[need])
         if not ex.sampled:  # the layer alone: the proposal and the escapes are the candidates
             chunks = self.plan.new_zeros(len(need), 0, *self.plan.shape[1:])
         else:
+            warm = None
+            if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
+                guess = warm_start_guess(self.plan[need], self.executed[need], cfg.n_obs_steps, cfg.horizon)
+                warm = (guess, self.has_last[need])
             if callable(noise):
                 noise = noise(len(need) * K)
             chunks = self.policy.sample_action_chunks(
