@@ -120,7 +120,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         choices=EXPERTS,
         help="who drives: 'pac' on what the team perceives, or 'privileged': PAC on the true world "
         "(every obstacle, its velocity, moving ones predicted, the action delay compensated) while the "
-        "frames hold what the team perceived (docs/conditions.md)",
+        "frames hold what the team perceived (docs/conditions.md); 'policy': the checkpoint at "
+        "--policy.path with its safety layer (best-of-10 + CBF, told the conditions), on what the team "
+        "perceives (self-imitation; needs --workers 0)",
+    )
+    ap.add_argument(
+        "--policy.path",
+        dest="policy_path",
+        default=None,
+        help="checkpoint folder of --expert policy (only with it)",
     )
     ap.add_argument(
         "--conditions-randomize",
@@ -164,6 +172,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         ap.error(f"need 0 <= --shard-index < --num-shards, got {args.shard_index} and {args.num_shards}")
     if args.workers < 0:
         ap.error(f"--workers must be >= 0, got {args.workers}")
+    if args.expert == "policy" and args.policy_path is None:
+        ap.error("--expert policy needs --policy.path")
+    if args.policy_path is not None and args.expert != "policy":
+        ap.error(f"--policy.path is only read by --expert policy, got --expert {args.expert}")
+    if args.policy_path is not None and not Path(args.policy_path).is_dir():
+        ap.error(f"--policy.path {args.policy_path} is not a folder")
+    if args.expert == "policy" and args.workers:
+        ap.error(f"--expert policy runs in the generating process: give --workers 0, got {args.workers}")
     if args.batch_size < 1:
         ap.error(f"--batch-size must be >= 1, got {args.batch_size}")
     try:
@@ -240,6 +256,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             conditions=conditions_from_flags(args),
             expert=args.expert,
             randomize=randomize_ceiling(args.conditions_randomize),
+            policy_path=args.policy_path,
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -257,18 +274,27 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     if summary["episodes"] < summary["requested_episodes"]:
         print(
             f"warning: only {summary['episodes']} of the {summary['requested_episodes']} episodes asked for: "
-            f"PAC succeeded on {summary['pac_succeeded']} of the {summary['pac_attempted']} scenes of {args.scenes}",
+            f"{expert_name(summary)} succeeded on {summary['pac_succeeded']} of the {summary['pac_attempted']} "
+            f"scenes of {args.scenes}",
             file=sys.stderr,
         )
     print(summary_line(summary, args.root))
     return 0
 
 
+EXPERT_NAMES = {"pac": "PAC", "privileged": "the privileged expert", "policy": "the policy with its layer"}
+
+
+def expert_name(summary: dict) -> str:
+    """Who drove, for messages (the summary's ``pac_*`` counts are the expert's, whichever it is)."""
+    return EXPERT_NAMES[summary.get("expert", "pac")]
+
+
 def summary_line(summary: dict, root: str) -> str:
-    """The one-line summary: what was written, and PAC's success over the scenes it ran. PAC runs whole
-    batches of scenes, so it can run more scenes than episodes were asked for; the line says so."""
+    """The one-line summary: what was written, and the expert's success over the scenes it ran. It runs
+    whole batches of scenes, so it can run more scenes than episodes were asked for; the line says so."""
     ran, ok, kept = summary["pac_attempted"], summary["pac_succeeded"], summary["episodes"]
-    pac = f"PAC succeeded on {ok} of {ran} scenes ({summary['pac_success_rate']:.1%})"
+    pac = f"{expert_name(summary)} succeeded on {ok} of {ran} scenes ({summary['pac_success_rate']:.1%})"
     if ok > kept:
         pac += f"; scenes run in whole batches, the first {kept} successes kept"
     line = f"episodes {kept}, frames {summary['frames']}, {summary['mb']:.1f} MB, {pac}, {summary['seconds']:.1f} s -> {root}"

@@ -64,10 +64,12 @@ def generate(
     conditions: Conditions | None = None,
     expert: str = "pac",
     randomize: Conditions | None = None,
+    policy_path: str | None = None,
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: the
     episodes under realistic conditions (``core.conditions``; None or all off: none); ``expert``:
-    "pac" (on the perception) or "privileged" (on the true world), ``pac_episodes.EXPERTS``;
+    "pac" (on the perception), "privileged" (on the true world) or "policy" (the checkpoint at
+    ``policy_path`` with its safety layer, on the perception; ``workers`` must be 0), ``pac_episodes.EXPERTS``;
     ``randomize``: each group of seeds under its own draw of conditions up to these
     (``pac_episodes``; not with ``conditions``). ``scene_preset``: a
     ``core.scene.sample_distribution`` spec (a preset, a mixture or a comma list).
@@ -91,7 +93,7 @@ def generate(
         raise ValueError("randomized conditions and fixed conditions exclude each other: give one")
     if randomize is not None and not randomize.enabled:
         raise ValueError("randomized conditions need a ceiling with some condition on")
-    check_expert(expert)
+    check_expert(expert, policy_path)
     distribution_slots(scene_preset)  # a ValueError naming a bad preset, before any work
     n = shard_episodes(episodes, num_shards, shard_index)
     root.parent.mkdir(parents=True, exist_ok=True)
@@ -128,6 +130,7 @@ def generate(
         conditions,
         expert,
         randomize,
+        policy_path,
     )
     frames_total = 0
     ds = None
@@ -166,6 +169,8 @@ def generate(
             extra["conditions"] = conditions.changed()
         if expert != "pac":
             extra["expert"] = expert
+        if policy_path is not None:
+            extra["policy_path"] = str(policy_path)
         if randomize is not None:
             extra["conditions_randomize"] = {
                 "ceiling": randomize.changed(),

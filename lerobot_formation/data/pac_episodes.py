@@ -6,7 +6,12 @@ The expert (``EXPERTS``): "pac" drives on what the team perceives (``core.condit
 "privileged" acts on the true world (``rollout(privileged=True)``: every obstacle where it is, with
 its velocity), avoids the moving obstacles over the next ``EXPERT_PREDICT`` seconds and compensates
 the action delay (``PACController(predict=, delay=)``), while the frames still hold what the team
-perceived. Without conditions both are PAC on the true scene.
+perceived. Without conditions both are PAC on the true scene. "policy" is a diffusion checkpoint
+(``policy_path``) with its whole safety layer, the bench's "diffusion-safe" (best-of-``POLICY_CANDIDATES``
+and the CBF filter, told the episode's conditions as the bench tells it): the demonstrations of
+self-imitation, the layer's choices distilled into the network that proposes them (DAgger under the
+layer: the states are those the layer visits, the labels what it sent). It sees what the team
+perceives, as PAC does; it runs in the generating process (no workers: torch, one bundle).
 
 Randomized conditions (``randomize``: the ceiling, e.g. a level's conditions): episode seed s gets
 ``core.conditions.randomized_conditions(ceiling, s // CONDITION_GROUP)``. The engine takes one
@@ -30,14 +35,38 @@ from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACControlle
 from lerobot_formation.core.scene import Scenes, sample_distribution
 from lerobot_formation.data.dataset_frames import MAX_OBSTACLES, episode_frames
 
-EXPERTS = ("pac", "privileged")
+EXPERTS = ("pac", "privileged", "policy")
+POLICY_CANDIDATES = 10  # K of the "policy" expert's best-of-K, the bench's default
 EXPERT_PREDICT = 1.5  # [s] the privileged expert's lookahead for moving obstacles
 CONDITION_GROUP = 16  # consecutive seeds sharing one draw of randomized conditions
 
 
-def check_expert(expert: str) -> None:
+def check_expert(expert: str, policy_path: str | None = None) -> None:
+    """ValueError for an unknown expert, or when ``policy_path`` is given without the "policy" expert
+    or missing with it."""
     if expert not in EXPERTS:
         raise ValueError(f"expert must be one of {EXPERTS}, got {expert!r}")
+    if (expert == "policy") != (policy_path is not None):
+        raise ValueError(
+            f"the 'policy' expert needs a checkpoint folder (policy_path) and no other expert takes one; "
+            f"got expert {expert!r} with policy_path {policy_path!r}"
+        )
+
+
+_POLICY_BUNDLES: dict[str, tuple] = {}
+
+
+def policy_expert(policy_path: str, params: FormationParams, conditions: Conditions | None):
+    """The "policy" expert: the bench's "diffusion-safe" controller of the checkpoint at ``policy_path``
+    (loaded once per process), its safety layer told ``conditions``."""
+    from lerobot_formation.bench.controllers import make_controller
+    from lerobot_formation.bench.settings import ControllerOptions
+    from lerobot_formation.policy.checkpoint import load_policy
+
+    if policy_path not in _POLICY_BUNDLES:
+        _POLICY_BUNDLES[policy_path] = load_policy(policy_path)
+    options = ControllerOptions(policy_path=policy_path, candidates=POLICY_CANDIDATES, conditions=conditions)
+    return make_controller("diffusion-safe", params, options, _POLICY_BUNDLES[policy_path])
 
 
 def privileged_expert(params: FormationParams, conditions: Conditions | None) -> PACController:
@@ -59,13 +88,19 @@ def expert_rollout(
     obstacle_encoding: str,
     conditions: Conditions | None,
     expert: str = "pac",
+    policy_path: str | None = None,
 ) -> EpisodeRecords:
     """The ``expert``'s episodes on ``scenes`` under ``conditions`` (module docstring); under
     conditions the records hold what the team observed (``EpisodeRecords.observations``)."""
-    check_expert(expert)
+    check_expert(expert, policy_path)
     on = conditions is not None and conditions.enabled
     privileged = expert == "privileged"
-    controller = privileged_expert(params, conditions) if privileged else PACController(params=params)
+    if expert == "policy":
+        controller = policy_expert(policy_path, params, conditions if on else None)
+    elif privileged:
+        controller = privileged_expert(params, conditions)
+    else:
+        controller = PACController(params=params)
     return rollout(
         scenes,
         controller,
@@ -86,6 +121,7 @@ def simulate_batch(
     conditions: Conditions | None = None,
     expert: str = "pac",
     randomize: Conditions | None = None,
+    policy_path: str | None = None,
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
     """The expert on one batch of scenes (the seeds' scenes of ``scene_preset``, a
     ``core.scene.sample_distribution`` spec, or the given ones), under ``conditions``, or under
@@ -104,7 +140,7 @@ def simulate_batch(
     kept = []
     for rows, group_conditions in groups:
         part = scenes if len(groups) == 1 else scenes[rows]
-        rec = expert_rollout(part, params, obstacle_encoding, group_conditions, expert)
+        rec = expert_rollout(part, params, obstacle_encoding, group_conditions, expert, policy_path)
         for b in np.flatnonzero(rec.outcome == SUCCESS):
             kept.append((rows[b], episode_frames(rec, part, b, obstacle_encoding, scene_slots)))
     kept.sort(key=lambda row_frames: row_frames[0])
@@ -130,8 +166,13 @@ class Generator:
         conditions: Conditions | None = None,
         expert: str = "pac",
         randomize: Conditions | None = None,
+        policy_path: str | None = None,
     ):
-        check_expert(expert)
+        check_expert(expert, policy_path)
+        if expert == "policy" and workers:
+            raise ValueError(
+                f"the 'policy' expert runs in the generating process: workers must be 0, got {workers}"
+            )
         self.conditions = conditions
         self.scene_preset = scene_preset
         self.scene_slots = scene_slots
@@ -141,6 +182,7 @@ class Generator:
         self.workers = workers
         self.expert = expert
         self.randomize = randomize
+        self.policy_path = policy_path
         self.attempted = 0
         self.succeeded = 0
 
@@ -154,6 +196,7 @@ class Generator:
             self.conditions,
             self.expert,
             self.randomize,
+            self.policy_path,
         )
 
     def _batches(self, seeds_iter, scenes_file: Scenes | None):

@@ -1,0 +1,114 @@
+"""The generator's "policy" expert: a checkpoint with its safety layer as the demonstrator
+(``data.pac_episodes.policy_expert``, ``lerobot-formation-generate --expert policy``)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plugin_helpers import formation_features, save_nearest_checkpoint
+
+from datasets_scripts import generate_pac_dataset as gen
+from lerobot_formation.core.dynamics import FormationParams
+from lerobot_formation.core.levels import get_level
+from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.data import lerobot_writer
+from lerobot_formation.data.pac_episodes import Generator, check_expert, expert_rollout
+from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
+
+REPO = "local/formation_self"
+CEILING = get_level("level5").conditions
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    """A tiny untrained ``nearest+route`` checkpoint whose layer proposes route pursuit's chunk."""
+    inputs, outputs = formation_features(env_dim=55)
+    return save_nearest_checkpoint(
+        tmp_path_factory.mktemp("ckpt") / "ckpt",
+        input_features=inputs,
+        output_features=outputs,
+        obstacle_encoding="nearest+route",
+        safety_route_proposal=True,
+        safety_route_lookahead=5,
+        num_inference_steps=2,
+    )
+
+
+def _hashes(root: Path) -> dict[str, str]:
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "generation.json"
+    }
+
+
+def test_policy_expert_drives_the_layer_and_the_same_seed_gives_the_same_dataset(tmp_path, checkpoint):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    kw = dict(
+        seed=3,
+        obstacle_encoding="nearest+route",
+        workers=0,
+        progress=False,
+        expert="policy",
+        policy_path=str(checkpoint),
+        randomize=CEILING,
+    )
+    a, b = tmp_path / "a", tmp_path / "b"
+    lerobot_writer.generate(a, REPO, 2, **kw)
+    lerobot_writer.generate(b, REPO, 2, **kw)
+    assert _hashes(a) == _hashes(b)
+    ds = LeRobotDataset(REPO, root=a)
+    assert ds.meta.total_episodes == 2
+    meta = json.loads((a / "meta" / "generation.json").read_text())
+    assert meta["expert"] == "policy" and meta["policy_path"] == str(checkpoint)
+    actions = np.stack([np.asarray(ds[i]["action"]) for i in range(min(len(ds), 40))])
+    assert np.isfinite(actions).all()
+
+
+def test_policy_expert_runs_the_network_and_its_actions_are_not_pacs(checkpoint, monkeypatch):
+    """The recorded commands are the layer's: the network is sampled (a counted call) and the actions
+    differ from PAC's on the same scene."""
+    calls = []
+    sample = FormationDiffusionPolicy.sample_action_chunks
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return sample(self, *args, **kwargs)
+
+    monkeypatch.setattr(FormationDiffusionPolicy, "sample_action_chunks", counted)
+    params = FormationParams()
+    scene = sample_scenes([3])
+    layer = expert_rollout(scene, params, "nearest+route", CEILING, "policy", str(checkpoint))
+    pac = expert_rollout(scene, params, "nearest+route", CEILING, "pac")
+    assert calls, "the policy's network was never sampled"
+    n = min(int(layer.steps[0]), int(pac.steps[0]), 30)
+    assert not np.allclose(layer.commands[0, :n], pac.commands[0, :n])
+
+
+def test_policy_expert_arguments_are_checked(tmp_path, checkpoint, capsys):
+    with pytest.raises(ValueError, match="policy_path"):
+        check_expert("policy")
+    with pytest.raises(ValueError, match="policy_path"):
+        check_expert("pac", str(checkpoint))
+    with pytest.raises(ValueError, match="workers must be 0, got 2"):
+        Generator(FormationParams(), workers=2, expert="policy", policy_path=str(checkpoint))
+    base = ["--episodes", "1", "--root", str(tmp_path / "d"), "--repo-id", REPO]
+    cases = [
+        (["--expert", "policy"], "--expert policy needs --policy.path"),
+        (["--policy.path", str(checkpoint)], "only read by --expert policy, got --expert pac"),
+        (["--expert", "policy", "--policy.path", str(tmp_path / "nowhere")], "nowhere is not a folder"),
+        (
+            ["--expert", "policy", "--policy.path", str(checkpoint), "--workers", "1"],
+            "give --workers 0, got 1",
+        ),
+    ]
+    for extra, message in cases:
+        with pytest.raises(SystemExit):
+            gen.parse_args([*base, *extra])
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
