@@ -217,6 +217,15 @@ def randomize_ceiling(level: str | None) -> Conditions | None:
     return ceiling
 
 
+def policy_expert(policy_path: str | None):
+    """``--expert policy``'s controllers: the checkpoint's "diffusion-safe" (None without a path)."""
+    if policy_path is None:
+        return None
+    from lerobot_formation.bench.controllers import PolicyExpert
+
+    return PolicyExpert(policy_path)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     apply_threads(args.threads)  # before lerobot loads torch, and inherited by the workers
@@ -256,7 +265,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             conditions=conditions_from_flags(args),
             expert=args.expert,
             randomize=randomize_ceiling(args.conditions_randomize),
-            policy_path=args.policy_path,
+            policy_expert=policy_expert(args.policy_path),
         )
     except (FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -142,3 +142,36 @@ def make_controller(name: str, params: FormationParams, options: ControllerOptio
         module, _, attr = factory.partition(":")
         factory = getattr(importlib.import_module(module), attr)
     return factory(name, params, options, bundle)
+
+
+@dataclasses.dataclass
+class PolicyExpert:
+    """The dataset generator's "policy" expert (``data.pac_episodes.ExpertFactory``): the controller
+    ``controller`` (default "diffusion-safe": best-of-``candidates`` and the CBF filter) of the
+    checkpoint at ``policy_path``, its safety layer told each rollout's conditions as the bench tells
+    it (``safety_settings``); the checkpoint is loaded once, on the first rollout."""
+
+    policy_path: str
+    controller: str = "diffusion-safe"
+    candidates: int = 10
+    _bundle: tuple | None = dataclasses.field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not needs_policy(self.controller):
+            raise ValueError(
+                f"controller {self.controller!r} runs no checkpoint; choose a diffusion controller"
+            )
+
+    @property
+    def source(self) -> str:
+        return f"{self.controller} of {self.policy_path} (K = {self.candidates})"
+
+    def __call__(self, params: FormationParams, conditions: Conditions | None):
+        if self._bundle is None:
+            from lerobot_formation.policy.checkpoint import load_policy
+
+            self._bundle = load_policy(self.policy_path)
+        options = ControllerOptions(
+            policy_path=self.policy_path, candidates=self.candidates, conditions=conditions
+        )
+        return make_controller(self.controller, params, options, self._bundle)

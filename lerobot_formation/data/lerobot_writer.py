@@ -19,6 +19,7 @@ from lerobot_formation.core.scene import distribution_slots, load_scenes
 from lerobot_formation.data.dataset_frames import ACTION, FPS, MAX_OBSTACLES, dataset_features
 from lerobot_formation.data.pac_episodes import (
     CONDITION_GROUP,
+    ExpertFactory,
     Generator,
     check_expert,
     seed_stream,
@@ -64,12 +65,12 @@ def generate(
     conditions: Conditions | None = None,
     expert: str = "pac",
     randomize: Conditions | None = None,
-    policy_path: str | None = None,
+    policy_expert: ExpertFactory | None = None,
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: the
     episodes under realistic conditions (``core.conditions``; None or all off: none); ``expert``:
-    "pac" (on the perception), "privileged" (on the true world) or "policy" (the checkpoint at
-    ``policy_path`` with its safety layer, on the perception; ``workers`` must be 0), ``pac_episodes.EXPERTS``;
+    "pac" (on the perception), "privileged" (on the true world) or "policy" (the controllers
+    ``policy_expert`` makes, e.g. ``bench.controllers.PolicyExpert``; ``workers`` must be 0), ``pac_episodes.EXPERTS``;
     ``randomize``: each group of seeds under its own draw of conditions up to these
     (``pac_episodes``; not with ``conditions``). ``scene_preset``: a
     ``core.scene.sample_distribution`` spec (a preset, a mixture or a comma list).
@@ -93,7 +94,7 @@ def generate(
         raise ValueError("randomized conditions and fixed conditions exclude each other: give one")
     if randomize is not None and not randomize.enabled:
         raise ValueError("randomized conditions need a ceiling with some condition on")
-    check_expert(expert, policy_path)
+    check_expert(expert, policy_expert)
     distribution_slots(scene_preset)  # a ValueError naming a bad preset, before any work
     n = shard_episodes(episodes, num_shards, shard_index)
     root.parent.mkdir(parents=True, exist_ok=True)
@@ -130,7 +131,7 @@ def generate(
         conditions,
         expert,
         randomize,
-        policy_path,
+        policy_expert,
     )
     frames_total = 0
     ds = None
@@ -169,8 +170,8 @@ def generate(
             extra["conditions"] = conditions.changed()
         if expert != "pac":
             extra["expert"] = expert
-        if policy_path is not None:
-            extra["policy_path"] = str(policy_path)
+        if policy_expert is not None:
+            extra["policy"] = policy_expert.source
         if randomize is not None:
             extra["conditions_randomize"] = {
                 "ceiling": randomize.changed(),

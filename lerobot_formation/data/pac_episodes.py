@@ -6,12 +6,15 @@ The expert (``EXPERTS``): "pac" drives on what the team perceives (``core.condit
 "privileged" acts on the true world (``rollout(privileged=True)``: every obstacle where it is, with
 its velocity), avoids the moving obstacles over the next ``EXPERT_PREDICT`` seconds and compensates
 the action delay (``PACController(predict=, delay=)``), while the frames still hold what the team
-perceived. Without conditions both are PAC on the true scene. "policy" is a diffusion checkpoint
-(``policy_path``) with its whole safety layer, the bench's "diffusion-safe" (best-of-``POLICY_CANDIDATES``
-and the CBF filter, told the episode's conditions as the bench tells it): the demonstrations of
-self-imitation, the layer's choices distilled into the network that proposes them (DAgger under the
-layer: the states are those the layer visits, the labels what it sent). It sees what the team
-perceives, as PAC does; it runs in the generating process (no workers: torch, one bundle).
+perceived. Without conditions both are PAC on the true scene. "policy" is a controller the caller
+builds (``policy_expert``, an ``ExpertFactory``: this layer imports no policy), e.g. a diffusion
+checkpoint with its whole safety layer (``bench.controllers.PolicyExpert``, the bench's
+"diffusion-safe", told each episode's conditions): the demonstrations of self-imitation, the layer's
+choices distilled into the network that proposes them (DAgger under the layer: the states are those
+the layer visits, the labels what it sent). It sees what the team perceives, as PAC does; it runs in
+the generating process (no workers: torch, one bundle). Its sampling noise is drawn for each
+rollout's batch from its seed, so its episodes repeat for the same seeds and ``batch_size``, not
+across batch sizes.
 
 Randomized conditions (``randomize``: the ceiling, e.g. a level's conditions): episode seed s gets
 ``core.conditions.randomized_conditions(ceiling, s // CONDITION_GROUP)``. The engine takes one
@@ -26,47 +29,40 @@ import contextlib
 import os
 import sys
 import time
+from typing import Protocol
 
 import numpy as np
 
 from lerobot_formation.core.conditions import Conditions, randomized_conditions
 from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import SUCCESS, EpisodeRecords, PACController, rollout
+from lerobot_formation.core.rollout import SUCCESS, Controller, EpisodeRecords, PACController, rollout
 from lerobot_formation.core.scene import Scenes, sample_distribution
 from lerobot_formation.data.dataset_frames import MAX_OBSTACLES, episode_frames
 
 EXPERTS = ("pac", "privileged", "policy")
-POLICY_CANDIDATES = 10  # K of the "policy" expert's best-of-K, the bench's default
 EXPERT_PREDICT = 1.5  # [s] the privileged expert's lookahead for moving obstacles
 CONDITION_GROUP = 16  # consecutive seeds sharing one draw of randomized conditions
 
 
-def check_expert(expert: str, policy_path: str | None = None) -> None:
-    """ValueError for an unknown expert, or when ``policy_path`` is given without the "policy" expert
-    or missing with it."""
+class ExpertFactory(Protocol):
+    """The "policy" expert: ``factory(params, conditions)`` -> a controller for one rollout under
+    ``conditions`` (None: none); ``source`` names what it runs (recorded in ``meta/generation.json``)."""
+
+    source: str
+
+    def __call__(self, params: FormationParams, conditions: Conditions | None) -> Controller: ...
+
+
+def check_expert(expert: str, policy_expert: ExpertFactory | None = None) -> None:
+    """ValueError for an unknown expert, or when ``policy_expert`` is given without the "policy"
+    expert or missing with it."""
     if expert not in EXPERTS:
         raise ValueError(f"expert must be one of {EXPERTS}, got {expert!r}")
-    if (expert == "policy") != (policy_path is not None):
+    if (expert == "policy") != (policy_expert is not None):
         raise ValueError(
-            f"the 'policy' expert needs a checkpoint folder (policy_path) and no other expert takes one; "
-            f"got expert {expert!r} with policy_path {policy_path!r}"
+            f"the 'policy' expert needs a controller factory (policy_expert) and no other expert takes one; "
+            f"got expert {expert!r} with policy_expert {policy_expert!r}"
         )
-
-
-_POLICY_BUNDLES: dict[str, tuple] = {}
-
-
-def policy_expert(policy_path: str, params: FormationParams, conditions: Conditions | None):
-    """The "policy" expert: the bench's "diffusion-safe" controller of the checkpoint at ``policy_path``
-    (loaded once per process), its safety layer told ``conditions``."""
-    from lerobot_formation.bench.controllers import make_controller
-    from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.policy.checkpoint import load_policy
-
-    if policy_path not in _POLICY_BUNDLES:
-        _POLICY_BUNDLES[policy_path] = load_policy(policy_path)
-    options = ControllerOptions(policy_path=policy_path, candidates=POLICY_CANDIDATES, conditions=conditions)
-    return make_controller("diffusion-safe", params, options, _POLICY_BUNDLES[policy_path])
 
 
 def privileged_expert(params: FormationParams, conditions: Conditions | None) -> PACController:
@@ -88,15 +84,15 @@ def expert_rollout(
     obstacle_encoding: str,
     conditions: Conditions | None,
     expert: str = "pac",
-    policy_path: str | None = None,
+    policy_expert: ExpertFactory | None = None,
 ) -> EpisodeRecords:
     """The ``expert``'s episodes on ``scenes`` under ``conditions`` (module docstring); under
     conditions the records hold what the team observed (``EpisodeRecords.observations``)."""
-    check_expert(expert, policy_path)
+    check_expert(expert, policy_expert)
     on = conditions is not None and conditions.enabled
     privileged = expert == "privileged"
     if expert == "policy":
-        controller = policy_expert(policy_path, params, conditions if on else None)
+        controller = policy_expert(params, conditions if on else None)
     elif privileged:
         controller = privileged_expert(params, conditions)
     else:
@@ -121,7 +117,7 @@ def simulate_batch(
     conditions: Conditions | None = None,
     expert: str = "pac",
     randomize: Conditions | None = None,
-    policy_path: str | None = None,
+    policy_expert: ExpertFactory | None = None,
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
     """The expert on one batch of scenes (the seeds' scenes of ``scene_preset``, a
     ``core.scene.sample_distribution`` spec, or the given ones), under ``conditions``, or under
@@ -140,7 +136,7 @@ def simulate_batch(
     kept = []
     for rows, group_conditions in groups:
         part = scenes if len(groups) == 1 else scenes[rows]
-        rec = expert_rollout(part, params, obstacle_encoding, group_conditions, expert, policy_path)
+        rec = expert_rollout(part, params, obstacle_encoding, group_conditions, expert, policy_expert)
         for b in np.flatnonzero(rec.outcome == SUCCESS):
             kept.append((rows[b], episode_frames(rec, part, b, obstacle_encoding, scene_slots)))
     kept.sort(key=lambda row_frames: row_frames[0])
@@ -166,9 +162,9 @@ class Generator:
         conditions: Conditions | None = None,
         expert: str = "pac",
         randomize: Conditions | None = None,
-        policy_path: str | None = None,
+        policy_expert: ExpertFactory | None = None,
     ):
-        check_expert(expert, policy_path)
+        check_expert(expert, policy_expert)
         if expert == "policy" and workers:
             raise ValueError(
                 f"the 'policy' expert runs in the generating process: workers must be 0, got {workers}"
@@ -182,7 +178,7 @@ class Generator:
         self.workers = workers
         self.expert = expert
         self.randomize = randomize
-        self.policy_path = policy_path
+        self.policy_expert = policy_expert
         self.attempted = 0
         self.succeeded = 0
 
@@ -196,7 +192,7 @@ class Generator:
             self.conditions,
             self.expert,
             self.randomize,
-            self.policy_path,
+            self.policy_expert,
         )
 
     def _batches(self, seeds_iter, scenes_file: Scenes | None):

@@ -12,6 +12,7 @@ import pytest
 from plugin_helpers import formation_features, save_nearest_checkpoint
 
 from datasets_scripts import generate_pac_dataset as gen
+from lerobot_formation.bench.controllers import PolicyExpert
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.levels import get_level
 from lerobot_formation.core.scene import sample_scenes
@@ -55,7 +56,7 @@ def test_policy_expert_drives_the_layer_and_the_same_seed_gives_the_same_dataset
         workers=0,
         progress=False,
         expert="policy",
-        policy_path=str(checkpoint),
+        policy_expert=PolicyExpert(str(checkpoint)),
         randomize=CEILING,
     )
     a, b = tmp_path / "a", tmp_path / "b"
@@ -65,7 +66,7 @@ def test_policy_expert_drives_the_layer_and_the_same_seed_gives_the_same_dataset
     ds = LeRobotDataset(REPO, root=a)
     assert ds.meta.total_episodes == 2
     meta = json.loads((a / "meta" / "generation.json").read_text())
-    assert meta["expert"] == "policy" and meta["policy_path"] == str(checkpoint)
+    assert meta["expert"] == "policy" and meta["policy"] == f"diffusion-safe of {checkpoint} (K = 10)"
     actions = np.stack([np.asarray(ds[i]["action"]) for i in range(min(len(ds), 40))])
     assert np.isfinite(actions).all()
 
@@ -83,7 +84,7 @@ def test_policy_expert_runs_the_network_and_its_actions_are_not_pacs(checkpoint,
     monkeypatch.setattr(FormationDiffusionPolicy, "sample_action_chunks", counted)
     params = FormationParams()
     scene = sample_scenes([3])
-    layer = expert_rollout(scene, params, "nearest+route", CEILING, "policy", str(checkpoint))
+    layer = expert_rollout(scene, params, "nearest+route", CEILING, "policy", PolicyExpert(str(checkpoint)))
     pac = expert_rollout(scene, params, "nearest+route", CEILING, "pac")
     assert calls, "the policy's network was never sampled"
     n = min(int(layer.steps[0]), int(pac.steps[0]), 30)
@@ -91,12 +92,15 @@ def test_policy_expert_runs_the_network_and_its_actions_are_not_pacs(checkpoint,
 
 
 def test_policy_expert_arguments_are_checked(tmp_path, checkpoint, capsys):
-    with pytest.raises(ValueError, match="policy_path"):
+    expert = PolicyExpert(str(checkpoint))
+    with pytest.raises(ValueError, match="policy_expert"):
         check_expert("policy")
-    with pytest.raises(ValueError, match="policy_path"):
-        check_expert("pac", str(checkpoint))
+    with pytest.raises(ValueError, match="policy_expert"):
+        check_expert("pac", expert)
     with pytest.raises(ValueError, match="workers must be 0, got 2"):
-        Generator(FormationParams(), workers=2, expert="policy", policy_path=str(checkpoint))
+        Generator(FormationParams(), workers=2, expert="policy", policy_expert=expert)
+    with pytest.raises(ValueError, match="'route-pursuit' runs no checkpoint"):
+        PolicyExpert(str(checkpoint), controller="route-pursuit")
     base = ["--episodes", "1", "--root", str(tmp_path / "d"), "--repo-id", REPO]
     cases = [
         (["--expert", "policy"], "--expert policy needs --policy.path"),
