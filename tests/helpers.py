@@ -97,3 +97,15 @@ class Spy:
     def act(self, view, idx):
         self.views.append(view[np.arange(len(view))])
         return self.inner.act(view, idx)
+
+
+def dataset_file_hashes(root: Path) -> dict[str, str]:
+    """sha256 of every file of a generated dataset folder but ``meta/generation.json`` (which holds its
+    timing): two generations are the same dataset when these are equal."""
+    import hashlib
+
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "generation.json"
+    }

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import subprocess
 import sys
@@ -11,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import dataset_file_hashes
 
 from datasets_scripts import generate_pac_dataset as gen
 from lerobot_formation.core.rollout import PACController, rollout
@@ -33,14 +33,6 @@ def tiny(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("ds") / "formation_test"
     _generate(root)
     return root
-
-
-def _hashes(root: Path) -> dict[str, str]:
-    return {
-        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != "generation.json"
-    }
 
 
 def test_round_trip_through_lerobot_dataset(tiny):
@@ -119,7 +111,7 @@ def test_diffusion_windows_and_padding(tiny):
 def test_same_seed_gives_byte_identical_files(tiny, tmp_path):
     again = tmp_path / "again"
     _generate(again)
-    assert _hashes(again) == _hashes(tiny)
+    assert dataset_file_hashes(again) == dataset_file_hashes(tiny)
 
 
 def test_fast_writer_equals_add_frame_loop(tiny, tmp_path):
@@ -244,4 +236,4 @@ def test_shards_are_valid_and_disjoint(tmp_path):
 def test_pipelined_and_inline_simulation_write_the_same_files(tiny, tmp_path):
     inline = tmp_path / "inline"
     _generate(inline, workers=0)
-    assert _hashes(inline) == _hashes(tiny)
+    assert dataset_file_hashes(inline) == dataset_file_hashes(tiny)

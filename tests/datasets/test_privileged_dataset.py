@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import dataset_file_hashes
 
 from datasets_scripts import generate_pac_dataset as gen
 from lerobot_formation.core.conditions import randomized_conditions
@@ -20,14 +19,6 @@ from lerobot_formation.data.pac_episodes import CONDITION_GROUP, expert_rollout,
 
 REPO = "local/formation_priv"
 CEILING = get_level("level5").conditions
-
-
-def _hashes(root: Path) -> dict[str, str]:
-    return {
-        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != "generation.json"
-    }
 
 
 def test_randomized_conditions_follow_the_seed_and_vary_across_groups():
@@ -54,7 +45,7 @@ def test_same_seed_same_privileged_randomized_dataset(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     lerobot_writer.generate(a, REPO, 2, randomize=CEILING, **kw)
     lerobot_writer.generate(b, REPO, 2, randomize=CEILING, **kw)
-    assert _hashes(a) == _hashes(b)
+    assert dataset_file_hashes(a) == dataset_file_hashes(b)
     ds = LeRobotDataset(REPO, root=a)
     assert ds.meta.total_episodes == 2
     meta = json.loads((a / "meta" / "generation.json").read_text())

@@ -1,14 +1,15 @@
 """The generator's "policy" expert: a checkpoint with its safety layer as the demonstrator
-(``data.pac_episodes.policy_expert``, ``lerobot-formation-generate --expert policy``)."""
+(``data.pac_episodes.ExpertFactory``, ``bench.controllers.PolicyExpert``,
+``lerobot-formation-generate --expert policy``)."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import dataset_file_hashes
 from plugin_helpers import formation_features, save_nearest_checkpoint
 
 from datasets_scripts import generate_pac_dataset as gen
@@ -39,14 +40,6 @@ def checkpoint(tmp_path_factory) -> Path:
     )
 
 
-def _hashes(root: Path) -> dict[str, str]:
-    return {
-        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != "generation.json"
-    }
-
-
 def test_policy_expert_drives_the_layer_and_the_same_seed_gives_the_same_dataset(tmp_path, checkpoint):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -62,7 +55,7 @@ def test_policy_expert_drives_the_layer_and_the_same_seed_gives_the_same_dataset
     a, b = tmp_path / "a", tmp_path / "b"
     lerobot_writer.generate(a, REPO, 2, **kw)
     lerobot_writer.generate(b, REPO, 2, **kw)
-    assert _hashes(a) == _hashes(b)
+    assert dataset_file_hashes(a) == dataset_file_hashes(b)
     ds = LeRobotDataset(REPO, root=a)
     assert ds.meta.total_episodes == 2
     meta = json.loads((a / "meta" / "generation.json").read_text())
