@@ -12,6 +12,11 @@ copied as it is. Written to a temporary folder, then renamed into place, so ``de
 checkpoint itself: ``--set safety_margin=0.1 --set inference_backend=trace`` on an exported
 policy changes those two fields in place. The fields are applied with ``dataclasses.replace``, so the
 config's checks run.
+
+``--set obstacle_encoding=E`` also widens the network to the new encoding's input (for an encoding
+that carries every feature of the old one, e.g. ``nearest+route`` -> ``nearest+route+velocity``;
+``lerobot_formation/policy/widen_inputs.py``): the new features get zero weights, so the derived policy
+acts as the old one until a fine-tune on a dataset of the new encoding teaches it to use them.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ import dataclasses
 import json
 import shutil
 from pathlib import Path
+
+OBS_ENV_STATE = "observation.environment_state"
 
 
 def parse_value(text: str):
@@ -32,6 +39,45 @@ def parse_value(text: str):
 
 def _same_text(a: Path, b: Path) -> bool:
     return a.is_file() and b.is_file() and a.read_text() == b.read_text()
+
+
+def _widened(src: Path, cfg, encoding: str):
+    """The input features and the weights of the checkpoint ``src`` (config ``cfg``) widened to
+    observe ``encoding`` (``policy.widen_inputs``); SystemExit naming the problem otherwise."""
+    from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+    from safetensors.torch import load_file
+
+    from lerobot_formation.core.observation import STATE_DIM
+    from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
+    from lerobot_formation.policy.widen_inputs import widen_condition_weights
+
+    if encoding not in ENCODINGS:
+        raise SystemExit(f"error: --set obstacle_encoding={encoding!r}: not one of {ENCODINGS}")
+    if cfg.normalization_mapping.get("ENV") is not NormalizationMode.IDENTITY:
+        raise SystemExit(
+            "error: --set obstacle_encoding: widening keeps the old features' weights, which needs "
+            f"ENV normalization IDENTITY, got {cfg.normalization_mapping.get('ENV')}"
+        )
+    old, new = get_encoding(cfg.obstacle_encoding), get_encoding(encoding)
+    slots = old.slots(cfg.max_obstacles)
+    if not new.egocentric or new.slots(cfg.max_obstacles) != slots:
+        raise SystemExit(
+            f"error: --set obstacle_encoding={encoding!r}: not a widening of {cfg.obstacle_encoding!r}"
+        )
+    try:
+        weights = widen_condition_weights(
+            load_file(src / "model.safetensors"),
+            old.names(slots),
+            new.names(slots),
+            STATE_DIM,
+            cfg.n_obs_steps,
+            cfg.diffusion_step_embed_dim,
+        )
+    except ValueError as e:
+        raise SystemExit(f"error: --set obstacle_encoding={encoding!r}: {e}") from None
+    features = dict(cfg.input_features)
+    features[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(new.dim(cfg.max_obstacles),))
+    return features, weights
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.processor import NormalizerProcessorStep
+    from safetensors.torch import save_file
 
     import lerobot_formation.plugin  # noqa: F401  (registers the policy type and its processor steps)
     from lerobot_formation.policy.processor_formation_diffusion import (
@@ -68,6 +115,11 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or key not in names:
             raise SystemExit(f"error: --set {item!r}: expected FIELD=VALUE with a {cfg.type} config field")
         changes[key] = raw[key] = parse_value(value)
+    weights, stats = None, norm.stats
+    if "obstacle_encoding" in changes and changes["obstacle_encoding"] != cfg.obstacle_encoding:
+        changes["input_features"], weights = _widened(src, cfg, changes["obstacle_encoding"])
+        raw["input_features"][OBS_ENV_STATE]["shape"] = list(changes["input_features"][OBS_ENV_STATE].shape)
+        stats = {k: v for k, v in stats.items() if k != OBS_ENV_STATE}  # IDENTITY: no statistics used
     try:
         cfg = dataclasses.replace(cfg, **changes)
         cfg.validate_features()
@@ -82,7 +134,9 @@ def main(argv: list[str] | None = None) -> int:
             if path.is_file() and path.name not in processor_files | {"config.json"}:
                 shutil.copy(path, tmp / path.name)
         (tmp / "config.json").write_text(json.dumps(raw, indent=4))
-        pre, post = make_formation_diffusion_pre_post_processors(cfg, dataset_stats=norm.stats)
+        if weights is not None:
+            save_file(weights, tmp / "model.safetensors")
+        pre, post = make_formation_diffusion_pre_post_processors(cfg, dataset_stats=stats)
         pre.save_pretrained(tmp)
         post.save_pretrained(tmp)
         if all(

@@ -84,11 +84,12 @@ def test_env_hides_unsensed_obstacles_from_the_observation():
     assert env.render().dtype == np.uint8
 
 
-def test_vector_env_with_conditions_matches_single_envs():
+@pytest.mark.parametrize("encoding", ["nearest+velocity", "nearest+route+velocity"])
+def test_vector_env_with_conditions_matches_single_envs(encoding):
     actions = np.random.default_rng(1).uniform([0.2, -0.5], [0.6, 0.5], size=(30, 2, 2)).astype(np.float32)
-    venv = FormationVectorEnv(2, obstacle_encoding="nearest+velocity", conditions=ALL_ON)
+    venv = FormationVectorEnv(2, obstacle_encoding=encoding, conditions=ALL_ON)
     obs, _ = venv.reset(seed=7)
-    singles = [FormationEnv(obstacle_encoding="nearest+velocity", conditions=ALL_ON) for _ in range(2)]
+    singles = [FormationEnv(obstacle_encoding=encoding, conditions=ALL_ON) for _ in range(2)]
     single_obs = [e.reset(seed=7 + i)[0] for i, e in enumerate(singles)]
     ended = np.zeros(2, bool)
     for a in actions:

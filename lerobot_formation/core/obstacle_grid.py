@@ -25,6 +25,9 @@ flag): 2 + 4 max_obstacles + 5 values.
 ``nearest+velocity`` (``core/velocity_encoding.py``): ``nearest``, then each slot's observed obstacle
 velocity [vx_b, vy_b] in the body frame (moving obstacles, ``core.conditions``): 2 + 6 max_obstacles.
 
+``nearest+route+velocity`` (``core/route_velocity_encoding.py``): ``nearest+velocity``, then the 5 route
+values of ``nearest+route``: 2 + 6 max_obstacles + 5 values.
+
 Every encoding takes the obstacles the team perceives (``core.conditions.Perception``); one with
 ``velocity`` set gets them as (B, M, 5) rows [x, y, r, vx, vy].
 
@@ -142,18 +145,13 @@ def environment_state(
     ``obstacle_velocity`` (B, M, 2) the observed velocities (None: static obstacles); ``map_obstacles``
     (B, M, 3) the map a route-planning encoding plans on (None: ``obstacles``)."""
     enc = get_encoding(encoding)
-    if enc.map:
-        return enc.encode(
-            obstacles,
-            mask,
-            goal,
-            pose,
-            enc.slots(max_obstacles),
-            map_obstacles=obstacles if map_obstacles is None else map_obstacles,
-        )
+    if enc.map and map_obstacles is None:
+        map_obstacles = obstacles[..., :3]
     if enc.velocity:
         vel = np.zeros((*obstacles.shape[:2], 2)) if obstacle_velocity is None else obstacle_velocity
         obstacles = np.concatenate([obstacles[..., :3], vel], axis=-1)
+    if enc.map:
+        return enc.encode(obstacles, mask, goal, pose, enc.slots(max_obstacles), map_obstacles=map_obstacles)
     return enc.encode(obstacles, mask, goal, pose, enc.slots(max_obstacles))
 
 
@@ -165,6 +163,7 @@ register(ObstacleEncoding("nearest", 12, 4, 2, True, encode_nearest, nearest_nam
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
 register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
 register("lerobot_formation.core.velocity_encoding:ENCODING", "nearest+velocity")
+register("lerobot_formation.core.route_velocity_encoding:ENCODING", "nearest+route+velocity")
 ENCODINGS = tuple(ENCODING_REGISTRY)
 
 
@@ -172,3 +171,9 @@ def egocentric_encodings() -> tuple[str, ...]:
     """Names of the encodings the safety layer can decode obstacles from (a list in the midpoint's
     frame). A function, not a constant: it resolves every lazily registered encoding's module."""
     return tuple(name for name in ENCODINGS if get_encoding(name).egocentric)
+
+
+def route_encodings() -> tuple[str, ...]:
+    """Names of the encodings that carry the route hint (``core.route_encoding``), which route pursuit
+    and the safety layer's route proposal read."""
+    return tuple(name for name in ENCODINGS if get_encoding(name).map)

@@ -127,7 +127,8 @@ class FormationEnvConfig(EnvConfig):
             ``"grid+list"`` (plus the 5 obstacles [x, y, r], 66 values) or ``"nearest"`` (goal and
             the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count) or
             ``"nearest+route"`` (the same plus PAC's cost-to-go route hint from those obstacles, 55
-            values). Must match the policy's ``obstacle_encoding``.
+            values) or ``"nearest+velocity"`` / ``"nearest+route+velocity"`` (with each observed
+            obstacle's velocity, 74 / 79 values). Must match the policy's ``obstacle_encoding``.
         level: a graded level (``core.levels``: "0".."5" or "level0".."level5"), or None. When set, the
             level's scene preset and all its conditions apply (``level_env_fields``); ``scene_preset``,
             ``scenes_file`` and the condition fields must then be left at their defaults (or equal the

@@ -18,6 +18,7 @@ from lerobot_formation.core.obstacle_grid import (
     egocentric_encodings,
     environment_state_dim,
     get_encoding,
+    route_encodings,
 )
 
 ACTION_DIM = 2  # [v, omega]
@@ -85,10 +86,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
             (``core.obstacle_grid.ENCODING_REGISTRY``: "grid" (default, the paper's), "grid+list",
-            "nearest", "nearest+route"); it must match the env's ``--env.obstacle_encoding``. Stored in
+            "nearest", "nearest+route", "nearest+velocity", "nearest+route+velocity"); it must match
+            the env's ``--env.obstacle_encoding``. Stored in
             every checkpoint, never guessed from the feature's size.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
-            "grid+list", 12 for "nearest" and "nearest+route").
+            "grid+list", 12 for the "nearest" family).
         fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
             ``action_high`` (v in [0, 0.6], omega in [-1.5, 1.5]) instead of the dataset's min/max, so
             the policy itself knows the action in physical units (the safety layer needs it).
@@ -149,10 +151,11 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
         safety_route_proposal: best-of-K also scores route pursuit's chunk
             (``core.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
-            "nearest+route") beside the K sampled ones, and keeps it when it is safe and makes the most
+            a route encoding, "nearest+route" or "nearest+route+velocity") beside the K sampled
+            ones, and keeps it when it is safe and makes the most
             progress (the ``proposals`` count says how often).
         safety_route_lookahead: n >= 0 steps. With n > 0 best-of-K follows every candidate with n
-            steps of route pursuit from its end pose (``pursuit_chunk``; needs "nearest+route"),
+            steps of route pursuit from its end pose (``pursuit_chunk``; needs a route encoding),
             checks the footprint over both (a chunk that ends facing a wall the team cannot turn away
             from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
             and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
@@ -471,9 +474,9 @@ class FormationDiffusionConfig(DiffusionConfig):
             ("safety_route_proposal=true", self.safety_route_proposal),
             ("safety_route_lookahead > 0", bool(self.safety_route_lookahead)),
         ):
-            if value and self.obstacle_encoding != "nearest+route":
+            if value and not get_encoding(self.obstacle_encoding).map:
                 raise config_error(
-                    f"{name} needs the route hint of obstacle_encoding='nearest+route', "
+                    f"{name} needs a route hint, an obstacle_encoding of {route_encodings()}, "
                     f"got obstacle_encoding={self.obstacle_encoding!r}"
                 )
         if self.safety_layer and not (

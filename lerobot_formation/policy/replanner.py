@@ -227,11 +227,11 @@ class Replanner:
             )
         cfg = self.config
         if not self.experiment.sampled and not (
-            cfg.safety_layer and cfg.safety_route_proposal and cfg.obstacle_encoding == "nearest+route"
+            cfg.safety_layer and cfg.safety_route_proposal and get_encoding(cfg.obstacle_encoding).map
         ):
             raise ValueError(
                 "a replanner that samples nothing (ReplanExperiment.sampled=False) needs route pursuit's "
-                "proposal and a safety layer: a 'nearest+route' config with safety_route_proposal and "
+                "proposal and a safety layer: a route-encoding config with safety_route_proposal and "
                 f"num_candidates > 1 or a filter, got obstacle_encoding={cfg.obstacle_encoding!r}, "
                 f"safety_route_proposal={cfg.safety_route_proposal}, num_candidates={cfg.num_candidates}, "
                 f"safety_filter={cfg.safety_filter!r}"
@@ -483,7 +483,7 @@ class Replanner:
             velocity = env[:, rows_end : rows_end + 2 * slots].reshape(len(env), slots, 2).astype(np.float64)
             velocity = np.where(mask[..., None], velocity, 0.0)
         route = None
-        if cfg.obstacle_encoding == "nearest+route":  # the hint's carrots (core.route_encoding)
+        if encoding.map:  # the route hint's carrots, after the velocities (core.route_encoding)
             at = rows_end + encoding.trailing_per_slot * slots
             route = env[:, at : at + 4].astype(np.float64)
         return SafetyView(goal, obstacles, mask, velocity, route=route)

@@ -28,7 +28,14 @@ def _random_scene(rng, n, M=16):
 
 
 def test_registry_sizes_and_names():
-    assert set(ENCODINGS) == {"grid", "grid+list", "nearest", "nearest+route", "nearest+velocity"}
+    assert set(ENCODINGS) == {
+        "grid",
+        "grid+list",
+        "nearest",
+        "nearest+route",
+        "nearest+velocity",
+        "nearest+route+velocity",
+    }
     for name in ENCODING_REGISTRY:
         enc = get_encoding(name)  # "nearest+route" lives in its own file, imported here
         assert len(enc.names(enc.slots(None))) == enc.dim(None) == environment_state_dim(name)
@@ -39,8 +46,42 @@ def test_registry_sizes_and_names():
     assert environment_state_dim("nearest+route") == 55
     assert environment_state_dim("nearest+velocity") == 74
     assert environment_state_dim("nearest+velocity", 3) == 20
+    assert environment_state_dim("nearest+route+velocity") == 79
     with pytest.raises(ValueError, match="obstacle encoding must be one of"):
         get_encoding("gird")
+
+
+def test_route_velocity_is_the_velocity_encoding_then_the_route_hint():
+    """``nearest+route+velocity``: the rows and velocities of ``nearest+velocity``, then the 5 route
+    values of ``nearest+route`` planned on the map snapshot (not on the current noisy obstacles)."""
+    rng = np.random.default_rng(3)
+    obstacles, mask, goal, pose = _random_scene(rng, 9)
+    velocity = rng.normal(0, 0.3, (1, 16, 2))
+    snapshot = obstacles.copy()
+    snapshot[0, 0] = [*(0.7 * pose[0, :2] + 0.3 * goal[0]), 1.0]  # the map blocks the straight way
+    both = environment_state(
+        obstacles,
+        mask,
+        goal,
+        "nearest+route+velocity",
+        pose=pose,
+        obstacle_velocity=velocity,
+        map_obstacles=snapshot,
+    )
+    with_velocity = environment_state(
+        obstacles, mask, goal, "nearest+velocity", pose=pose, obstacle_velocity=velocity
+    )
+    route = environment_state(obstacles, mask, goal, "nearest+route", pose=pose, map_obstacles=snapshot)
+    unmapped = environment_state(obstacles, mask, goal, "nearest+route", pose=pose)
+    assert both.shape == (1, 79) and both.dtype == np.float32
+    np.testing.assert_array_equal(both[:, :74], with_velocity)
+    np.testing.assert_array_equal(both[:, 74:], route[:, 50:])
+    assert not np.array_equal(route[:, 50:54], unmapped[:, 50:54])  # the snapshot mattered
+    names = get_encoding("nearest+route+velocity").names(12)
+    assert (
+        names[50:52] == ["near_0_vbx", "near_0_vby"]
+        and names[74:] == get_encoding("nearest+route").names(12)[50:]
+    )
 
 
 def test_body_frame_is_inverse_of_rotate_body():

@@ -180,6 +180,25 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
         and seeing.replanner.observed_obstacles(env).velocity is not None
     )
 
+    # "nearest+route+velocity": the same velocities, then the route hint's carrots after them
+    inputs, outputs = formation_features(env_dim=79)
+    both = FormationDiffusionPolicy(
+        nearest_config(
+            input_features=inputs,
+            output_features=outputs,
+            obstacle_encoding="nearest+route+velocity",
+            num_candidates=4,
+            safety_moving_obstacles=True,
+        )
+    ).replanner.observed_obstacles(
+        environment_state(
+            obstacles, mask, goal, "nearest+route+velocity", pose=pose, obstacle_velocity=velocity
+        )
+    )
+    route = environment_state(obstacles, mask, goal, "nearest+route", pose=pose)[:, 50:54]
+    np.testing.assert_allclose(both.velocity, view.velocity)
+    np.testing.assert_allclose(both.route, route)
+
     tracking = _policy(safety_moving_obstacles=True).replanner
     tracking.start(1)
     assert tracking.tracker is not None

@@ -255,7 +255,7 @@ def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
         assert not info["safe"][0, :3].any()
         assert info["proposal_kept"][0] == proposal
     assert kept[True][0, 0, 1] > 0  # it turns left, down the route
-    with pytest.raises(ValueError, match="safety_route_proposal=true needs the route hint"):
+    with pytest.raises(ValueError, match="safety_route_proposal=true needs a route hint"):
         nearest_config(safety_route_proposal=True)
 
 
@@ -347,7 +347,7 @@ def test_route_lookahead_is_checked_with_its_value():
     kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
     with pytest.raises(ValueError, match="safety_route_lookahead must be an integer >= 0.*-3"):
         nearest_config(safety_route_lookahead=-3, **kw)
-    with pytest.raises(ValueError, match="safety_route_lookahead > 0 needs the route hint"):
+    with pytest.raises(ValueError, match="safety_route_lookahead > 0 needs a route hint"):
         nearest_config(safety_route_lookahead=20)
     assert nearest_config(safety_route_lookahead=20, **kw).safety_route_lookahead == 20
 
