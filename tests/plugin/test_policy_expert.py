@@ -109,3 +109,26 @@ def test_policy_expert_arguments_are_checked(tmp_path, checkpoint, capsys):
             gen.parse_args([*base, *extra])
         assert message in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
+
+
+def test_every_expert_has_a_name_for_the_summary_line():
+    """The summary line (printed after the dataset is written) names the expert: a new entry of
+    ``EXPERTS`` without a name would fail there, after the work."""
+    from lerobot_formation.data.pac_episodes import EXPERTS
+
+    assert set(gen.EXPERT_NAMES) == set(EXPERTS)
+    for expert in EXPERTS:
+        line = gen.summary_line(
+            {
+                "expert": expert,
+                "pac_attempted": 4,
+                "pac_succeeded": 3,
+                "pac_success_rate": 0.75,
+                "episodes": 3,
+                "frames": 9,
+                "mb": 0.1,
+                "seconds": 1.0,
+            },
+            "out",
+        )
+        assert gen.EXPERT_NAMES[expert] in line
