@@ -76,3 +76,27 @@ def test_mixtures_are_accepted():
     assert args.scene_preset == "structures"
     args = gen.parse_args(["--scene-preset", "paper,wide,mixed-hard,structures", "--expert", "privileged"])
     assert args.expert == "privileged"
+
+
+def test_route_velocity_frames_are_the_route_frames_with_the_movers_velocities():
+    """Recorded with ``nearest+route+velocity`` under moving obstacles: the same expert and commands as
+    a ``nearest+route`` recording of the seed, its rows and route the same, and the velocities of the
+    moving obstacles the team observed in between."""
+    params = FormationParams()
+    level5 = get_level("level5").conditions
+    seeds = np.array([16, 17])
+    both = simulate_batch(
+        seeds, None, params, "nearest+route+velocity", expert="privileged", conditions=level5
+    )
+    route = simulate_batch(seeds, None, params, "nearest+route", expert="privileged", conditions=level5)
+    key = "observation.environment_state"
+    moving = 0
+    for a, b in zip(both[1], route[1], strict=True):
+        np.testing.assert_array_equal(a["action"], b["action"])
+        assert a[key].shape[1] == 79 and b[key].shape[1] == 55
+        np.testing.assert_array_equal(a[key][:, :50], b[key][:, :50])
+        np.testing.assert_array_equal(a[key][:, 74:], b[key][:, 50:])
+        speeds = np.linalg.norm(a[key][:, 50:74].reshape(len(a[key]), 12, 2), axis=-1)
+        assert speeds.max() <= level5.obstacle_speed + 1e-6
+        moving += int((speeds > 0.1).any(axis=1).sum())
+    assert moving > 0  # some frames observed a mover
