@@ -129,9 +129,10 @@ def main(argv: list[str] | None = None) -> int:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     processor_files = {p.name for p in src.glob("policy_*processor*")}
+    written_here = {"config.json"} | ({"model.safetensors"} if weights is not None else set())
     try:
         for path in sorted(src.iterdir()):
-            if path.is_file() and path.name not in processor_files | {"config.json"}:
+            if path.is_file() and path.name not in processor_files | written_here:
                 shutil.copy(path, tmp / path.name)
         (tmp / "config.json").write_text(json.dumps(raw, indent=4))
         if weights is not None:

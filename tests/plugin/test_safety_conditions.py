@@ -10,7 +10,7 @@ import pytest
 import torch
 from plugin_helpers import formation_features, nearest_config, save_nearest_checkpoint
 
-from lerobot_formation.core.obstacle_grid import environment_state
+from lerobot_formation.core.obstacle_grid import environment_state, environment_state_dim
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 from lerobot_formation.policy.replanner import Replanner
 
@@ -153,6 +153,19 @@ def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
     assert not replanner.in_flight.any() and not replanner.executed_velocity.any()
 
 
+def _velocity_replanner(encoding: str) -> Replanner:
+    """The replanner of a best-of-4 policy of ``encoding`` that predicts moving obstacles."""
+    inputs, outputs = formation_features(env_dim=environment_state_dim(encoding))
+    config = nearest_config(
+        input_features=inputs,
+        output_features=outputs,
+        obstacle_encoding=encoding,
+        num_candidates=4,
+        safety_moving_obstacles=True,
+    )
+    return FormationDiffusionPolicy(config).replanner
+
+
 def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     """A "nearest+velocity" policy reads the obstacles' velocities from its observation; a "nearest"
     one gets them from its tracker (new per episode); without ``safety_moving_obstacles`` neither."""
@@ -161,36 +174,15 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     velocity[0, 0] = [0.3, 0.0]
     goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi]])  # facing -x: body axes turned
     mask = np.ones((1, 4), bool)
-    inputs, outputs = formation_features(env_dim=74)
-    seeing = FormationDiffusionPolicy(
-        nearest_config(
-            input_features=inputs,
-            output_features=outputs,
-            obstacle_encoding="nearest+velocity",
-            num_candidates=4,
-            safety_moving_obstacles=True,
-        )
-    )
+    seeing = _velocity_replanner("nearest+velocity")
     env = environment_state(obstacles, mask, goal, "nearest+velocity", pose=pose, obstacle_velocity=velocity)
-    view = seeing.replanner.observed_obstacles(env)
+    view = seeing.observed_obstacles(env)
     near = np.argmin(np.abs(view.obstacles[0, :, 2] - 0.3))  # the 0.3 m obstacle's slot
     np.testing.assert_allclose(view.velocity[0, near], [0.0, -0.3], atol=1e-6)  # body x right, y ahead
-    assert (
-        view.velocity[0, ~view.mask[0]].sum() == 0
-        and seeing.replanner.observed_obstacles(env).velocity is not None
-    )
+    assert view.velocity[0, ~view.mask[0]].sum() == 0 and seeing.observed_obstacles(env).velocity is not None
 
     # "nearest+route+velocity": the same velocities, then the route hint's carrots after them
-    inputs, outputs = formation_features(env_dim=79)
-    both = FormationDiffusionPolicy(
-        nearest_config(
-            input_features=inputs,
-            output_features=outputs,
-            obstacle_encoding="nearest+route+velocity",
-            num_candidates=4,
-            safety_moving_obstacles=True,
-        )
-    ).replanner.observed_obstacles(
+    both = _velocity_replanner("nearest+route+velocity").observed_obstacles(
         environment_state(
             obstacles, mask, goal, "nearest+route+velocity", pose=pose, obstacle_velocity=velocity
         )
