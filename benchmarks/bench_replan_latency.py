@@ -43,7 +43,7 @@ Run (full size)::
     the scorer against its whole-field baseline in the same run, a checkpoint whose best-of-K differs
     from the default's before 2026-12-05 (late) (``PREVIOUS_DEFAULT``: 0.2 m progress cells read at the
     nearest cell, the first candidate warm, no chunk smoothing, the escape lattice, mover prediction
-    and fallback of before) against the same weights with those settings in the same run, the
+    and fallback of before, no recheck, no halt lookahead) against the same weights with those settings in the same run, the
     policy's traced U-Net against a plain trace of LeRobot's (``plain_trace``: the policy's trace until
     2026-12-05) in the same run,
     and with a warm-starting checkpoint the other warm start (all K candidates warm-started, or the
@@ -88,6 +88,7 @@ PREVIOUS_DEFAULT = {
     "safety_escape_speeds": (0.0, 0.1, 0.2, 0.3),
     "safety_fallback_all": False,
     "safety_recheck": False,
+    "safety_halt_lookahead": 0,
 }
 
 

@@ -41,7 +41,7 @@ def test_each_flag_names_its_config_field():
         "--safety-margin", "0.11", "--follower-margin", "0.03", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
         "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0", "--chunk-smoothing", "0",
         "--mover-uncertainty", "0", "--escape-speeds", "0,0.1,0.2,0.3", "--fallback-all", "off",
-        "--recheck", "on",
+        "--recheck", "on", "--halt-lookahead", "20",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
@@ -58,6 +58,7 @@ def test_each_flag_names_its_config_field():
         "safety_escape_speeds": (0.0, 0.1, 0.2, 0.3),
         "safety_fallback_all": False,
         "safety_recheck": True,
+        "safety_halt_lookahead": 20,
     }
     assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
 

@@ -105,6 +105,7 @@ SAFETY_FLAGS = (
     "escape_speeds",
     "fallback_all",
     "recheck",
+    "halt_lookahead",
 )
 
 
@@ -122,6 +123,7 @@ def safety_overrides(
     escape_speeds: tuple[float, ...] | None = None,
     fallback_all: bool | None = None,
     recheck: bool | None = None,
+    halt_lookahead: int | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
     ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
@@ -132,7 +134,7 @@ def safety_overrides(
     2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too),
     ``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` (0,
     (0, 0.1, 0.2, 0.3) and off: before 2026-12-05, night), ``safety_recheck`` (off: before 2026-12-05,
-    late night)."""
+    late night), ``safety_halt_lookahead`` (0: before 2026-12-06)."""
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
@@ -160,6 +162,8 @@ def safety_overrides(
         out["safety_fallback_all"] = fallback_all
     if recheck is not None:
         out["safety_recheck"] = recheck
+    if halt_lookahead is not None:
+        out["safety_halt_lookahead"] = halt_lookahead
     return out
 
 
@@ -258,4 +262,10 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
     )
     _add_on_off(ap, "--fallback-all", "where nothing is safe, the widest of every candidate scored")
     _add_on_off(ap, "--recheck", "check a kept chunk again at every step; replan where it no longer passes")
+    ap.add_argument(
+        "--halt-lookahead",
+        type=int,
+        default=None,
+        help="steps a team braking after a chunk must stay clear of movers, where no lookahead passes (0: off)",
+    )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

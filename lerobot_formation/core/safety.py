@@ -17,7 +17,9 @@ allowance for the lag) with it.
      greedy and drives into obstacles, clearance alone would steer away from the goal too);
   (with a ``continuation``, e.g. route pursuit after the chunk: steps 2-3 also cover it, so that a
   chunk leaving the team nose-in at a wall it cannot turn away from loses, and progress counts the
-  heading it leaves; a preference, dropped where no candidate's continuation is safe)
+  heading it leaves; a preference, dropped where no candidate's continuation is safe; there, with a
+  ``halt_lookahead``, the candidates after which the team can brake and stand clear of the movers
+  are preferred: ``FootprintCheck.halted``)
   4. if none is safe, a safe escape manoeuvre (a turn in place or an arc, ``escape_primitives``)
      with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
      sampled candidate with the largest predicted clearance (with ``fallback_all``, of the sampled
@@ -307,6 +309,32 @@ class FootprintCheck:
         )
         return clear, viable, last
 
+    def halted(self, commands: np.ndarray, steps: int, rows: np.ndarray | None = None) -> np.ndarray:
+        """Smallest clearance (R, C) of command sequences (R, C, T, 2) of episodes ``rows`` (R,)
+        (default: the first R), each followed by ``steps`` zero commands (braked as the actuator
+        brakes, then standing): whether the team may stop where a sequence leaves it
+        (``select_chunk``'s ``halt_lookahead``). Against standing obstacles it is the sequence's own
+        clearance, or its braking distance's; a mover that walks into the standing team lowers it."""
+        R, C, T, _ = commands.shape
+        rows = np.arange(R) if rows is None else rows
+        run = np.concatenate([commands, np.zeros((R, C, steps, 2))], axis=2)
+        if self.start is not None:
+            run = self.start[rows].executed(run, self.dt)
+        pose, start_steps = self._origin()
+        velocity = None if self.obstacle_velocity is None else self.obstacle_velocity[rows]
+        clear, _ = sequence_clearance(
+            pose[rows],
+            run,
+            self.obstacles[rows],
+            self.template,
+            self.dt,
+            self.agent_radius,
+            velocity,
+            start_steps,
+            self.mover_uncertainty,
+        )
+        return clear
+
 
 def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
     """Whether each plan (B, T, 2) [v, omega] (e.g. the rest of the chunk being executed) still passes
@@ -342,6 +370,7 @@ def select_chunk(
     primitives: np.ndarray | None = None,
     mover_uncertainty: float = 0.0,
     fallback_all: bool = False,
+    halt_lookahead: int = 0,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -414,8 +443,15 @@ def select_chunk(
             obstacles, goal, end[..., :2], window, progress_resolution, progress_bilinear
         )
     safe = clear >= floor
-    if viable is not None:  # a preference: where no candidate's continuation is safe, the chunks'
-        strict = viable >= floor
+    strict = None if viable is None else viable >= floor
+    if halt_lookahead:  # second preference: a chunk after which the team may stop
+        open_rows = np.ones(B, bool) if strict is None else ~strict.any(axis=1)
+        if open_rows.any():
+            rows_at = np.flatnonzero(open_rows)
+            halted = check.halted(pool[rows_at], halt_lookahead, rows_at)
+            stays = safe[rows_at] & (halted >= floor[rows_at])
+            safe[rows_at] = np.where(stays.any(axis=1, keepdims=True), stays, safe[rows_at])
+    if strict is not None:  # a preference: where no candidate's continuation is safe, the chunks'
         safe = np.where(strict.any(axis=1, keepdims=True), strict, safe)
     sampled_safe = safe[:, :K].any(axis=1)
     allowed = safe.copy()

@@ -160,6 +160,15 @@ class FormationDiffusionConfig(DiffusionConfig):
             from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
             and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
             counts). 0 (default): the chunk alone.
+        safety_halt_lookahead: n >= 0 steps. With n > 0, where no candidate passes with its route
+            lookahead, best-of-K prefers the candidates after which the team, braking to a standstill
+            (rate limited) and standing for the rest of n steps, keeps the margin
+            (``core.safety.FootprintCheck.halted``): a stop is the team's last resort, and a place
+            where a standing team is struck by a mover it could have left is not one to stop in
+            (the leaders cannot back up). Used only where the layer predicts moving obstacles
+            (``safety_moving_obstacles``): standing obstacles come no closer to a standing team, and
+            the levels without movers keep the layer they were measured with. 0 (default): the chunk
+            alone decides there.
         safety_proposal_blend: m >= 0 steps. With m > 0 route pursuit's proposal
             (``safety_route_proposal``) enters from the command being executed: its first m actions
             are blended from the last executed one (``core.replan_blend``) before it is scored, as the
@@ -275,6 +284,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_pose_noise: float = 0.0
     safety_route_proposal: bool = False
     safety_route_lookahead: int = 0
+    safety_halt_lookahead: int = 0
     safety_proposal_blend: int = 0
     safety_coherence: float = 0.0
     safety_progress_resolution: float = 0.2
@@ -434,12 +444,10 @@ class FormationDiffusionConfig(DiffusionConfig):
                 isinstance(value, int | float) and math.isfinite(value) and value >= 0
             ):
                 raise config_error(f"{name} must be a finite std >= 0 [m], got {value!r}")
-        if isinstance(self.safety_route_lookahead, bool) or not (
-            isinstance(self.safety_route_lookahead, int) and self.safety_route_lookahead >= 0
-        ):
-            raise config_error(
-                f"safety_route_lookahead must be an integer >= 0 [steps], got {self.safety_route_lookahead!r}"
-            )
+        for name in ("safety_route_lookahead", "safety_halt_lookahead"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, int) and value >= 0):
+                raise config_error(f"{name} must be an integer >= 0 [steps], got {value!r}")
         if isinstance(self.safety_proposal_blend, bool) or not (
             isinstance(self.safety_proposal_blend, int)
             and 0 <= self.safety_proposal_blend <= max_action_steps

@@ -599,3 +599,64 @@ def test_a_per_agent_radius_widens_the_followers_discs_only():
     np.testing.assert_allclose(h0 - h1, [[0.0, 0.0, 0.03, 0.03]])  # rows agent-major: leaders, followers
     with pytest.raises(ValueError, match=r"one per template agent 4, got \(3,\)"):
         template_clearance(poses, follower_side, TEMPLATE, radii[:3])
+
+
+def test_halt_lookahead_keeps_a_chunk_after_which_the_team_may_stop():
+    """A mover (r 0.4 m) comes straight down at 0.6 m/s, 3 m ahead of the right leader. A slow right
+    arc makes the most progress toward the goal (ahead, to the right) and keeps the margin over its
+    own 1.6 s, but a team that stops where it ends is struck within 2 s more
+    (``FootprintCheck.halted``); with ``halt_lookahead`` 20 the chunk after which the team may stop
+    is kept (here the stop: the mover has not reached it 3.6 s ahead), with the same "safe" verdicts
+    of the chunks alone where no candidate passes the halt either."""
+    goal = np.array([[2.0, 8.0]])
+    obstacles = np.array([[[0.5, 3.0, 0.4], [FAR, FAR, 0.0]]])
+    down = np.array([[[0.0, -0.6], [0.0, 0.0]]])
+    commands = [[0.0, 0.0], [0.3, 0.0], [0.3, -1.0], [0.3, 1.0]]  # stop, straight, right arc, left arc
+    chunks = np.array([[np.tile(c, (16, 1)) for c in commands]])
+    args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
+    _, alone = select_chunk(*args, escape=False, obstacle_velocity=down)
+    assert alone["safe"][0].all() and alone["choice"][0] == 2  # the right arc: the most progress
+    halted = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, down).halted(chunks, 20)
+    assert halted[0, 0] >= 0.05 and (halted[0, 1:] < 0.05).all()
+    kept, info = select_chunk(*args, escape=False, obstacle_velocity=down, halt_lookahead=20)
+    assert info["choice"][0] == 0 and info["safe"][0].tolist() == [True, False, False, False]
+    np.testing.assert_array_equal(kept[0], chunks[0, 0])
+    # nothing passes the halt (a faster mover): the chunks alone decide, as without it
+    fast = 2 * down
+    _, none = select_chunk(*args, escape=False, obstacle_velocity=fast, halt_lookahead=20)
+    _, plain = select_chunk(*args, escape=False, obstacle_velocity=fast)
+    assert (FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, fast).halted(chunks, 20) < 0.05).all()
+    for key in ("choice", "safe", "clearance", "progress"):
+        np.testing.assert_array_equal(none[key], plain[key])
+
+
+def test_halt_lookahead_brakes_as_the_actuator_brakes_and_changes_nothing_where_a_continuation_passes():
+    """``halted`` is the chunk's clearance followed by zero commands: against standing obstacles and
+    without rate limits the chunk's own clearance, bit for bit. With a 0.5 m/s^2 limit a chunk at
+    0.6 m/s that ends 0.2 m short of a wall needs 0.36 m to stop: halted, it reaches the wall. Where
+    some candidate passes with its continuation, ``halt_lookahead`` changes nothing."""
+    from lerobot_formation.core.safety import ChunkStart
+
+    rng = np.random.default_rng(7)
+    obstacles = np.array([[[0.5, 2.0, 0.3], [-1.5, 1.0, 0.4]], [[2.0, 2.0, 0.3], [FAR, FAR, 0.0]]])
+    commands = np.stack([np.tile([0.4, 0.0], (6, 12, 1)) + rng.normal(0, [0.1, 0.5], (6, 12, 2))] * 2)
+    commands[..., 0] = np.clip(commands[..., 0], 0.0, 0.6)
+    check = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius)
+    np.testing.assert_array_equal(check.halted(commands, 10), check.footprint(commands)[0])
+    np.testing.assert_array_equal(
+        check.halted(commands[1:], 10, np.array([1])), check.halted(commands, 10)[1:]
+    )
+    wall = np.array([[[x, 1.6, 0.3] for x in (-1.5, -0.9, -0.3, 0.3, 0.9, 1.5)]])  # surface at 1.3 m
+    run = np.tile([0.6, 0.0], (1, 1, 17, 1))  # 1.02 m ahead at full speed: 0.18 m short of the wall
+    rolling = ChunkStart(np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.6, 0.0]]), 0, 0.5, None)
+    braked = FootprintCheck(wall, TEMPLATE, P.dt, P.agent_radius, start=rolling)
+    assert braked.footprint(run)[0][0, 0] >= 0.05 and braked.halted(run, 20)[0, 0] < 0.0
+    # a continuation that passes somewhere: the halt is never consulted
+    goal = np.array([[0.0, 6.0], [0.0, 6.0]])
+    stand = lambda end: np.zeros(end.shape[:2] + (5, 2))  # noqa: E731
+    args = (commands, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
+    _, with_halt = select_chunk(*args, continuation=stand, halt_lookahead=20)
+    _, without = select_chunk(*args, continuation=stand)
+    assert with_halt["any_safe"].all()
+    for key in ("choice", "safe", "clearance", "progress"):
+        np.testing.assert_array_equal(with_halt[key], without[key])

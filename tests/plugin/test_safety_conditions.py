@@ -210,9 +210,10 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
 
 
 def test_mover_settings_reach_best_of_k(monkeypatch):
-    """``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` are what
-    ``select_chunk`` gets (the lattice built from the speeds); the defaults are the scorer of before:
-    the default lattice, an exact prediction, the widest sampled chunk as the fallback."""
+    """``safety_mover_uncertainty``, ``safety_escape_speeds``, ``safety_fallback_all`` and (with
+    ``safety_moving_obstacles`` only) ``safety_halt_lookahead`` are what ``select_chunk`` gets (the
+    lattice built from the speeds); the defaults are the scorer of before: the default lattice, an
+    exact prediction, the widest sampled chunk as the fallback, no halt."""
     from lerobot_formation.core import safety
 
     seen = {}
@@ -239,6 +240,12 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     tuned.choose_raw(env, chunks)
     np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives((0.0, 0.3)))
     assert seen["mover_uncertainty"] == 0.05 and seen["fallback_all"] is True
+    assert seen["halt_lookahead"] == 0
+    # the halt lookahead reaches the scorer only where the layer predicts movers
+    _policy(safety_halt_lookahead=20).replanner.choose_raw(env, chunks)
+    assert seen["halt_lookahead"] == 0
+    _policy(safety_halt_lookahead=20, safety_moving_obstacles=True).replanner.choose_raw(env, chunks)
+    assert seen["halt_lookahead"] == 20
 
 
 @pytest.mark.parametrize("recheck", [False, True])
