@@ -74,7 +74,7 @@ Learned Perception Modules via Measurement-Robust Control Barrier Functions").
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -315,25 +315,16 @@ class FootprintCheck:
         brakes, then standing): whether the team may stop where a sequence leaves it
         (``select_chunk``'s ``halt_lookahead``). Against standing obstacles it is the sequence's own
         clearance, or its braking distance's; a mover that walks into the standing team lowers it."""
-        R, C, T, _ = commands.shape
+        R, C = commands.shape[:2]
         rows = np.arange(R) if rows is None else rows
-        run = np.concatenate([commands, np.zeros((R, C, steps, 2))], axis=2)
-        if self.start is not None:
-            run = self.start[rows].executed(run, self.dt)
-        pose, start_steps = self._origin()
-        velocity = None if self.obstacle_velocity is None else self.obstacle_velocity[rows]
-        clear, _ = sequence_clearance(
-            pose[rows],
-            run,
-            self.obstacles[rows],
-            self.template,
-            self.dt,
-            self.agent_radius,
-            velocity,
-            start_steps,
-            self.mover_uncertainty,
+        those = replace(  # the same check of those episodes, the sequences alone
+            self,
+            obstacles=self.obstacles[rows],
+            obstacle_velocity=None if self.obstacle_velocity is None else self.obstacle_velocity[rows],
+            start=None if self.start is None else self.start[rows],
+            continuation=None,
         )
-        return clear
+        return those.footprint(np.concatenate([commands, np.zeros((R, C, steps, 2))], axis=2))[0]
 
 
 def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
