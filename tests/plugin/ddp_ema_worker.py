@@ -5,6 +5,7 @@ Each rank trains the same tiny policy on its own batches, the way lerobot-train 
 writes the ranks' ``ema_step`` and the largest EMA/live difference between ranks to argv[1].
 """
 
+import faulthandler
 import json
 import sys
 
@@ -23,6 +24,9 @@ def flat(params) -> torch.Tensor:
 
 
 def main(out_path: str) -> None:
+    # A run takes seconds; if this rank is still here after 120 s (the test cuts it at 150 s), its stack
+    # goes to the log the test prints, to show where it stalled.
+    faulthandler.dump_traceback_later(120, exit=False)
     torch.set_num_threads(1)
     accelerator = Accelerator(
         cpu=True,
@@ -59,6 +63,7 @@ def main(out_path: str) -> None:
     # "terminate called without an active exception" (seen once in CI after a passing run).
     if torch.distributed.is_initialized():
         torch.distributed.destroy_process_group()
+    faulthandler.cancel_dump_traceback_later()
 
 
 if __name__ == "__main__":
