@@ -494,6 +494,26 @@ def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up(tmp_path):
         )
 
 
+def test_env_encoding_of_the_same_size_but_another_route_hint_fails_at_start_up():
+    """``nearest+route`` and ``nearest+maproute`` both give 55 values: the name, not the size, decides."""
+    from lerobot.configs.eval import EvalPipelineConfig
+    from lerobot.envs.factory import make_env_pre_post_processors
+
+    from lerobot_formation.envs.env_config import FormationEnvConfig
+    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+
+    policy_cfg = FormationDiffusionConfig(**tiny_diffusion_kwargs(55), obstacle_encoding="nearest+maproute")
+    same = EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding="nearest+maproute"), policy=policy_cfg)
+    make_env_pre_post_processors(same.env, same.policy)
+    other = EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding="nearest+route"), policy=policy_cfg)
+    with pytest.raises(ValueError) as e:
+        make_env_pre_post_processors(other.env, other.policy)
+    assert str(e.value) == (
+        "--env.obstacle_encoding=nearest+route gives 'observation.environment_state' the size the policy "
+        "takes, but the policy observes 'nearest+maproute': pass --env.obstacle_encoding=nearest+maproute"
+    )
+
+
 def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
     """lerobot-train refuses it when it validates its config (our config installed the check)."""
     from huggingface_hub import constants

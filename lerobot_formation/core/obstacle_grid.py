@@ -22,6 +22,8 @@ recomputed every step.
 observed obstacles (the cost-to-go carrots 1 m and 3 m ahead in the body frame, and PAC's path-blocked
 flag): 2 + 4 max_obstacles + 5 values.
 
+``nearest+maproute`` (``core/map_route_encoding.py``): the layout of ``nearest+route``, its route planned
+on every obstacle of the team's map instead of the ``max_obstacles`` nearest.
 ``nearest+velocity`` (``core/velocity_encoding.py``): ``nearest``, then each slot's observed obstacle
 velocity [vx_b, vy_b] in the body frame (moving obstacles, ``core.conditions``): 2 + 6 max_obstacles.
 
@@ -162,6 +164,7 @@ register(
 register(ObstacleEncoding("nearest", 12, 4, 2, True, encode_nearest, nearest_names))
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
 register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
+register("lerobot_formation.core.map_route_encoding:ENCODING", "nearest+maproute")
 register("lerobot_formation.core.velocity_encoding:ENCODING", "nearest+velocity")
 register("lerobot_formation.core.route_velocity_encoding:ENCODING", "nearest+route+velocity")
 ENCODINGS = tuple(ENCODING_REGISTRY)

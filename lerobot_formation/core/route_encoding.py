@@ -56,12 +56,22 @@ def observed_obstacles(obstacles: np.ndarray, mask: np.ndarray, pose: np.ndarray
     return out
 
 
-def route_features(obstacles, mask, goal, pose, slots: int, map_obstacles=None) -> np.ndarray:
+def route_features(
+    obstacles, mask, goal, pose, slots: int, map_obstacles=None, whole_map: bool = False
+) -> np.ndarray:
     """The 5 route values (B, 5) float32 of B midpoints (see the module docstring): the carrots on the
-    cost-to-go of ``map_obstacles`` (B, M, 3) (None: ``obstacles``), the path check on ``obstacles``."""
+    cost-to-go of ``map_obstacles`` (B, M, 3) (None: ``obstacles``), the path check on ``obstacles``.
+    The cost-to-go sees the ``slots`` map obstacles nearest the midpoint, or with ``whole_map`` every
+    one of them (``nearest+maproute``, ``core/map_route_encoding.py``)."""
     B = len(pose)
     observed = observed_obstacles(obstacles, mask, pose, slots)
-    mapped = observed if map_obstacles is None else observed_obstacles(map_obstacles, mask, pose, slots)
+    source = obstacles if map_obstacles is None else map_obstacles
+    planned = source.shape[1] if whole_map else slots
+    mapped = (
+        observed
+        if map_obstacles is None and not whole_map
+        else observed_obstacles(source, mask, pose, planned)
+    )
     goal = np.asarray(goal, np.float64)
     c = PACConfig()
     fields = SceneFields.build(mapped, goal, inflate=c.path_inflate)  # PAC's field of the same map

@@ -49,6 +49,7 @@ class RoutePursuitConfig:
     v_min_frac: float = 0.3  # ... to no less than this fraction of v_max
     r_goal: float = 0.6  # [m] within this distance, aim at the goal instead of the carrot
     slots: int = 12  # obstacles observed (the nearest ``slots``, as the default policy's encoding)
+    whole_map: bool = False  # the route planned on every map obstacle (``nearest+maproute``), not the slots
 
     def __post_init__(self) -> None:
         for name in ("v_max", "k", "d0", "r_goal"):
@@ -95,7 +96,7 @@ class RoutePursuitController:
         # no local avoidance: observed moving obstacles join the map where they are now
         moving = np.any(view.obstacle_velocity != 0, axis=-1)
         plan = np.where(moving[..., None], obstacles, view.map_obstacles)
-        features = route_features(obstacles, mask, goal, pose, self.config.slots, plan)
+        features = route_features(obstacles, mask, goal, pose, self.config.slots, plan, self.config.whole_map)
         target = features[:, :2].astype(np.float64)  # the 1 m carrot, body frame
         goal_body = world_to_body(goal, pose)
         d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
@@ -107,8 +108,11 @@ class RoutePursuitController:
 def make_route_pursuit(
     name: str, params: FormationParams, options=None, bundle=None
 ) -> RoutePursuitController:
-    """The controller registry's factory (``controllers.CONTROLLER_FACTORIES``): default gains."""
-    return RoutePursuitController(params=params)
+    """The controller registry's factory (``controllers.CONTROLLER_FACTORIES``): default gains, and the
+    route hint of the bench's checkpoint where one is loaded (``bundle``: its policy observes
+    ``nearest+maproute``, so route pursuit plans on the whole map too), so that both see the same hint."""
+    encoding = getattr(getattr(bundle[0], "config", None), "obstacle_encoding", None) if bundle else None
+    return RoutePursuitController(RoutePursuitConfig(whole_map=encoding == "nearest+maproute"), params)
 
 
 def pursuit_chunk(

@@ -17,7 +17,7 @@ A ``Dict`` (LeRobot maps ``agent_pos`` to ``observation.state`` and ``environmen
 | key | shape | content |
 |---|---|---|
 | agent_pos | (7,) | midpoint [x, y, cos phi, sin phi, x', y', omega] |
-| environment_state | (51,) "grid" / (66,) "grid+list" / (50,) "nearest" / (55,) "nearest+route" / (74,) "nearest+velocity" / (79,) "nearest+route+velocity" | see ``core/obstacle_grid.py``: the paper's 7x7 obstacle-radius grid (49) and goal [x, y] (2), optionally the 5 obstacles [x, y, r]; or ("nearest") the goal and the 12 nearest obstacles [x, y, r, present] in the midpoint's body frame |
+| environment_state | (51,) "grid" / (66,) "grid+list" / (50,) "nearest" / (55,) "nearest+route" or "nearest+maproute" / (74,) "nearest+velocity" / (79,) "nearest+route+velocity" | see ``core/obstacle_grid.py``: the paper's 7x7 obstacle-radius grid (49) and goal [x, y] (2), optionally the 5 obstacles [x, y, r]; or ("nearest") the goal and the 12 nearest obstacles [x, y, r, present] in the midpoint's body frame |
 
 ## Rewards
 Progress toward the goal in metres per step, +1 on success, -1 on collision. (LeRobot reports the

@@ -50,15 +50,22 @@ SCENE_CHOICES = (*SCENE_PRESETS, *SCENE_MIXES)  # what env.scene_preset takes: a
 
 def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
     """Raise ``ValueError`` (logged) if the env's ``observation.environment_state`` does not have the
-    size of the policy's input (a dataset of one obstacle encoding, an env of another)."""
+    size of the policy's input (a dataset of one obstacle encoding, an env of another), or has it
+    under another encoding than the policy's own (``nearest+route`` and ``nearest+maproute`` have
+    the same size and differ in what their route hint plans on)."""
     feature = (getattr(policy_cfg, "input_features", None) or {}).get(OBS_ENV_STATE)
     if feature is None:
         return
     ours = environment_state_dim(env_cfg.obstacle_encoding)
     theirs = tuple(feature.shape)
-    if theirs == (ours,):
-        return
     wanted = getattr(policy_cfg, "obstacle_encoding", None)
+    if theirs == (ours,):
+        if wanted in ENCODINGS and wanted != env_cfg.obstacle_encoding:
+            raise config_error(
+                f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' the size the "
+                f"policy takes, but the policy observes {wanted!r}: pass --env.obstacle_encoding={wanted}"
+            )
+        return
     sizes = ", ".join(f"{e} {environment_state_dim(e)}" for e in ENCODINGS)
     hint = f"pass --env.obstacle_encoding={wanted}" if wanted else f"the encodings' sizes: {sizes}"
     size = theirs[0] if len(theirs) == 1 else theirs
@@ -127,7 +134,8 @@ class FormationEnvConfig(EnvConfig):
             ``"grid+list"`` (plus the 5 obstacles [x, y, r], 66 values) or ``"nearest"`` (goal and
             the 12 nearest obstacles in the midpoint's frame, 50 values, any obstacle count) or
             ``"nearest+route"`` (the same plus PAC's cost-to-go route hint from those obstacles, 55
-            values) or ``"nearest+velocity"`` / ``"nearest+route+velocity"`` (with each observed
+            values) or ``"nearest+maproute"`` (the same 55, the route planned on every obstacle of
+            the team's map) or ``"nearest+velocity"`` / ``"nearest+route+velocity"`` (with each observed
             obstacle's velocity, 74 / 79 values). Must match the policy's ``obstacle_encoding``.
         level: a graded level (``core.levels``: "0".."5" or "level0".."level5"), or None. When set, the
             level's scene preset and all its conditions apply (``level_env_fields``); ``scene_preset``,
@@ -167,7 +175,8 @@ class FormationEnvConfig(EnvConfig):
     episode_length: int = 600
     # Obstacle observation: grid (the paper's 7x7 radius grid + goal, 51 values), grid+list (plus the 5
     # obstacles [x, y, r], 66 values), nearest (goal + 12 nearest obstacles in the team's frame, 50
-    # values) or nearest+route (plus a route hint, 55). Must match the policy's observation.environment_state.
+    # values) or nearest+route / nearest+maproute (plus a route hint, 55). Must match the policy's
+    # obstacle_encoding.
     obstacle_encoding: str = "grid"
     # A graded level (core/levels.py: 0..5): its scene preset and conditions, fixed; the condition fields
     # and scene_preset below must then stay at their defaults. lerobot-eval --seed=1000000 plays its scenes.

@@ -86,7 +86,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
             (``core.obstacle_grid.ENCODING_REGISTRY``: "grid" (default, the paper's), "grid+list",
-            "nearest", "nearest+route", "nearest+velocity", "nearest+route+velocity"); it must match
+            "nearest", "nearest+route", "nearest+maproute", "nearest+velocity", "nearest+route+velocity");
+            it must match
             the env's ``--env.obstacle_encoding``. Stored in
             every checkpoint, never guessed from the feature's size.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
@@ -151,7 +152,7 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
         safety_route_proposal: best-of-K also scores route pursuit's chunk
             (``core.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
-            a route encoding, "nearest+route" or "nearest+route+velocity") beside the K sampled
+            a route encoding, "nearest+route", "nearest+maproute" or "nearest+route+velocity") beside the K sampled
             ones, and keeps it when it is safe and makes the most
             progress (the ``proposals`` count says how often).
         safety_route_lookahead: n >= 0 steps. With n > 0 best-of-K follows every candidate with n

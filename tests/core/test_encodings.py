@@ -33,6 +33,7 @@ def test_registry_sizes_and_names():
         "grid+list",
         "nearest",
         "nearest+route",
+        "nearest+maproute",
         "nearest+velocity",
         "nearest+route+velocity",
     }
@@ -44,6 +45,7 @@ def test_registry_sizes_and_names():
     assert environment_state_dim("nearest") == 50
     assert environment_state_dim("nearest", 3) == 14
     assert environment_state_dim("nearest+route") == 55
+    assert environment_state_dim("nearest+maproute") == 55
     assert environment_state_dim("nearest+velocity") == 74
     assert environment_state_dim("nearest+velocity", 3) == 20
     assert environment_state_dim("nearest+route+velocity") == 79

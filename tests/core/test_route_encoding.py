@@ -59,6 +59,49 @@ def test_route_sees_only_the_observed_obstacles():
     np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("n", [0, 5, 12])
+def test_maproute_equals_route_with_no_more_obstacles_than_slots(n):
+    """``nearest+maproute`` is ``nearest+route`` value for value where the map holds 12 obstacles or fewer."""
+    obs, mask, goal, pose = _scene(np.random.default_rng(10 + n), n)
+    np.testing.assert_array_equal(
+        environment_state(obs, mask, goal, "nearest+maproute", pose=pose),
+        environment_state(obs, mask, goal, "nearest+route", pose=pose),
+    )
+
+
+def test_maproute_plans_on_every_map_obstacle():
+    """A bend's scene (25-29 obstacles): the same 50 'nearest' values; the route of ``nearest+maproute``
+    is PAC's carrot on the whole map, which the 12 nearest of ``nearest+route`` miss somewhere."""
+    scenes = sample_scenes(np.arange(12), scene_preset("bend"))
+    assert scenes.mask.sum(axis=1).min() > 12
+    pose = scenes.start
+    whole = environment_state(scenes.obstacles, scenes.mask, scenes.goal, "nearest+maproute", pose=pose)
+    near = environment_state(scenes.obstacles, scenes.mask, scenes.goal, "nearest+route", pose=pose)
+    np.testing.assert_array_equal(whole[:, :50], near[:, :50])
+    pac = PathAwareController()
+    pac.reset(scenes.obstacles, scenes.goal)
+    pac.field_command(pose)
+    carrot = world_to_body(pac.ctg.carrot(pose[:, :2], 5)[:, None], pose)[:, 0]
+    np.testing.assert_allclose(whole[:, 50:52], carrot, atol=1e-5)
+    assert not np.allclose(near[:, 50:54], whole[:, 50:54], atol=1e-3)
+
+
+def test_route_pursuit_takes_the_checkpoints_route_hint():
+    """The bench's route pursuit plans on the whole map where its checkpoint observes ``nearest+maproute``."""
+    from types import SimpleNamespace
+
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.route_pursuit import make_route_pursuit
+
+    def bundle(encoding):
+        return (SimpleNamespace(config=SimpleNamespace(obstacle_encoding=encoding)), None, None)
+
+    params = FormationParams()
+    assert not make_route_pursuit("route-pursuit", params).config.whole_map
+    assert not make_route_pursuit("route-pursuit", params, None, bundle("nearest+route")).config.whole_map
+    assert make_route_pursuit("route-pursuit", params, None, bundle("nearest+maproute")).config.whole_map
+
+
 def test_route_near_carrot_leads_around_a_blocker():
     obs = np.array([[[3.0, 0.0, 0.8]]])
     mask = np.ones((1, 1), bool)
