@@ -265,7 +265,7 @@ $PY benchmarks/bench_replan_latency.py --parts ce --threads 1 --lean-steps 4 3 -
   | tee $OUT/replan_latency_route.log
 $PY benchmarks/bench_route_encoding.py --scenes 20 --steps 100 | tee $OUT/route_encoding.log
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_route.log
-# Sessions of 2026-12-04 and -05 (the graded benchmark, issue 24): the safety layer's fields of the
+# Sessions of 2026-12-04 to -06 (the graded benchmark, issue 24): the safety layer's fields of the
 # shipped config, each chosen on tuning seeds (docs/benchmark.md), then the level table (500 scenes per
 # level, several hours on 2 cores), lerobot-eval's agreement on levels 4-5 and the latency.
 $PY scripts/derive_checkpoint.py $SAFE $SAFE --set safety_route_proposal=true --set safety_route_lookahead=20 \
@@ -273,7 +273,7 @@ $PY scripts/derive_checkpoint.py $SAFE $SAFE --set safety_route_proposal=true --
   --set safety_progress_resolution=0.4 --set safety_progress_interpolation=bilinear \
   --set warm_start_all_candidates=true --set chunk_smoothing=2 \
   --set "safety_escape_speeds=[0,0.1,0.2,0.3,0.45,0.6]" --set safety_mover_uncertainty=0.10 --set safety_fallback_all=true \
-  --set safety_recheck=true --set cbf_rate=4.0
+  --set safety_recheck=true --set cbf_rate=4.0 --set safety_halt_lookahead=20
 for k in 0 1 2 3 4 5; do
   $BIN/lerobot-formation-bench --controllers pac,mppi,route-pursuit,route-pursuit-safe,diffusion,diffusion-safe,pac-privileged \
     --policy.path $SAFE --scenes level$k:500 --threads 1 --no-figures --no-progress --out outputs/levels/level$k \
