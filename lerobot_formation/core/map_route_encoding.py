@@ -16,26 +16,6 @@ obstacle_encoding=nearest+maproute``).
 
 from __future__ import annotations
 
-import numpy as np
+from lerobot_formation.core.route_encoding import route_encoding
 
-from lerobot_formation.core.encoding import ObstacleEncoding, encode_nearest, nearest_names
-from lerobot_formation.core.route_encoding import ROUTE_NAMES, route_features
-
-
-def _encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
-    base = encode_nearest(obstacles, mask, goal, pose, slots)
-    route = route_features(obstacles, mask, goal, pose, slots, map_obstacles, whole_map=True)
-    return np.concatenate([base, route], axis=1)
-
-
-ENCODING = ObstacleEncoding(
-    "nearest+maproute",
-    12,
-    4,
-    2,
-    True,
-    _encode,
-    lambda slots: nearest_names(slots) + ROUTE_NAMES,
-    trailing=5,
-    map=True,
-)
+ENCODING = route_encoding("nearest+maproute", whole_map=True)

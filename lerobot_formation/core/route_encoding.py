@@ -82,19 +82,18 @@ def route_features(
     return np.concatenate([body.reshape(B, 4), blocked[:, None]], axis=1).astype(np.float32)
 
 
-def _encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
-    base = encode_nearest(obstacles, mask, goal, pose, slots)
-    return np.concatenate([base, route_features(obstacles, mask, goal, pose, slots, map_obstacles)], axis=1)
+def route_encoding(name: str, whole_map: bool = False) -> ObstacleEncoding:
+    """The ``nearest`` rows, then the 5 route values (``route_features``, ``whole_map`` passed on):
+    ``nearest+route`` here, ``nearest+maproute`` (``core/map_route_encoding.py``) on the whole map."""
+
+    def encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
+        base = encode_nearest(obstacles, mask, goal, pose, slots)
+        route = route_features(obstacles, mask, goal, pose, slots, map_obstacles, whole_map)
+        return np.concatenate([base, route], axis=1)
+
+    return ObstacleEncoding(
+        name, 12, 4, 2, True, encode, lambda slots: nearest_names(slots) + ROUTE_NAMES, trailing=5, map=True
+    )
 
 
-ENCODING = ObstacleEncoding(
-    "nearest+route",
-    12,
-    4,
-    2,
-    True,
-    _encode,
-    lambda slots: nearest_names(slots) + ROUTE_NAMES,
-    trailing=5,
-    map=True,
-)
+ENCODING = route_encoding("nearest+route")
