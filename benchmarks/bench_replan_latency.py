@@ -89,6 +89,7 @@ PREVIOUS_DEFAULT = {
     "safety_fallback_all": False,
     "safety_recheck": False,
     "safety_halt_lookahead": 0,
+    "sampling_guidance": 0.0,
 }
 
 
@@ -382,6 +383,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     from lerobot_formation.core import navigation
     from lerobot_formation.core.scene import UNSEEN_SEED_START
     from lerobot_formation.policy.checkpoint import load_policy
+    from lerobot_formation.policy.configuration_formation_diffusion import TUNED_SAMPLING_GUIDANCE
 
     policy, pre, post = load_policy(path)
     policy.reconfigure(inference_backend="trace")
@@ -408,9 +410,13 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     shipped = {name: getattr(cfg, name) for name in PREVIOUS_DEFAULT}
     previous = f"K={k}, previous default"
     other_warm = "first candidate warm" if cfg.warm_start_all_candidates else "all candidates warm"
+    # every variant sets all these fields: reconfigure keeps what an earlier variant changed
+    guided = {**shipped, "sampling_guidance": cfg.sampling_guidance or TUNED_SAMPLING_GUIDANCE}
     variants = [  # label, K, scorer, config fields, plain trace
         ("K=1", 1, None, shipped, False),
+        ("K=1, guided", 1, None, guided, False),
         (f"K={k}", k, None, shipped, False),
+        (f"K={k}, guided", k, None, guided, False),
         (f"K={k}, whole field", k, whole_field, shipped, False),
     ]
     if shipped != PREVIOUS_DEFAULT:  # the default's best-of-K before 2026-12-05 (late), same weights
@@ -446,6 +452,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         extra += f", previous default {med[previous]:.1f} ms (ratio {med[previous] / ours:.2f}x)"
     if f"K={k}, {other_warm}" in med:
         extra += f", {other_warm} {med[f'K={k}, {other_warm}']:.1f} ms"
+    extra += f", guided {med[f'K={k}, guided']:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
         f"{extra} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x; plain trace "

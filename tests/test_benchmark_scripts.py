@@ -150,9 +150,10 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
         seen.append((policy.config.safety_action_delay, policy.config.safety_moving_obstacles, args[5]))
         plain.append(args[6])
         grids.append({name: getattr(policy.config, name) for name in bench.PREVIOUS_DEFAULT})
+        guided.append((policy.config.num_candidates, policy.config.sampling_guidance))
         return real(policy, *args, **kwargs)
 
-    grids = []
+    grids, guided = [], []
     bench.episode_replans_ms = spy
     torch.set_num_threads(1)
     headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
@@ -165,6 +166,9 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
     assert plain.count(True) == 1  # the policy's trace against a plain one, in the same run
     assert all(delay == 1 and moving for delay, moving, _ in seen), seen
+    # clearance guidance at K = 1 and K = 2 beside the unguided runs, every other variant unguided
+    assert guided[:4] == [(1, 0.0), (1, 1.0), (2, 0.0), (2, 1.0)] and "K=1 guided" in headline
+    assert all(g == 0.0 for _, g in guided[4:])
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
 
 

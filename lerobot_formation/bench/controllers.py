@@ -48,11 +48,15 @@ def safety_settings(conditions: Conditions | None, scenes_move: bool = False) ->
     return settings
 
 
-def _diffusion(safety_filter: str | None, best_of_k: bool | None, sampled: bool = True):
+def _diffusion(
+    safety_filter: str | None, best_of_k: bool | None, sampled: bool = True, guided: bool | None = None
+):
     """A factory of a diffusion controller with the filter ``safety_filter`` and K = --candidates
     (``best_of_k``) or 1; None for both: the checkpoint's own settings. ``sampled=False``: the
     checkpoint's safety layer around route pursuit, its network never called
-    (``ReplanExperiment.sampled``)."""
+    (``ReplanExperiment.sampled``). ``guided``: False samples without clearance guidance, True with
+    the checkpoint's ``sampling_guidance``, or where it has none ``TUNED_SAMPLING_GUIDANCE`` (chosen on
+    tuning seeds), None as the checkpoint says."""
 
     def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
         from lerobot_formation.bench.diffusion_controller import DiffusionController
@@ -68,9 +72,17 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None, sampled: bool 
                 "num_candidates": options.candidates if best_of_k else 1,
                 "safety_filter": safety_filter,
             }
-            if best_of_k or safety_filter != "none":  # a safety layer: it knows the run's actuator
+            if guided is False:
+                overrides["sampling_guidance"] = 0.0
+            elif guided:
+                from lerobot_formation.policy.checkpoint import load_policy
+                from lerobot_formation.policy.configuration_formation_diffusion import TUNED_SAMPLING_GUIDANCE
+
+                bundle = bundle or load_policy(options.policy_path, options.device)
+                overrides["sampling_guidance"] = bundle[0].config.sampling_guidance or TUNED_SAMPLING_GUIDANCE
+            if best_of_k or safety_filter != "none" or guided:  # a safety layer: it knows the run's actuator
                 overrides.update(safety_settings(options.conditions, options.scenes_move))
-        return DiffusionController(
+        controller = DiffusionController(
             options.policy_path,
             num_inference_steps=options.num_inference_steps,
             seed=options.seed_policy,
@@ -81,6 +93,7 @@ def _diffusion(safety_filter: str | None, best_of_k: bool | None, sampled: bool 
             experiment=experiment,
             name=name,
         )
+        return controller
 
     return factory
 
@@ -109,7 +122,9 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     # a reference, not a baseline: the demonstrator of the students, on the true world (every
     # obstacle, exact, moving ones predicted, the delay compensated)
     "pac-privileged": _pac_privileged,
-    "diffusion": _diffusion("none", best_of_k=False),  # standard: one sample per replan
+    "diffusion": _diffusion("none", best_of_k=False, guided=False),  # standard: one sample per replan
+    # one sample per replan, guided away from the observed obstacles (sampling_guidance)
+    "diffusion-guided": _diffusion("none", best_of_k=False, guided=True),
     "diffusion-bestof": _diffusion("none", best_of_k=True),  # best-of-K (footprint, then progress)
     "diffusion-cbf": _diffusion("cbf", best_of_k=False),  # one sample, CBF filter on every action
     "diffusion-safe": _diffusion("cbf", best_of_k=True),  # best-of-K and the CBF filter

@@ -55,6 +55,12 @@ def _describe(features: dict[str, PolicyFeature] | None) -> str:
     return ", ".join(f"'{k}' ({ft.type.name}, shape {tuple(ft.shape)})" for k, ft in features.items())
 
 
+# The clearance guidance of the bench's ``diffusion-guided`` where a checkpoint sets none: eta = 1 with
+# guidance_distance 0.3 m and one gradient step per denoising step, chosen on level3's and level5's
+# tuning scenes (docs/benchmark.md, "Clearance guidance").
+TUNED_SAMPLING_GUIDANCE = 1.0
+
+
 @PreTrainedConfig.register_subclass("formation_diffusion")
 @dataclass
 class FormationDiffusionConfig(DiffusionConfig):
@@ -211,6 +217,16 @@ class FormationDiffusionConfig(DiffusionConfig):
             sample's step-to-step noise is most of the jerk where a chunk runs on. Route pursuit's
             proposal is smoothed too where it is blended in (``safety_proposal_blend``). 0 (default):
             the samples as drawn, the policy before 2026-12-05 (evening).
+        sampling_guidance: eta >= 0. With eta > 0 every denoising step moves the sampler's estimate
+            of the clean chunk down the gradient of a clearance barrier on the whole formation's
+            footprint against the observed obstacles (movers at their velocities; from the actuator's
+            predicted start where the layer knows it): the commands change by -eta dJ/da, J the sum
+            of 0.5 max(0, ``guidance_distance`` - clearance)^2 over steps, agents and obstacles
+            (``core.guidance``; cost guidance of diffusion planners). With K = 1 too: it shapes the
+            sample itself, before best-of-K or the filter. Needs the lean or trace backend. 0
+            (default): unguided sampling.
+        guidance_distance: delta > 0 [m], the clearance below which the guidance cost grows (0.3).
+        guidance_steps: n >= 1 gradient steps of ``sampling_guidance`` per denoising step (1).
         replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
             replan at the next step (the plan assumed a motion the filter did not allow).
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
@@ -294,6 +310,9 @@ class FormationDiffusionConfig(DiffusionConfig):
     warm_start_step: int = 0
     warm_start_all_candidates: bool = False
     chunk_smoothing: int = 0
+    sampling_guidance: float = 0.0
+    guidance_distance: float = 0.3
+    guidance_steps: int = 1
     # Inference path (see the Args above; not a training setting).
     inference_backend: str = "eager"
     timestep_spacing: str = "leading"
@@ -463,6 +482,23 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"chunk_smoothing must be an integer >= 0 [passes], got {self.chunk_smoothing!r}"
             )
+        if not _is_finite_nonnegative(self.sampling_guidance):
+            raise config_error(
+                f"sampling_guidance must be a finite step >= 0, got {self.sampling_guidance!r}"
+            )
+        if not (_is_finite_nonnegative(self.guidance_distance) and self.guidance_distance > 0):
+            raise config_error(
+                f"guidance_distance must be a finite distance > 0 [m], got {self.guidance_distance!r}"
+            )
+        if isinstance(self.guidance_steps, bool) or not (
+            isinstance(self.guidance_steps, int) and self.guidance_steps >= 1
+        ):
+            raise config_error(f"guidance_steps must be an integer >= 1, got {self.guidance_steps!r}")
+        if self.sampling_guidance and self.inference_backend == "eager":
+            raise config_error(
+                "sampling_guidance > 0 runs in the lean and trace samplers, got inference_backend='eager' "
+                "(pass --policy.inference_backend=trace)"
+            )
         if not _is_finite_nonnegative(self.safety_coherence):
             raise config_error(
                 f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
@@ -503,7 +539,9 @@ class FormationDiffusionConfig(DiffusionConfig):
 
     @property
     def safety_layer(self) -> bool:
-        return self.num_candidates > 1 or self.safety_filter != "none"
+        """Whether anything reads the observed obstacles at inference: best-of-K, the filter or the
+        clearance guidance."""
+        return self.num_candidates > 1 or self.safety_filter != "none" or self.sampling_guidance > 0
 
     @property
     def plans_per_episode(self) -> bool:

@@ -55,8 +55,10 @@ gradients, so DDP neither reduces nor waits for them.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -105,9 +107,13 @@ class _DDIMSteps:
             a, a_prev = alphas[t], alphas[t - gap] if t - gap >= 0 else scheduler.final_alpha_cumprod
             self.coefs.append(((1 - a) ** 0.5, a**0.5, a_prev**0.5, (1 - a_prev) ** 0.5))
 
-    def step(self, i: int, eps: Tensor, sample: Tensor) -> Tensor:
+    def step(
+        self, i: int, eps: Tensor, sample: Tensor, guide: Callable[[Tensor], Tensor] | None = None
+    ) -> Tensor:
         """x_t -> x_{t_prev} at the i-th timestep, from the network's output ``eps`` (the predicted
-        noise, or with prediction_type "sample" the predicted x_0; diffusers' order of operations)."""
+        noise, or with prediction_type "sample" the predicted x_0; diffusers' order of operations).
+        ``guide``: x_0 -> a moved x_0 (clearance guidance, ``core.guidance``); the step then goes on
+        from the moved estimate, with the noise that is consistent with it and ``sample``."""
         sqrt_beta, sqrt_alpha, sqrt_alpha_prev, sqrt_beta_prev = self.coefs[i]
         if self.predicts_sample:
             x0 = eps
@@ -116,6 +122,9 @@ class _DDIMSteps:
             x0 = (sample - sqrt_beta * eps) / sqrt_alpha
         if self.clip is not None:
             x0 = x0.clamp(-self.clip, self.clip)
+        if guide is not None:
+            x0 = guide(x0)
+            eps = (sample - sqrt_alpha * x0) / sqrt_beta
         return sqrt_alpha_prev * x0 + sqrt_beta_prev * eps
 
     @classmethod
@@ -298,6 +307,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         warm_start: tuple[Tensor, Tensor] | None = None,
         warm_start_step: int | None = None,
         warm_all: bool = False,
+        guide: Callable[[Tensor, Tensor | None], Tensor] | None = None,
     ) -> Tensor:
         """K candidate chunks per observation in one batched denoiser call.
 
@@ -308,7 +318,9 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         ``warm_start`` = (guess (B, horizon, 2) normalised, use (B,) bool): with ``warm_start_step``
         j > 0 (default: the config's) the rows of ``use`` start at the sampler's j-th timestep from
         their guess (see the module docstring): the first candidate of a row, or with ``warm_all`` all
-        K, each from the same guess with its own noise.
+        K, each from the same guess with its own noise. ``guide(x0, rows)``: at every DDIM step the
+        estimate x0 (n, horizon, 2) of the rows ``rows`` of the B * K samples (a bool mask; None: all)
+        is moved by it before the step goes on (``_DDIMSteps.step``; the lean and trace backends).
         """
         model = self.inference_model
         cond = global_conditioning(model, batch)  # (B, cond)
@@ -325,7 +337,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             if not warm_all:
                 use = use & ((torch.arange(B * K, device=use.device) % K) == 0)
             warm_start = (guess, use)
-        full = self._sample(model, cond, noise, warm_start, warm_start_step)
+        full = self._sample(model, cond, noise, warm_start, warm_start_step, guide)
         return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
 
     def _sample(
@@ -335,6 +347,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         noise: Tensor | None = None,
         warm_start: tuple[Tensor, Tensor] | None = None,
         warm_start_step: int | None = None,
+        guide: Callable[[Tensor, Tensor | None], Tensor] | None = None,
     ) -> Tensor:
         """(len(cond), horizon, action_dim) denoised samples of ``model`` for the conditioning vectors
         ``cond``, from ``noise`` (else fresh ``torch.randn``, as ``conditional_sample`` draws it), on
@@ -346,8 +359,13 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             warm_start_step = self.config.warm_start_step
         j = warm_start_step if warm_start is not None and bool(warm_start[1].any()) else 0
         parts = None if backend == "eager" and j == 0 else denoiser_parts(model)
-        if parts is None:
+        if parts is None and guide is None:
             return model.conditional_sample(len(cond), global_cond=cond, noise=noise)
+        if guide is not None and (parts is None or backend == "eager"):
+            raise ValueError(
+                "clearance guidance (sampling_guidance > 0) runs in the lean and trace samplers; "
+                f"inference_backend is {backend!r}: pass --policy.inference_backend=trace"
+            )
         unet, scheduler, num_steps, shape = parts
         with torch.inference_mode():
             if noise is None:
@@ -355,6 +373,11 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 noise = torch.randn((len(cond), *shape), dtype=p.dtype, device=p.device)
             sample = noise
             ddim = None if backend == "eager" else self._lean.ddim(model, scheduler, num_steps)
+            if guide is not None and ddim is None:
+                raise ValueError(
+                    "clearance guidance (sampling_guidance > 0) needs DDIM sampling (noise_scheduler_type "
+                    f"'DDIM' at inference), got scheduler {type(scheduler).__name__}"
+                )
             if ddim is not None:
                 timesteps = ddim.timesteps
             else:  # the eager backend or another scheduler: diffusers' own steps
@@ -382,7 +405,11 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 c = cond if rows is None else cond[rows]
                 t_batch = torch.full(x.shape[:1], t, dtype=torch.long, device=x.device)
                 eps = net(x, t_batch, c)
-                x = ddim.step(i, eps, x) if ddim is not None else scheduler.step(eps, t, x).prev_sample
+                if ddim is None:
+                    x = scheduler.step(eps, t, x).prev_sample
+                else:
+                    moved = None if guide is None else functools.partial(guide, rows=rows)
+                    x = ddim.step(i, eps, x, moved)
                 if rows is None:
                     sample = x
                 else:  # sample is torch.where's own tensor here, never the caller's noise

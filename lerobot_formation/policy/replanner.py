@@ -12,7 +12,8 @@ passes best-of-K's check on this step's view replans first:
    the new window and padded with its last action (``warm_start_guess``), is the guess the sampler
    starts from at its j-th timestep (``FormationDiffusionPolicy.sample_action_chunks``); an episode's
    first replan samples from pure noise;
-2. K = ``num_candidates`` candidates in one batched denoiser call;
+2. K = ``num_candidates`` candidates in one batched denoiser call; with ``sampling_guidance`` every
+   denoising step moves them away from the view's obstacles (``core.guidance``, ``_guide``);
 3. blending (``ReplanExperiment.blend_steps``, experiments only): the new chunks' first actions are
    blended from the last executed one (``core.replan_blend``);
 4. choice: with K > 1 the one scorer, ``core.safety.select_chunk`` (no predicted contact of the whole
@@ -60,7 +61,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from lerobot_formation.core import safety
+from lerobot_formation.core import guidance, safety
 from lerobot_formation.core.dynamics import FormationParams, rate_limit
 from lerobot_formation.core.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.obstacle_grid import get_encoding
@@ -407,6 +408,46 @@ class Replanner:
 
         return continuation
 
+    def _guide(self, view: SafetyView, K: int) -> Callable[[Tensor, Tensor | None], Tensor]:
+        """The sampler's clearance guidance (``sampling_guidance``) for the B = len(view) replanning
+        episodes, K samples each: x0 (n, horizon, 2) normalised of the rows ``rows`` (a mask over the
+        B * K samples; None: all) -> x0 with its commands from the current step on moved by
+        ``guidance_steps`` steps of -eta dJ/da (``core.guidance.clearance_cost_gradient``, on the
+        view's obstacles from the actuator's predicted start), each clipped to the action bounds; the
+        past step is left as sampled."""
+        cfg = self.config
+        template, dt, _ = safety_geometry()
+        if view.start is None:
+            pose, steps = np.broadcast_to(safety.BODY_POSE, (len(view.goal), 3)), 0
+        else:
+            pose, steps = view.start.pose, view.start.steps
+        velocity = view.velocity if cfg.safety_moving_obstacles else None
+        sample_of = np.repeat(np.arange(len(view.goal)), K)  # the episode of each of the B * K samples
+        first = cfg.n_obs_steps - 1  # the sample's window starts at the step before the current one
+        low, high = np.asarray(cfg.action_low), np.asarray(cfg.action_high)
+
+        def guide(x0: Tensor, rows: Tensor | None = None) -> Tensor:
+            at = sample_of if rows is None else sample_of[rows.cpu().numpy()]
+            moved = self.policy.unnormalize_action(x0[:, first:]).cpu().numpy().astype(np.float64)
+            for _ in range(cfg.guidance_steps):
+                _, grad = guidance.clearance_cost_gradient(
+                    pose[at],
+                    moved[:, None],
+                    view.obstacles[at],
+                    template,
+                    dt,
+                    self.agent_radii,
+                    cfg.guidance_distance,
+                    None if velocity is None else velocity[at],
+                    steps,
+                )
+                moved = np.clip(moved - cfg.sampling_guidance * grad[:, 0], low, high)
+            out = x0.clone()
+            out[:, first:] = self.policy.normalize_action(torch.from_numpy(moved).to(x0))
+            return out
+
+        return guide
+
     def _send(self, rows: np.ndarray, action: Tensor) -> None:
         """Record the commands (normalised) sent to episodes ``rows``: the actuator model runs the
         oldest in flight (or this one, without a delay) and queues this one."""
@@ -443,6 +484,7 @@ class Replanner:
                 warm_start=warm,
                 warm_start_step=cfg.warm_start_step,
                 warm_all=cfg.warm_start_all_candidates,
+                guide=self._guide(view, K) if cfg.sampling_guidance else None,
             ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = smooth_chunks(chunks, last, has_last, cfg.chunk_smoothing)  # before best-of-K scores them

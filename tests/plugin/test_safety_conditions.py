@@ -327,59 +327,28 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
     assert make_controller("diffusion-safe", FormationParams(), moving, bundle).config.safety_moving_obstacles
 
 
-def test_bench_run_set_gives_the_controllers_each_sets_own_conditions(monkeypatch):
-    """The unseen set runs under its own conditions: its controllers must know those, not the main
-    set's (and moving scenes switch prediction on)."""
-    from lerobot_formation.bench import cli
-    from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
+def test_bench_guided_controller_guides_and_standard_sampling_is_never_guided(tmp_path):
+    """``diffusion-guided`` samples one chunk with the checkpoint's clearance guidance (where it sets
+    none, the tuned one) and knows the level's actuator and movers; the eager backend is refused by
+    name; ``diffusion`` (standard sampling) runs unguided even from a guided checkpoint."""
+    from lerobot_formation.bench.controllers import make_controller
+    from lerobot_formation.bench.settings import ControllerOptions
     from lerobot_formation.core.dynamics import FormationParams
     from lerobot_formation.core.levels import get_level
-    from lerobot_formation.core.scene import sample_scenes
+    from lerobot_formation.policy.checkpoint import load_policy
+    from lerobot_formation.policy.configuration_formation_diffusion import TUNED_SAMPLING_GUIDANCE
 
-    seen = []
-
-    def fake_make(name, params, options, bundle=None):
-        seen.append(options)
-        raise ValueError("stop here")
-
-    monkeypatch.setattr(cli, "make_controller", fake_make)
-    main = get_level("level5").conditions
-    settings = BenchSettings(scenes="level5:2", options=ControllerOptions(conditions=main))
-    scenes = sample_scenes(np.arange(2))
-    with pytest.raises(cli.BenchInputError):
-        cli.run_set(["diffusion-safe"], scenes, FormationParams(), settings, "unseen", None, conditions=None)
-    assert seen[-1].conditions is None and not seen[-1].scenes_move
-    moving = dataclasses.replace(scenes, velocities=np.full(scenes.obstacles.shape[:2] + (2,), 0.1))
-    with pytest.raises(cli.BenchInputError):
-        cli.run_set(["diffusion-safe"], moving, FormationParams(), settings, "unseen", None, conditions=None)
-    assert seen[-1].scenes_move
-
-
-def test_bench_reports_how_often_the_safety_layer_intervened():
-    from lerobot_formation.bench.results import safety_rates, safety_table
-
-    stats = {
-        "replans": 50,
-        "replans_none_safe": 10,
-        "escapes": 5,
-        "stops": 1,
-        "steps": 400,
-        "filter_interventions": 20,
-        "proposals": 10,
-        "rechecks_failed": 8,
-    }
-    rates = safety_rates(stats)
-    assert rates == {
-        "filter_intervention_rate": 0.05,
-        "recheck_rate": 0.02,
-        "replans_none_safe_rate": 0.2,
-        "escape_rate": 0.1,
-        "stop_rate": 0.02,
-        "proposal_rate": 0.2,
-    }
-    table = safety_table(
-        {"pac": {}, "diffusion-safe": {"safety": {**stats, **rates}}}, "level5 scenes (level5:20)"
+    options = ControllerOptions(candidates=3, conditions=get_level("level5").conditions)
+    eager = load_policy(save_nearest_checkpoint(tmp_path / "eager"))
+    with pytest.raises(ValueError, match="sampling_guidance > 0 runs in the lean and trace samplers"):
+        make_controller("diffusion-guided", FormationParams(), options, eager)
+    plain = load_policy(save_nearest_checkpoint(tmp_path / "plain", inference_backend="lean"))
+    cfg = make_controller("diffusion-guided", FormationParams(), options, plain).config
+    assert cfg.sampling_guidance == TUNED_SAMPLING_GUIDANCE > 0
+    guided = load_policy(
+        save_nearest_checkpoint(tmp_path / "guided", sampling_guidance=2.0, inference_backend="lean")
     )
-    assert "| diffusion-safe | 400 | 5.00 | 50 | 20.0 | 10.0 | 2.0 | 20.0 | 2.00 |" in table
-    assert "pac" not in table
-    assert safety_table({"pac": {}}, "x") == ""
+    cfg = make_controller("diffusion-guided", FormationParams(), options, guided).config
+    assert (cfg.num_candidates, cfg.safety_filter, cfg.sampling_guidance) == (1, "none", 2.0)
+    assert (cfg.safety_action_delay, cfg.safety_moving_obstacles) == (1, True)
+    assert make_controller("diffusion", FormationParams(), options, guided).config.sampling_guidance == 0

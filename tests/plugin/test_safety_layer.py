@@ -654,3 +654,50 @@ def test_bench_runs_route_pursuit_safe_from_a_checkpoint_without_sampling(tmp_pa
         safety["replans"] > 0
         and safety["proposals"] + safety["escapes"] + safety["stops"] == safety["replans"]
     )
+
+
+def test_sampling_guidance_is_checked_with_its_value():
+    for bad in (-1.0, True):
+        with pytest.raises(ValueError, match=f"sampling_guidance must be a finite step >= 0.*{bad!r}"):
+            nearest_config(sampling_guidance=bad, inference_backend="lean")
+    with pytest.raises(ValueError, match="must be finite numbers, got sampling_guidance=nan"):
+        nearest_config(sampling_guidance=float("nan"), inference_backend="lean")
+    for bad in (0.0, -0.2):
+        with pytest.raises(ValueError, match=f"guidance_distance must be a finite distance > 0.*{bad!r}"):
+            nearest_config(guidance_distance=bad)
+    with pytest.raises(ValueError, match="sampling_guidance > 0 runs in the lean and trace samplers"):
+        nearest_config(sampling_guidance=1.0)  # the eager backend is LeRobot's own sampler
+    with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):
+        tiny_config(sampling_guidance=1.0, inference_backend="lean")  # guidance reads the obstacles
+    assert nearest_config(sampling_guidance=1.0, inference_backend="lean").safety_layer
+
+
+def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_noise_unguided():
+    """K = 1, no filter: with ``sampling_guidance`` the sample itself is moved away from the observed
+    obstacle (the footprint's predicted clearance grows) against the same network's sample from the
+    same noise without it."""
+    from lerobot_formation.core.footprint import sequence_clearance
+    from lerobot_formation.policy.replanner import safety_geometry
+
+    template, dt, radius = safety_geometry()
+    obstacle = [0.0, 1.0, 0.4]  # straight ahead of the midpoint
+    env = _env_state([obstacle])
+    noise = torch.randn(1, HORIZON, 2, generator=torch.Generator().manual_seed(5))
+    torch.manual_seed(0)
+    plain = FormationDiffusionPolicy(nearest_config(inference_backend="lean")).eval()
+    guided = FormationDiffusionPolicy(
+        nearest_config(inference_backend="lean", sampling_guidance=5.0, guidance_distance=0.5)
+    ).eval()
+    guided.load_state_dict(plain.state_dict())
+    stacked = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in _batch(env).items()}
+    unguided = plain.sample_action_chunks(stacked, 1, noise=noise.clone())[:, 0]
+    guided.reset()
+    guided.select_action(_batch(env), noise=noise.clone())  # the first replan: the same history
+    pose = np.array([[0.0, 0.0, np.pi / 2]])
+
+    def clearance(chunk):
+        actions = guided.unnormalize_action(chunk)[None].numpy().astype(np.float64)
+        return float(sequence_clearance(pose, actions, np.array([[obstacle]]), template, dt, radius)[0][0, 0])
+
+    assert clearance(guided.replanner.plan) > clearance(unguided) + 0.05
+    assert guided.replanner.stats["replans"] == 1 and guided.replanner.stats["filter_interventions"] == 0
