@@ -395,7 +395,8 @@ def test_failing_controller_keeps_the_finished_results(tmp_path, capsys):
         bench_main([*argv, "--out", str(out), "--no-figures", "--no-progress"])
     assert e.value.code == 2
     assert last_error_line(capsys.readouterr().err).startswith(
-        "error: controller diffusion-safe: the safety layer (num_candidates=10, safety_filter='cbf') needs an egocentric"
+        "error: controller diffusion-safe: the safety layer (num_candidates=10, safety_filter='cbf', "
+        "sampling_guidance=0.0) needs an egocentric"
     )
     res = json.loads((out / "results.json").read_text())
     assert res["pac"]["n_episodes"] == 2 and "diffusion-safe" not in res

@@ -82,7 +82,7 @@ def _diffusion(
                 overrides["sampling_guidance"] = bundle[0].config.sampling_guidance or TUNED_SAMPLING_GUIDANCE
             if best_of_k or safety_filter != "none" or guided:  # a safety layer: it knows the run's actuator
                 overrides.update(safety_settings(options.conditions, options.scenes_move))
-        controller = DiffusionController(
+        return DiffusionController(
             options.policy_path,
             num_inference_steps=options.num_inference_steps,
             seed=options.seed_policy,
@@ -93,7 +93,6 @@ def _diffusion(
             experiment=experiment,
             name=name,
         )
-        return controller
 
     return factory
 

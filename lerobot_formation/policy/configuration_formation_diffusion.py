@@ -528,7 +528,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
         ):  # the layer reads body-frame obstacles and scores physical actions
             raise config_error(
-                f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}) "
+                f"the safety layer (num_candidates={self.num_candidates}, safety_filter={self.safety_filter!r}, "
+                f"sampling_guidance={self.sampling_guidance}) "
                 f"needs an egocentric obstacle encoding ({' or '.join(map(repr, egocentric_encodings()))}) and "
                 "fixed_action_bounds=true; this policy "
                 f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
