@@ -17,7 +17,7 @@ from lerobot_formation.core.dynamics import body_to_world, rollout_poses
 from lerobot_formation.core.geometry import xy_clearance
 from lerobot_formation.core.obstacle_tracker import predict_obstacles
 
-__all__ = ["rollout_poses", "sequence_clearance", "template_clearance"]
+__all__ = ["obstacles_along", "rollout_poses", "sequence_clearance", "template_clearance"]
 
 
 def template_clearance(
@@ -55,6 +55,20 @@ def template_clearance(
     return clear.reshape(shape)
 
 
+def obstacles_along(
+    obstacles: np.ndarray,
+    velocity: np.ndarray,
+    steps: int,
+    dt: float,
+    start_step: int = 0,
+    uncertainty: float = 0.0,
+) -> np.ndarray:
+    """Obstacles (B, M, 3) at constant velocity (B, M, 2) where pose k = 1..``steps`` of a sequence
+    meets them, at time (``start_step`` + k) dt -> (B, steps, M, 3) (``predict_obstacles``)."""
+    times = (start_step + 1 + np.arange(steps)) * dt
+    return predict_obstacles(obstacles, velocity, times, uncertainty)
+
+
 def sequence_clearance(
     pose: np.ndarray,
     actions: np.ndarray,
@@ -79,8 +93,7 @@ def sequence_clearance(
         clear = template_clearance(poses, obstacles, template, agent_radius)
     else:  # time folded into the batch: step k's poses against the obstacles at step k
         B, C, T, _ = poses.shape
-        times = (start_step + 1 + np.arange(T)) * dt
-        moved = predict_obstacles(obstacles, obstacle_velocity, times, mover_uncertainty)
+        moved = obstacles_along(obstacles, obstacle_velocity, T, dt, start_step, mover_uncertainty)
         at = np.ascontiguousarray(poses.transpose(0, 2, 1, 3)).reshape(B * T, C, 3)
         clear = template_clearance(at, moved.reshape(B * T, -1, 3), template, agent_radius)
         clear = clear.reshape(B, T, C).transpose(0, 2, 1)

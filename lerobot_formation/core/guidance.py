@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from lerobot_formation.core.dynamics import rollout_poses
-from lerobot_formation.core.obstacle_tracker import predict_obstacles
+from lerobot_formation.core.footprint import obstacles_along
 
 
 def clearance_cost_gradient(
@@ -70,8 +70,7 @@ def clearance_cost_gradient(
     if obstacle_velocity is None:
         centres = obstacles[:, None, None]  # (B, 1, 1, M, 3)
     else:
-        times = (start_step + 1 + np.arange(T)) * dt
-        centres = predict_obstacles(obstacles, obstacle_velocity, times)[:, None]  # (B, 1, T, M, 3)
+        centres = obstacles_along(obstacles, obstacle_velocity, T, dt, start_step)[:, None]  # (B, 1, T, M, 3)
     template = np.asarray(template, dtype=np.float64)
     N = len(template)
     radii = np.broadcast_to(np.asarray(agent_radius, dtype=np.float64), (N,)).reshape(N, 1, 1, 1, 1)

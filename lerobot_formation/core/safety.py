@@ -165,6 +165,14 @@ def predict_start(
     return ChunkStart(pose, velocity, d, max_linear_accel, max_angular_accel)
 
 
+def chunk_origin(start: ChunkStart | None, B: int) -> tuple[np.ndarray, int]:
+    """Where B command sequences start (B, 3) in the body frame, and the steps until the first runs:
+    the ``start``'s predicted pose and delay, or without one ``BODY_POSE`` at once."""
+    if start is None:
+        return np.broadcast_to(BODY_POSE, (B, 3)), 0
+    return start.pose, start.steps
+
+
 def obstacles_at_start(
     obstacles: np.ndarray, obstacle_velocity: np.ndarray | None, start: ChunkStart | None, dt: float
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -235,10 +243,7 @@ class FootprintCheck:
     mover_uncertainty: float = 0.0
 
     def _origin(self) -> tuple[np.ndarray, int]:
-        B = len(self.obstacles)
-        if self.start is None:
-            return np.broadcast_to(BODY_POSE, (B, 3)), 0
-        return self.start.pose, self.start.steps
+        return chunk_origin(self.start, len(self.obstacles))
 
     def floor(self, margin: float) -> np.ndarray:
         """(B, 1) the clearance a sequence must keep: ``margin``, or where the team is already inside

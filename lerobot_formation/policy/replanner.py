@@ -417,11 +417,8 @@ class Replanner:
         past step is left as sampled."""
         cfg = self.config
         template, dt, _ = safety_geometry()
-        if view.start is None:
-            pose, steps = np.broadcast_to(safety.BODY_POSE, (len(view.goal), 3)), 0
-        else:
-            pose, steps = view.start.pose, view.start.steps
-        velocity = view.velocity if cfg.safety_moving_obstacles else None
+        pose, steps = safety.chunk_origin(view.start, len(view.goal))
+        velocity = view.velocity  # None unless the layer predicts moving obstacles
         sample_of = np.repeat(np.arange(len(view.goal)), K)  # the episode of each of the B * K samples
         first = cfg.n_obs_steps - 1  # the sample's window starts at the step before the current one
         low, high = np.asarray(cfg.action_low), np.asarray(cfg.action_high)
