@@ -27,7 +27,9 @@ ORDER = [
     "mppi",
     "route-pursuit",
     "route-pursuit-safe",
+    "route-pursuit-guided",
     "diffusion",
+    "diffusion-guided",
     "diffusion-safe",
     "pac-privileged",
 ]
@@ -36,7 +38,9 @@ NAMES = {
     "mppi": "MPPI",
     "route-pursuit": "route pursuit",
     "route-pursuit-safe": "route pursuit + the default's safety layer",
+    "route-pursuit-guided": "route pursuit, guided",
     "diffusion": "default, standard",
+    "diffusion-guided": "default, one guided sample",
     "diffusion-safe": "default, best-of-10 + CBF",
     "pac-privileged": "privileged expert (reference: sees the true world)",
 }

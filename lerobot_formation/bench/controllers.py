@@ -12,7 +12,9 @@ The controllers with a safety layer (best-of-K or the filter) also know the run'
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
 limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
 never its noise draws. "route-pursuit-safe" runs a checkpoint's safety layer without its network: the
-candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows).
+candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows);
+"route-pursuit-guided" runs route pursuit's chunk moved by the checkpoint's clearance guidance, one
+chunk per replan as "diffusion-guided" samples (the baseline of the guided rows).
 """
 
 from __future__ import annotations
@@ -131,9 +133,11 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     # the baseline of "diffusion-safe": its whole safety layer (the checkpoint's settings, K's check,
     # escapes, filter, recheck) around route pursuit's proposal, the network never sampled
     "route-pursuit-safe": _diffusion("cbf", best_of_k=True, sampled=False),
+    # the baseline of "diffusion-guided": route pursuit's chunk moved by the same clearance guidance
+    "route-pursuit-guided": _diffusion("none", best_of_k=False, sampled=False, guided=True),
 }
 # Controllers that read a checkpoint (--policy.path) without a "diffusion" name: its safety settings
-SAFETY_LAYER_BASELINES = ("route-pursuit-safe",)
+SAFETY_LAYER_BASELINES = ("route-pursuit-safe", "route-pursuit-guided")
 CONTROLLERS = tuple(CONTROLLER_FACTORIES)
 
 

@@ -97,7 +97,9 @@ class ReplanExperiment:
         sampled: False: the network samples nothing; best-of-K's candidates are route pursuit's
             proposal and the escapes, under the same check, filter and recheck. The safety layer
             without the learned planner: the baseline the layer's rows are measured against (needs a
-            "nearest+route" config with ``safety_route_proposal``).
+            "nearest+route" config with ``safety_route_proposal``). With K = 1 and
+            ``sampling_guidance``, the plan is route pursuit's chunk moved by the sampler's clearance
+            guidance, once per denoising step the sampler would run: the baseline of guided sampling.
     """
 
     blend_steps: int = 0
@@ -233,9 +235,9 @@ class Replanner:
             raise ValueError(
                 "a replanner that samples nothing (ReplanExperiment.sampled=False) needs route pursuit's "
                 "proposal and a safety layer: a route-encoding config with safety_route_proposal and "
-                f"num_candidates > 1 or a filter, got obstacle_encoding={cfg.obstacle_encoding!r}, "
+                f"num_candidates > 1, a filter or guidance, got obstacle_encoding={cfg.obstacle_encoding!r}, "
                 f"safety_route_proposal={cfg.safety_route_proposal}, num_candidates={cfg.num_candidates}, "
-                f"safety_filter={cfg.safety_filter!r}"
+                f"safety_filter={cfg.safety_filter!r}, sampling_guidance={cfg.sampling_guidance}"
             )
         self.stats = dict.fromkeys(STAT_KEYS, 0)
         self.plan: Tensor | None = None
@@ -307,8 +309,10 @@ class Replanner:
 
     @property
     def best_of(self) -> bool:
-        """Whether replans choose among candidates (K > 1, or no samples: the proposal and escapes)."""
-        return self.config.num_candidates > 1 or not self.experiment.sampled
+        """Whether replans choose among candidates (K > 1, or no samples: the proposal and escapes,
+        except the guided proposal alone of K = 1 with ``sampling_guidance``)."""
+        cfg = self.config
+        return cfg.num_candidates > 1 or not (self.experiment.sampled or cfg.sampling_guidance)
 
     def needs_replan(self, rows: Tensor) -> Tensor:
         """Which of ``rows`` replan at their next ``act`` (B,) bool."""
@@ -408,24 +412,19 @@ class Replanner:
 
         return continuation
 
-    def _guide(self, view: SafetyView, K: int) -> Callable[[Tensor, Tensor | None], Tensor]:
-        """The sampler's clearance guidance (``sampling_guidance``) for the B = len(view) replanning
-        episodes, K samples each: x0 (n, horizon, 2) normalised of the rows ``rows`` (a mask over the
-        B * K samples; None: all) -> x0 with its commands from the current step on moved by
-        ``guidance_steps`` steps of -eta dJ/da (``core.guidance.clearance_cost_gradient``, on the
-        view's obstacles from the actuator's predicted start), each clipped to the action bounds; the
-        past step is left as sampled."""
+    def _clearance_step(self, view: SafetyView) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """One application of the clearance guidance (``sampling_guidance``) to commands of the
+        B = len(view) replanning episodes: (commands (n, T, 2) [m/s, rad/s] from the current step on,
+        the episode of each row (n,)) -> the commands moved by ``guidance_steps`` steps of -eta dJ/da
+        (``core.guidance.clearance_cost_gradient``, on the view's obstacles from the actuator's
+        predicted start), each clipped to the action bounds."""
         cfg = self.config
         template, dt, _ = safety_geometry()
         pose, steps = safety.chunk_origin(view.start, len(view.goal))
         velocity = view.velocity  # None unless the layer predicts moving obstacles
-        sample_of = np.repeat(np.arange(len(view.goal)), K)  # the episode of each of the B * K samples
-        first = cfg.n_obs_steps - 1  # the sample's window starts at the step before the current one
         low, high = np.asarray(cfg.action_low), np.asarray(cfg.action_high)
 
-        def guide(x0: Tensor, rows: Tensor | None = None) -> Tensor:
-            at = sample_of if rows is None else sample_of[rows.cpu().numpy()]
-            moved = self.policy.unnormalize_action(x0[:, first:]).cpu().numpy().astype(np.float64)
+        def step(moved: np.ndarray, at: np.ndarray) -> np.ndarray:
             for _ in range(cfg.guidance_steps):
                 _, grad = guidance.clearance_cost_gradient(
                     pose[at],
@@ -439,11 +438,40 @@ class Replanner:
                     steps,
                 )
                 moved = np.clip(moved - cfg.sampling_guidance * grad[:, 0], low, high)
+            return moved
+
+        return step
+
+    def _guide(self, view: SafetyView, K: int) -> Callable[[Tensor, Tensor | None], Tensor]:
+        """The sampler's clearance guidance for the B = len(view) replanning episodes, K samples each:
+        x0 (n, horizon, 2) normalised of the rows ``rows`` (a mask over the B * K samples; None: all)
+        -> x0 with its commands from the current step on moved by ``_clearance_step``; the past step
+        is left as sampled."""
+        step = self._clearance_step(view)
+        sample_of = np.repeat(np.arange(len(view.goal)), K)  # the episode of each of the B * K samples
+        first = self.config.n_obs_steps - 1  # the sample's window starts at the step before the current one
+
+        def guide(x0: Tensor, rows: Tensor | None = None) -> Tensor:
+            at = sample_of if rows is None else sample_of[rows.cpu().numpy()]
+            moved = step(self.policy.unnormalize_action(x0[:, first:]).cpu().numpy().astype(np.float64), at)
             out = x0.clone()
             out[:, first:] = self.policy.normalize_action(torch.from_numpy(moved).to(x0))
             return out
 
         return guide
+
+    def _guided_proposal(self, view: SafetyView) -> Tensor:
+        """Route pursuit's chunk (``pursuit_chunk`` of the view's route hint) moved by the clearance
+        guidance once per denoising step of the sampler (``num_inference_steps``): the plan of
+        ``ReplanExperiment(sampled=False)`` at K = 1 with ``sampling_guidance``, normalised
+        (B, 1, chunk_length, 2)."""
+        cfg = self.config
+        _, dt, _ = safety_geometry()
+        proposal = pursuit_chunk(view.route, view.goal, self.chunk_length, dt, cfg.action_high[1])
+        step, at = self._clearance_step(view), np.arange(len(view.goal))
+        for _ in range(cfg.num_inference_steps or cfg.num_train_timesteps):
+            proposal = step(proposal, at)
+        return self.policy.normalize_action(torch.from_numpy(proposal).to(self.plan))[:, None]
 
     def _send(self, rows: np.ndarray, action: Tensor) -> None:
         """Record the commands (normalised) sent to episodes ``rows``: the actuator model runs the
@@ -465,7 +493,9 @@ class Replanner:
     def _replan(self, need: Tensor, view: SafetyView | None, stacked: dict[str, Tensor], noise) -> None:
         cfg, ex = self.config, self.experiment
         K = cfg.num_candidates
-        if not ex.sampled:  # the layer alone: the proposal and the escapes are the candidates
+        if not ex.sampled and not self.best_of:  # route pursuit's chunk, guided
+            chunks = self._guided_proposal(view)
+        elif not ex.sampled:  # the layer alone: the proposal and the escapes are the candidates
             chunks = self.plan.new_zeros(len(need), 0, *self.plan.shape[1:])
         else:
             warm = None

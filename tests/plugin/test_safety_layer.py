@@ -701,3 +701,73 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
 
     assert clearance(guided.replanner.plan) > clearance(unguided) + 0.05
     assert guided.replanner.stats["replans"] == 1 and guided.replanner.stats["filter_interventions"] == 0
+
+
+def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_never_samples(monkeypatch):
+    """``ReplanExperiment(sampled=False)`` at K = 1 with ``sampling_guidance`` (the "route-pursuit-guided"
+    baseline): the plan is route pursuit's chunk moved by the clearance guidance once per denoising
+    step, with no best-of-K; it keeps more clearance from an obstacle beside the route than route
+    pursuit's own chunk, and equals that chunk where no obstacle is within the guidance distance."""
+    from lerobot_formation.core.footprint import sequence_clearance
+    from lerobot_formation.core.route_pursuit import pursuit_chunk
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, safety_geometry
+
+    kw = _route_proposal_config(inference_backend="lean", sampling_guidance=2.0, guidance_distance=0.5)
+    policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("the network was sampled")
+
+    monkeypatch.setattr(policy, "sample_action_chunks", no_sampling)
+    replanner = Replanner(policy, experiment=ReplanExperiment(sampled=False))
+    assert not replanner.best_of
+    template, dt, radius = safety_geometry()
+    pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.0, 6.0]])
+
+    def plan_and_proposal(obstacles):
+        obstacles = np.array([obstacles])
+        env = torch.from_numpy(
+            environment_state(obstacles, obstacles[..., 2] > 0, goal, "nearest+route", pose=pose)
+        ).float()
+        replanner.reset(1)
+        replanner.act(env, lambda rows: None)
+        view = replanner.observed_obstacles(env)
+        proposal = pursuit_chunk(
+            view.route, view.goal, replanner.chunk_length, dt, policy.config.action_high[1]
+        )
+        return policy.unnormalize_action(replanner.plan).numpy().astype(np.float64), proposal, view
+
+    plan, proposal, _ = plan_and_proposal([[FAR, FAR, 0.0]])
+    np.testing.assert_allclose(plan, proposal, atol=1e-5)  # nothing within the guidance distance
+
+    obstacle = [0.75, 1.2, 0.3]  # right of the straight route, within 0.5 m of the right-hand agents
+    plan, proposal, view = plan_and_proposal([obstacle])
+    body = np.array([[[0.0, 0.0, np.pi / 2]]])[0]
+
+    def clearance(actions):
+        return float(sequence_clearance(body, actions[None], view.obstacles, template, dt, radius)[0][0, 0])
+
+    assert clearance(plan) > clearance(proposal) + 0.02
+    assert replanner.stats["replans"] == 1 and replanner.stats["proposals"] == 0
+
+
+def test_bench_runs_route_pursuit_guided_from_a_checkpoint_without_sampling(tmp_path, monkeypatch):
+    """``--controllers route-pursuit-guided`` on a level with moving obstacles: the checkpoint's
+    guidance (or the tuned one) moves route pursuit's chunk, one per replan, the network never sampled."""
+    import json
+
+    from lerobot_formation.bench import cli
+    from lerobot_formation.bench.controllers import needs_policy
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("the network was sampled")
+
+    assert needs_policy("route-pursuit-guided")
+    monkeypatch.setattr(FormationDiffusionPolicy, "sample_action_chunks", no_sampling)
+    ckpt = save_nearest_checkpoint(tmp_path / "ckpt", **_route_proposal_config(inference_backend="lean"))
+    out = tmp_path / "out"
+    argv = ["--controllers", "route-pursuit-guided", "--policy.path", str(ckpt), "--scenes", "level5:2"]
+    assert cli.main([*argv, "--threads", "1", "--no-figures", "--no-progress", "--out", str(out)]) == 0
+    res = json.loads((out / "results.json").read_text())["route-pursuit-guided"]
+    assert res["n_episodes"] == 2
+    assert res["safety"]["replans"] > 0 and res["safety"]["proposals"] == res["safety"]["escapes"] == 0
