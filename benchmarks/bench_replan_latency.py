@@ -412,11 +412,14 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     other_warm = "first candidate warm" if cfg.warm_start_all_candidates else "all candidates warm"
     # every variant sets all these fields: reconfigure keeps what an earlier variant changed
     guided = {**shipped, "sampling_guidance": cfg.sampling_guidance or TUNED_SAMPLING_GUIDANCE}
+    unguided = {**shipped, "sampling_guidance": 0.0}
+    # best-of-K with the other guidance setting than the checkpoint's
+    other_guidance = f"K={k}, unguided" if cfg.sampling_guidance else f"K={k}, guided"
     variants = [  # label, K, scorer, config fields, plain trace
-        ("K=1", 1, None, shipped, False),
+        ("K=1", 1, None, unguided, False),  # standard sampling
         ("K=1, guided", 1, None, guided, False),
         (f"K={k}", k, None, shipped, False),
-        (f"K={k}, guided", k, None, guided, False),
+        (other_guidance, k, None, unguided if cfg.sampling_guidance else guided, False),
         (f"K={k}, whole field", k, whole_field, shipped, False),
     ]
     if shipped != PREVIOUS_DEFAULT:  # the default's best-of-K before 2026-12-05 (late), same weights
@@ -452,7 +455,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         extra += f", previous default {med[previous]:.1f} ms (ratio {med[previous] / ours:.2f}x)"
     if f"K={k}, {other_warm}" in med:
         extra += f", {other_warm} {med[f'K={k}, {other_warm}']:.1f} ms"
-    extra += f", guided {med[f'K={k}, guided']:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
+    extra += f", {other_guidance.split(', ')[1]} {med[other_guidance]:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
         f"{extra} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x; plain trace "

@@ -273,9 +273,10 @@ $PY scripts/derive_checkpoint.py $SAFE $SAFE --set safety_route_proposal=true --
   --set safety_progress_resolution=0.4 --set safety_progress_interpolation=bilinear \
   --set warm_start_all_candidates=true --set chunk_smoothing=2 \
   --set "safety_escape_speeds=[0,0.1,0.2,0.3,0.45,0.6]" --set safety_mover_uncertainty=0.10 --set safety_fallback_all=true \
-  --set safety_recheck=true --set cbf_rate=4.0 --set safety_halt_lookahead=20
+  --set safety_recheck=true --set cbf_rate=4.0 --set safety_halt_lookahead=20 --set sampling_guidance=1.0
 for k in 0 1 2 3 4 5; do
-  $BIN/lerobot-formation-bench --controllers pac,mppi,route-pursuit,route-pursuit-safe,diffusion,diffusion-safe,pac-privileged \
+  $BIN/lerobot-formation-bench \
+    --controllers pac,mppi,route-pursuit,route-pursuit-safe,route-pursuit-guided,diffusion,diffusion-guided,diffusion-safe,pac-privileged \
     --policy.path $SAFE --scenes level$k:500 --threads 1 --no-figures --no-progress --out outputs/levels/level$k \
     | tee $OUT/level$k.log
 done

@@ -158,7 +158,7 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     torch.set_num_threads(1)
     headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
     assert "K=2 with the safety layer" in headline and "plain trace" in headline
-    shipped = grids[0]
+    shipped = grids[2]  # the K = 2 run with the config as shipped (K = 1 runs unguided and guided first)
     if shipped != bench.PREVIOUS_DEFAULT:  # the previous default's best-of-K, timed in the same run
         assert grids.count(bench.PREVIOUS_DEFAULT) == 1 and "previous default" in headline
     toggled = {**shipped, "warm_start_all_candidates": not shipped["warm_start_all_candidates"]}
@@ -166,9 +166,16 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
     assert plain.count(True) == 1  # the policy's trace against a plain one, in the same run
     assert all(delay == 1 and moving for delay, moving, _ in seen), seen
-    # clearance guidance at K = 1 and K = 2 beside the unguided runs, every other variant unguided
-    assert guided[:4] == [(1, 0.0), (1, 1.0), (2, 0.0), (2, 1.0)] and "K=1 guided" in headline
-    assert all(g == 0.0 for _, g in guided[4:])
+    # standard sampling (unguided) and one guided sample at K = 1; best-of-K with the checkpoint's
+    # guidance and with the other setting; every other variant as the checkpoint, the previous default unguided
+    g = shipped["sampling_guidance"]
+    assert (
+        guided[:4] == [(1, 0.0), (1, g or 1.0), (2, g), (2, 0.0 if g else 1.0)] and "K=1 guided" in headline
+    )
+    assert all(
+        gg == (0.0 if grid == bench.PREVIOUS_DEFAULT else g)
+        for (_, gg), grid in zip(guided[4:], grids[4:], strict=True)
+    )
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
 
 
