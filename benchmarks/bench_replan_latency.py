@@ -414,7 +414,8 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     guided = {**shipped, "sampling_guidance": cfg.sampling_guidance or TUNED_SAMPLING_GUIDANCE}
     unguided = {**shipped, "sampling_guidance": 0.0}
     # best-of-K with the other guidance setting than the checkpoint's
-    other_guidance = f"K={k}, unguided" if cfg.sampling_guidance else f"K={k}, guided"
+    other_setting = "unguided" if cfg.sampling_guidance else "guided"
+    other_guidance = f"K={k}, {other_setting}"
     variants = [  # label, K, scorer, config fields, plain trace
         ("K=1", 1, None, unguided, False),  # standard sampling
         ("K=1, guided", 1, None, guided, False),
@@ -455,7 +456,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         extra += f", previous default {med[previous]:.1f} ms (ratio {med[previous] / ours:.2f}x)"
     if f"K={k}, {other_warm}" in med:
         extra += f", {other_warm} {med[f'K={k}, {other_warm}']:.1f} ms"
-    extra += f", {other_guidance.split(', ')[1]} {med[other_guidance]:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
+    extra += f", {other_setting} {med[other_guidance]:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
         f"{extra} (whole-field scorer {base:.1f} ms, ratio {base / ours:.2f}x; plain trace "

@@ -99,7 +99,8 @@ class ReplanExperiment:
             without the learned planner: the baseline the layer's rows are measured against (needs a
             "nearest+route" config with ``safety_route_proposal``). With K = 1 and
             ``sampling_guidance``, the plan is route pursuit's chunk moved by the sampler's clearance
-            guidance, once per denoising step the sampler would run: the baseline of guided sampling.
+            guidance ``num_inference_steps`` times (the sampler's steps from noise; its warm-started
+            replans run ``warm_start_step`` fewer): the baseline of guided sampling.
     """
 
     blend_steps: int = 0
@@ -462,7 +463,8 @@ class Replanner:
 
     def _guided_proposal(self, view: SafetyView) -> Tensor:
         """Route pursuit's chunk (``pursuit_chunk`` of the view's route hint) moved by the clearance
-        guidance once per denoising step of the sampler (``num_inference_steps``): the plan of
+        guidance ``num_inference_steps`` times (as the sampler from noise; warm-started, it runs
+        ``warm_start_step`` fewer guided steps): the plan of
         ``ReplanExperiment(sampled=False)`` at K = 1 with ``sampling_guidance``, normalised
         (B, 1, chunk_length, 2)."""
         cfg = self.config
