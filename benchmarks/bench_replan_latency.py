@@ -51,8 +51,18 @@ Run (full size)::
     when it runs. ``--level levelK``: the level's scenes (its first seeds) under its conditions instead,
     with the safety layer told the conditions as the bench tells it (``safety_settings``).
 
-``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (d) when it
-runs (``replan latency B=1 via select_action: student K=1 ...``), else of (c) when it
+(f) Where that replan's time goes (``--parts f``): part (e)'s scenes (``--level`` as there) at K =
+    max(``--lean-candidates``) with the checkpoint's config, each stage of ``select_action``'s
+    replanner timed by patching its function for the run (``StageClock``): per replan the sampling
+    (the denoiser calls, the clearance guidance, the rest) and best-of-K's scoring, per step the
+    safety view and the recheck. Its last line gives the stages' sum against the measured mean
+    replan step (their ratio): what a faster replan has to cut, e.g.::
+
+        HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts f \
+            --level level5 --safety-scenes 10 --threads 1
+
+``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (f) when it
+runs, else of (e) when it runs, else of (d) when it runs (``replan latency B=1 via select_action: student K=1 ...``), else of (c) when it
 runs (``replan latency B=1 K=1: ...``: the trace backend against the eager baseline at the first of
 ``--lean-steps``), else the ratio of (a): stock DDPM-100 select_action over our batched DDIM per episode.
 """
@@ -372,6 +382,138 @@ def episode_replans_ms(
     return times, actions
 
 
+def layer_setup(path: str, scenes: int, level: str | None = None):
+    """The checkpoint at ``path`` with the traced U-Net, and the scenes of parts (e) and (f):
+    (policy, pre, post, seeds, env_kwargs, where). ``scenes`` unseen paper scenes, or with ``level``
+    that level's first scenes under its conditions, the policy's safety layer told them as the bench
+    tells it (``safety_settings``)."""
+    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.policy.checkpoint import load_policy
+
+    policy, pre, post = load_policy(path)
+    policy.reconfigure(inference_backend="trace")
+    seeds = UNSEEN_SEED_START + np.arange(scenes)
+    env_kwargs, where = None, f"{scenes} unseen paper scenes"
+    if level is not None:
+        from lerobot_formation.bench.controllers import safety_settings
+        from lerobot_formation.core.levels import get_level
+        from lerobot_formation.envs.env_config import FormationEnvConfig
+
+        env_cfg = FormationEnvConfig(level=level, obstacle_encoding=policy.config.obstacle_encoding)
+        env_kwargs = {k_: v for k_, v in env_cfg.gym_kwargs.items() if k_ != "render_mode"}
+        seeds = get_level(level).seed + np.arange(scenes)
+        policy.reconfigure(**safety_settings(env_cfg.conditions()))
+        where = f"{scenes} scenes of {level} under its conditions"
+    return policy, pre, post, seeds, env_kwargs, where
+
+
+class StageClock:
+    """Wall time [s] and calls per stage of ``select_action``'s replanner, by patching the stages'
+    functions for the duration of a ``with`` block (restored after): the step's safety view
+    (``Replanner.view``) and recheck (``Replanner._recheck``), the K candidates' sampling
+    (``sample_action_chunks``), inside it every denoiser call (the callable ``_LeanCache.unet``
+    returns) and every clearance-guidance step (the closure ``Replanner._guide`` returns), and
+    best-of-K's scoring (``Replanner.choose``)."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self._undo: list = []
+
+    def _add(self, label: str, fn):
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[label] = self.seconds.get(label, 0.0) + time.perf_counter() - t0
+                self.calls[label] = self.calls.get(label, 0) + 1
+
+        return timed
+
+    def _patch(self, owner, name: str, wrapper) -> None:
+        real = owner.__dict__[name]
+        self._undo.append((owner, name, real))
+        setattr(owner, name, wrapper(real))
+
+    def __enter__(self):
+        from lerobot_formation.policy import modeling_formation_diffusion as modeling
+        from lerobot_formation.policy.replanner import Replanner
+
+        for owner, name, label in (
+            (Replanner, "view", "view"),
+            (Replanner, "_recheck", "recheck"),
+            (Replanner, "choose", "scoring"),
+            (modeling.FormationDiffusionPolicy, "sample_action_chunks", "sampling"),
+        ):
+            self._patch(owner, name, lambda real, label=label: self._add(label, real))
+        # the callables these return are what runs: time each call of them
+        self._patch(
+            modeling._LeanCache, "unet", lambda real: lambda *a, **k: self._add("U-Net", real(*a, **k))
+        )
+        self._patch(Replanner, "_guide", lambda real: lambda *a, **k: self._add("guidance", real(*a, **k)))
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, real in reversed(self._undo):
+            setattr(owner, name, real)
+        self._undo.clear()
+
+    def clear(self) -> None:
+        self.seconds.clear()
+        self.calls.clear()
+
+
+def stage_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
+    """Print part (f); return its headline: where a best-of-K replan's time goes, at B = 1 through
+    ``select_action`` over whole episodes (``episode_replans_ms``, the checkpoint's config at K = k):
+    per replan the sampling (the denoiser calls, the clearance guidance, the rest: conditioning and
+    DDIM arithmetic) and best-of-K's scoring, per step the safety view and the recheck
+    (``StageClock``). The stages' sum is printed beside the measured mean replan step, their ratio
+    on the last line (a replan step runs one view and one recheck: the rest is the processors, the
+    queue and the filter)."""
+    policy, pre, post, seeds, env_kwargs, where = layer_setup(path, scenes, level)
+    policy.reconfigure(num_candidates=k)
+    cfg = policy.config
+    with StageClock() as clock:
+        episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds[:1], None, env_kwargs)  # warm-up
+        clock.clear()
+        times, actions = episode_replans_ms(policy, pre, post, cfg.obstacle_encoding, seeds, None, env_kwargs)
+    replans, steps = len(times), len(actions)
+    sec, calls = clock.seconds, clock.calls
+    per_replan = {
+        name: 1e3 * sec.get(name, 0.0) / replans for name in ("sampling", "U-Net", "guidance", "scoring")
+    }
+    per_step = {name: 1e3 * sec.get(name, 0.0) / max(calls.get(name, 0), 1) for name in ("view", "recheck")}
+    rest = per_replan["sampling"] - per_replan["U-Net"] - per_replan["guidance"]
+    total = statistics.fmean(times)
+    stages = per_replan["sampling"] + per_replan["scoring"] + per_step["view"] + per_step["recheck"]
+    unet_calls = calls.get("U-Net", 0) / replans
+    print(
+        f"(f) where a replan's time goes: K={k}, B=1, through select_action over whole episodes of {where} "
+        f"({replans} replans in {steps} steps; {path}, DDIM {cfg.num_inference_steps}, warm start "
+        f"{cfg.warm_start_step}, sampling_guidance {cfg.sampling_guidance:g}; means):"
+    )
+    print(
+        f"    a replan step (select_action)      {total:6.2f} ms (median {statistics.median(times):.2f} ms)"
+    )
+    print(
+        f"    sampling                           {per_replan['sampling']:6.2f} ms: {unet_calls:.2f} U-Net calls "
+        f"of {per_replan['U-Net'] / max(unet_calls, 1e-9):.2f} ms = {per_replan['U-Net']:.2f} ms, clearance "
+        f"guidance {per_replan['guidance']:.2f} ms, the rest (conditioning, DDIM steps) {rest:.2f} ms"
+    )
+    print(f"    best-of-K scoring                  {per_replan['scoring']:6.2f} ms")
+    print(f"    safety view (every step)           {per_step['view']:6.2f} ms")
+    print(f"    recheck (every step)               {per_step['recheck']:6.2f} ms")
+    print(f"    the stages' sum                    {stages:6.2f} ms")
+    return (
+        f"replan stages B=1 K={k}: U-Net {per_replan['U-Net']:.1f} ms ({unet_calls:.2f} calls), guidance "
+        f"{per_replan['guidance']:.1f} ms, sampling's rest {rest:.1f} ms, scoring {per_replan['scoring']:.1f} ms, "
+        f"view {per_step['view']:.1f} ms, recheck {per_step['recheck']:.1f} ms: the stages sum to {stages:.1f} of "
+        f"{total:.1f} ms a replan step (ratio {stages / total:.2f}; {torch.get_num_threads()} thread(s))"
+    )
+
+
 def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
     """Print part (e); return its headline: the replan latency at B=1 through ``select_action`` over
     whole episodes of ``scenes`` unseen paper scenes (``episode_replans_ms``), standard (K = 1) and with
@@ -381,26 +523,10 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     convergence (``cost_to_go(...).at``, as before). Both keep the same chunks (checked: the same actions).
     ``level``: that level's scenes and conditions instead of unseen paper scenes."""
     from lerobot_formation.core import navigation
-    from lerobot_formation.core.scene import UNSEEN_SEED_START
-    from lerobot_formation.policy.checkpoint import load_policy
     from lerobot_formation.policy.configuration_formation_diffusion import TUNED_SAMPLING_GUIDANCE
 
-    policy, pre, post = load_policy(path)
-    policy.reconfigure(inference_backend="trace")
+    policy, pre, post, seeds, env_kwargs, where = layer_setup(path, scenes, level)
     cfg = policy.config
-    seeds = UNSEEN_SEED_START + np.arange(scenes)
-    env_kwargs, where = None, f"{scenes} unseen paper scenes"
-    if level is not None:
-        from lerobot_formation.bench.controllers import safety_settings
-        from lerobot_formation.core.levels import get_level
-        from lerobot_formation.envs.env_config import FormationEnvConfig
-
-        env_cfg = FormationEnvConfig(level=level, obstacle_encoding=cfg.obstacle_encoding)
-        env_kwargs = {k_: v for k_, v in env_cfg.gym_kwargs.items() if k_ != "render_mode"}
-        seeds = get_level(level).seed + np.arange(scenes)
-        policy.reconfigure(**safety_settings(env_cfg.conditions()))
-        cfg = policy.config
-        where = f"{scenes} scenes of {level} under its conditions"
 
     def whole_field(obstacles, goal, points, rows=None, bilinear=False, **kw):
         return navigation.cost_to_go(obstacles, goal, **kw).at(points, rows, bilinear)
@@ -535,6 +661,9 @@ def main(argv: list[str] | None = None) -> int:
     if "e" in args.parts:
         path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(safety_part(path, max(args.lean_candidates), args.safety_scenes, args.level))
+    if "f" in args.parts:
+        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
+        print(stage_part(path, max(args.lean_candidates), args.safety_scenes, args.level))
     return 0
 
 

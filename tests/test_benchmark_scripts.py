@@ -179,6 +179,36 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
 
 
+@pytest.mark.slow
+def test_replan_stages_time_every_stage_and_restore_the_replanner(capsys):
+    """Part (f): each stage of a best-of-K replan is timed (the denoiser calls and the guidance inside
+    the sampling), the stages' sum is set beside the measured replan step, and every patched
+    function is the original again after the run."""
+    import torch
+
+    from lerobot_formation.policy import modeling_formation_diffusion as modeling
+    from lerobot_formation.policy.replanner import Replanner
+
+    bench = _script("benchmarks/bench_replan_latency.py")
+    before = (
+        Replanner.view,
+        Replanner._recheck,
+        Replanner.choose,
+        Replanner._guide,
+        modeling._LeanCache.unet,
+    )
+    torch.set_num_threads(1)
+    headline = bench.stage_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
+    after = (Replanner.view, Replanner._recheck, Replanner.choose, Replanner._guide, modeling._LeanCache.unet)
+    assert after == before
+    out = capsys.readouterr().out
+    assert "1 scenes of level5 under its conditions" in out and "sampling_guidance 1" in out
+    calls = float(headline.split("U-Net ")[1].split("(")[1].split(" calls")[0])
+    assert 1.0 <= calls <= 4.0  # DDIM 4, warm-started replans run 3 (the first 4)
+    ratio = float(headline.split("(ratio ")[1].split(";")[0])
+    assert 0.5 < ratio <= 1.05  # the stages are inside the replan step, and most of it
+
+
 def test_unet_flops_counts_two_per_multiply_add():
     import torch
 
