@@ -53,9 +53,9 @@ Run (full size)::
 
 (f) Where that replan's time goes (``--parts f``): part (e)'s scenes (``--level`` as there) at K =
     max(``--lean-candidates``) with the checkpoint's config, each stage of ``select_action``'s
-    replanner timed by patching its function for the run (``StageClock``): per replan the sampling
-    (the denoiser calls, the clearance guidance, the rest) and best-of-K's scoring, per step the
-    safety view and the recheck. Its last line gives the stages' sum against the measured mean
+    replanner timed by patching its function for the run (``StageClock``): per replan step the
+    sampling (the denoiser calls, the clearance guidance, the rest), best-of-K's scoring, and that
+    step's safety view and recheck (their means over every step beside). Its last line gives the stages' sum against the measured mean
     replan step (their ratio): what a faster replan has to cut, e.g.::
 
         HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts f \
@@ -413,11 +413,17 @@ class StageClock:
     (``Replanner.view``) and recheck (``Replanner._recheck``), the K candidates' sampling
     (``sample_action_chunks``), inside it every denoiser call (the callable ``_LeanCache.unet``
     returns) and every clearance-guidance step (the closure ``Replanner._guide`` returns), and
-    best-of-K's scoring (``Replanner.choose``)."""
+    best-of-K's scoring (``Replanner.choose``). The view and the recheck run at every step; their time
+    at the steps that replanned (``Replanner.act`` calls that added a replan) is kept apart
+    (``at_replans``), so a replan step's stages add up to what that step ran."""
+
+    PER_STEP = ("view", "recheck")
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
         self.calls: dict[str, int] = {}
+        self.at_replans: dict[str, float] = {}
+        self._step: dict[str, float] = {}
         self._undo: list = []
 
     def _add(self, label: str, fn):
@@ -426,13 +432,27 @@ class StageClock:
             try:
                 return fn(*args, **kwargs)
             finally:
-                self.seconds[label] = self.seconds.get(label, 0.0) + time.perf_counter() - t0
+                dt = time.perf_counter() - t0
+                self.seconds[label] = self.seconds.get(label, 0.0) + dt
                 self.calls[label] = self.calls.get(label, 0) + 1
+                self._step[label] = self._step.get(label, 0.0) + dt
 
         return timed
 
+    def _act(self, real):
+        def act(replanner, *args, **kwargs):
+            self._step.clear()
+            before = replanner.stats["replans"] if replanner.stats is not None else 0
+            out = real(replanner, *args, **kwargs)
+            if replanner.stats["replans"] > before:
+                for label in self.PER_STEP:
+                    self.at_replans[label] = self.at_replans.get(label, 0.0) + self._step.get(label, 0.0)
+            return out
+
+        return act
+
     def _patch(self, owner, name: str, wrapper) -> None:
-        real = owner.__dict__[name]
+        real = owner.__dict__[name]  # the class's own function: restored as it was
         self._undo.append((owner, name, real))
         setattr(owner, name, wrapper(real))
 
@@ -452,6 +472,7 @@ class StageClock:
             modeling._LeanCache, "unet", lambda real: lambda *a, **k: self._add("U-Net", real(*a, **k))
         )
         self._patch(Replanner, "_guide", lambda real: lambda *a, **k: self._add("guidance", real(*a, **k)))
+        self._patch(Replanner, "act", self._act)
         return self
 
     def __exit__(self, *exc):
@@ -462,16 +483,16 @@ class StageClock:
     def clear(self) -> None:
         self.seconds.clear()
         self.calls.clear()
+        self.at_replans.clear()
 
 
 def stage_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
     """Print part (f); return its headline: where a best-of-K replan's time goes, at B = 1 through
     ``select_action`` over whole episodes (``episode_replans_ms``, the checkpoint's config at K = k):
-    per replan the sampling (the denoiser calls, the clearance guidance, the rest: conditioning and
-    DDIM arithmetic) and best-of-K's scoring, per step the safety view and the recheck
-    (``StageClock``). The stages' sum is printed beside the measured mean replan step, their ratio
-    on the last line (a replan step runs one view and one recheck: the rest is the processors, the
-    queue and the filter)."""
+    per replan step the sampling (the denoiser calls, the clearance guidance, the rest: conditioning
+    and DDIM arithmetic), best-of-K's scoring, and that step's safety view and recheck (``StageClock``;
+    their means over every step beside). The stages' sum is printed beside the measured mean replan
+    step, their ratio on the last line (what is left: the processors, the action queue, the filter)."""
     policy, pre, post, seeds, env_kwargs, where = layer_setup(path, scenes, level)
     policy.reconfigure(num_candidates=k)
     cfg = policy.config
@@ -484,10 +505,12 @@ def stage_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
     per_replan = {
         name: 1e3 * sec.get(name, 0.0) / replans for name in ("sampling", "U-Net", "guidance", "scoring")
     }
-    per_step = {name: 1e3 * sec.get(name, 0.0) / max(calls.get(name, 0), 1) for name in ("view", "recheck")}
+    for name in StageClock.PER_STEP:  # at the steps that replanned; beside, the mean over every step
+        per_replan[name] = 1e3 * clock.at_replans.get(name, 0.0) / replans
+    per_step = {name: 1e3 * sec.get(name, 0.0) / max(calls.get(name, 0), 1) for name in StageClock.PER_STEP}
     rest = per_replan["sampling"] - per_replan["U-Net"] - per_replan["guidance"]
     total = statistics.fmean(times)
-    stages = per_replan["sampling"] + per_replan["scoring"] + per_step["view"] + per_step["recheck"]
+    stages = sum(per_replan[name] for name in ("sampling", "scoring", *StageClock.PER_STEP))
     unet_calls = calls.get("U-Net", 0) / replans
     print(
         f"(f) where a replan's time goes: K={k}, B=1, through select_action over whole episodes of {where} "
@@ -503,13 +526,17 @@ def stage_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
         f"guidance {per_replan['guidance']:.2f} ms, the rest (conditioning, DDIM steps) {rest:.2f} ms"
     )
     print(f"    best-of-K scoring                  {per_replan['scoring']:6.2f} ms")
-    print(f"    safety view (every step)           {per_step['view']:6.2f} ms")
-    print(f"    recheck (every step)               {per_step['recheck']:6.2f} ms")
+    print(
+        f"    safety view                        {per_replan['view']:6.2f} ms (every step: {per_step['view']:.2f} ms)"
+    )
+    print(
+        f"    recheck                            {per_replan['recheck']:6.2f} ms (every step: {per_step['recheck']:.2f} ms)"
+    )
     print(f"    the stages' sum                    {stages:6.2f} ms")
     return (
         f"replan stages B=1 K={k}: U-Net {per_replan['U-Net']:.1f} ms ({unet_calls:.2f} calls), guidance "
         f"{per_replan['guidance']:.1f} ms, sampling's rest {rest:.1f} ms, scoring {per_replan['scoring']:.1f} ms, "
-        f"view {per_step['view']:.1f} ms, recheck {per_step['recheck']:.1f} ms: the stages sum to {stages:.1f} of "
+        f"view {per_replan['view']:.1f} ms, recheck {per_replan['recheck']:.1f} ms: the stages sum to {stages:.1f} of "
         f"{total:.1f} ms a replan step (ratio {stages / total:.2f}; {torch.get_num_threads()} thread(s))"
     )
 

@@ -203,6 +203,7 @@ def test_replan_stages_time_every_stage_and_restore_the_replanner(capsys):
     assert after == before
     out = capsys.readouterr().out
     assert "1 scenes of level5 under its conditions" in out and "sampling_guidance 1" in out
+    assert out.count("(every step: ") == 2  # the view and the recheck: at the replan steps, and over all
     calls = float(headline.split("U-Net ")[1].split("(")[1].split(" calls")[0])
     assert 1.0 <= calls <= 4.0  # DDIM 4, warm-started replans run 3 (the first 4)
     ratio = float(headline.split("(ratio ")[1].split(";")[0])
