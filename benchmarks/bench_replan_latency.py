@@ -55,8 +55,9 @@ Run (full size)::
     max(``--lean-candidates``) with the checkpoint's config, each stage of ``select_action``'s
     replanner timed by patching its function for the run (``StageClock``): per replan step the
     sampling (the denoiser calls, the clearance guidance, the rest), best-of-K's scoring, and that
-    step's safety view and recheck (their means over every step beside). Its last line gives the stages' sum against the measured mean
-    replan step (their ratio): what a faster replan has to cut, e.g.::
+    step's safety view and recheck (their means over every step beside). Its last line gives the
+    stages' sum against the measured mean replan step (their ratio): what a faster replan has to
+    cut, e.g.::
 
         HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts f \
             --level level5 --safety-scenes 10 --threads 1
@@ -442,7 +443,7 @@ class StageClock:
     def _act(self, real):
         def act(replanner, *args, **kwargs):
             self._step.clear()
-            before = replanner.stats["replans"] if replanner.stats is not None else 0
+            before = replanner.stats["replans"]
             out = real(replanner, *args, **kwargs)
             if replanner.stats["replans"] > before:
                 for label in self.PER_STEP:
@@ -675,21 +676,18 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"    stock select_action, 1 episode: {1e3 * stock:.1f} ms per replan")
 
+    path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")  # parts c-f
     if "a" in args.parts:
         paper_part(args)
     if "c" in args.parts:
-        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(lean_part(path, args.lean_candidates, args.lean_steps, args.lean_repeats))
     if "d" in args.parts or (args.student and "d" not in args.parts and args.parts == "abc"):
         if not args.student:
             ap.error("part (d) needs --student PATH (a distilled checkpoint)")
-        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(student_part(path, args.student, args.lean_candidates, 10 * args.repeats))
     if "e" in args.parts:
-        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(safety_part(path, max(args.lean_candidates), args.safety_scenes, args.level))
     if "f" in args.parts:
-        path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")
         print(stage_part(path, max(args.lean_candidates), args.safety_scenes, args.level))
     return 0
 
