@@ -527,12 +527,8 @@ def stage_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
         f"guidance {per_replan['guidance']:.2f} ms, the rest (conditioning, DDIM steps) {rest:.2f} ms"
     )
     print(f"    best-of-K scoring                  {per_replan['scoring']:6.2f} ms")
-    print(
-        f"    safety view                        {per_replan['view']:6.2f} ms (every step: {per_step['view']:.2f} ms)"
-    )
-    print(
-        f"    recheck                            {per_replan['recheck']:6.2f} ms (every step: {per_step['recheck']:.2f} ms)"
-    )
+    for name, label in zip(StageClock.PER_STEP, ("safety view", "recheck"), strict=True):
+        print(f"    {label:<35}{per_replan[name]:6.2f} ms (every step: {per_step[name]:.2f} ms)")
     print(f"    the stages' sum                    {stages:6.2f} ms")
     return (
         f"replan stages B=1 K={k}: U-Net {per_replan['U-Net']:.1f} ms ({unet_calls:.2f} calls), guidance "

@@ -706,8 +706,9 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
 def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_never_samples(monkeypatch):
     """``ReplanExperiment(sampled=False)`` at K = 1 with ``sampling_guidance`` (the "route-pursuit-guided"
     baseline): the plan is route pursuit's chunk moved by the clearance guidance
-    ``num_inference_steps`` times, with no best-of-K; it keeps more clearance from an obstacle beside the route than route
-    pursuit's own chunk, and equals that chunk where no obstacle is within the guidance distance."""
+    ``num_inference_steps`` times, with no best-of-K; it keeps more clearance from an obstacle beside
+    the route than route pursuit's own chunk, and equals that chunk where no obstacle is within the
+    guidance distance."""
     from lerobot_formation.core.footprint import sequence_clearance
     from lerobot_formation.core.route_pursuit import pursuit_chunk
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, safety_geometry
