@@ -5,7 +5,7 @@ and how long the team had already been that close.
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
         [--safety-margin 0.11] [--follower-margin 0.03] [--layer-ignores-noise] [--layer-ignores-motion] \
         [--route-proposal on|off] [--route-lookahead N] [--coherence W] [--proposal-blend M] \
-        [--halt-lookahead N]
+        [--halt-lookahead N] [--trace EPISODE ...] [--trace-steps N]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
 level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin
@@ -27,6 +27,17 @@ line gives that obstacle's speed over the last step and the part of it towards t
 how many of those struck a team that was not closing on the mover (``core.metrics.mover_strikes``), and
 the mean jerk and control smoothness of the successful episodes (``core.metrics``).
 ``--controller pac-privileged`` (no checkpoint) reports the privileged expert, on the true world.
+
+``--trace EPISODE ...`` then prints the last ``--trace-steps`` steps (default 30) of those episodes
+(their numbers in this run, as the collision lines give them), one line a step (``trace_lines``): the
+midpoint pose, the command sent and the one executed, the team's smallest gap and to which obstacle,
+the nearest moving obstacle (its gap, where it is in the team's frame, its speed and how much of it
+comes towards the team) and, for a controller with a safety layer, what the layer did at that step
+(``bench.level_report.recording_replanner``): a replan (cut: the recheck or the filter ended the
+plan early), how many of the scored chunks were safe, and what it kept (a sample, route pursuit's
+proposal, an escape manoeuvre, or the fallback where nothing was safe), and whether the filter
+changed the command. An episode's outcome depends on the batch it ran in (the noise is drawn for
+the whole batch), so a trace is of this run's episode: the same flags give it again.
 """
 
 from __future__ import annotations
@@ -87,22 +98,102 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
     return lines, dwelt, movers, int(struck.sum())
 
 
+# what a replan kept, other than one of the samples (``bench.level_report.EVENTS``)
+KEPT = (("escape", "an escape"), ("proposal", "the proposal"), ("fallback", "the fallback"))
+
+
+def trace_lines(rec, scenes, params, b: int, steps: int = 30, recorder=None) -> list[str]:
+    """The last ``steps`` steps of episode ``b`` of the records ``rec``, one line a step (module
+    docstring); ``recorder``: the run's ``bench.level_report.recording_replanner``, or None."""
+    n = int(rec.steps[b])
+    paths = rec.obstacle_paths  # the true centres at every frame under conditions; else static
+    real = scenes.mask[b]
+    radius = scenes.obstacles[b, :, 2]
+    lines = []
+    for t in range(max(0, n - steps), n + 1):
+        centres = paths[b, t] if paths is not None else scenes.obstacles[b, :, :2]
+        later = paths[b, min(t + 1, n)] if paths is not None else centres
+        earlier = paths[b, max(t - 1, 0)] if paths is not None else centres
+        velocity = (later - earlier) / (params.dt * max(min(t + 1, n) - max(t - 1, 0), 1))  # (M, 2)
+        pos = rec.positions[b, t]  # (N, 2)
+        gap = np.linalg.norm(pos[:, None] - centres[None], axis=-1) - radius - params.agent_radius  # (N, M)
+        gap = np.where(real[None], gap, np.inf)
+        agent, hit = np.unravel_index(np.argmin(gap), gap.shape)
+        x, y, phi = rec.poses[b, t]
+        line = f"step {t:4d} pose ({x:6.2f}, {y:6.2f}, {np.degrees(phi) % 360:5.1f} deg)"
+        if t < n:
+            sent = rec.commands[b, t] if rec.commands is not None else rec.actions[b, t]
+            ran = rec.actions[b, t]
+            line += f" sent ({sent[0]:.2f}, {sent[1]:+.2f}) ran ({ran[0]:.2f}, {ran[1]:+.2f})"
+        line += f" | gap {gap[agent, hit]:+.3f} m (agent {agent}, obstacle {hit})"
+        moving = real & (np.linalg.norm(velocity, axis=-1) > 1e-6)
+        if moving.any():
+            m = int(np.argmin(np.where(moving, gap.min(axis=0), np.inf)))
+            near = int(np.argmin(gap[:, m]))
+            ahead = np.array([np.cos(phi), np.sin(phi)])
+            right = np.array([np.sin(phi), -np.cos(phi)])
+            off = centres[m] - rec.poses[b, t, :2]
+            to_agent = pos[near] - centres[m]
+            closing = float(velocity[m] @ to_agent / max(np.linalg.norm(to_agent), 1e-9))
+            line += (
+                f" | mover {m}: gap {gap[near, m]:+.3f} m, {off @ ahead:+.2f} m ahead {off @ right:+.2f} m right,"
+                f" {np.linalg.norm(velocity[m]):.2f} m/s ({closing:+.2f} towards agent {near})"
+            )
+        if recorder is not None and t < n:
+            line += " | " + layer_note(recorder, b, t)
+        lines.append(line)
+    return lines
+
+
+def layer_note(recorder, b: int, t: int) -> str:
+    """What the safety layer did at step t of episode b (``trace_lines``)."""
+    events = recorder.events
+    parts = []
+    if events["replan"][b, t] or events["replan_cut"][b, t]:
+        kind = "replan" if events["replan"][b, t] else "replan (cut)"
+        if recorder.scored[b, t] >= 0:  # best-of-K scored the chunks (with one sample it does not)
+            kept = next((text for name, text in KEPT if events[name][b, t]), "a sample")
+            kind += f": {recorder.safe_count[b, t]} of {recorder.scored[b, t]} safe, kept {kept}"
+        parts.append(kind)
+    if events["filter"][b, t]:
+        parts.append("filtered")
+    return "; ".join(parts) or "running on"
+
+
 def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench import level_report
+    from lerobot_formation.bench.controllers import needs_policy
+    from lerobot_formation.core.rollout import COLLISION, SUCCESS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     level_report.add_arguments(ap)
     ap.add_argument("--controller", default="diffusion-safe")
+    ap.add_argument(
+        "--trace", type=int, nargs="+", default=(), metavar="EPISODE", help="episodes to print step by step"
+    )
+    ap.add_argument("--trace-steps", type=int, default=30, help="the last steps of each traced episode")
     add_threads_argument(ap, "torch threads")
     args = ap.parse_args(argv)
     apply_threads(args.threads)
     try:
         settings = {k: getattr(args, k) for k in level_report.RUN_FLAGS}
-        run = level_report.run_flags(args.controller, **settings)
-    except ValueError as e:  # a bad level name, a missing checkpoint path
+        bad = [e for e in args.trace if not 0 <= e < args.scenes]
+        if bad:
+            raise ValueError(f"--trace takes episodes 0 .. {args.scenes - 1} of this run, got {bad}")
+        if args.trace_steps < 1:
+            raise ValueError(f"--trace-steps must be >= 1, got {args.trace_steps}")
+        layer = bool(args.trace) and needs_policy(args.controller)  # a replanner to record
+        wrap = level_report.recording_replanner if layer else None
+        run = level_report.run_flags(args.controller, wrap, **settings)
+    except ValueError as e:  # a bad level name, a missing checkpoint path, a bad trace
         ap.error(str(e))
     lines, dwelt, movers, struck = collision_lines(run.records, run.scenes, run.params)
     print("\n".join(lines))
+    recorder = run.controller.replanner if layer else None
+    for b in args.trace:
+        outcome = {SUCCESS: "success", COLLISION: "collision"}.get(int(run.records.outcome[b]), "timeout")
+        print(f"episode {b} ({outcome} after {int(run.records.steps[b])} steps):")
+        print("\n".join(trace_lines(run.records, run.scenes, run.params, b, args.trace_steps, recorder)))
     print(
         run.summary(
             f"{dwelt} collisions within 2 cm already in the 10 steps before; {movers} with a moving obstacle, "

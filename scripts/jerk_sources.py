@@ -18,8 +18,8 @@ successful episode is put in the class of the first event, in this order, at its
 One line per class: its share of the steps, its mean jerk and its share of all jerk (pooled over the
 successful episodes' steps), then the summary line of ``bench.level_report`` (success, collisions,
 timeouts; the mean over episodes of their jerk and smoothness), as ``scripts/collision_report.py``
-prints it. The events are recorded by a ``Replanner`` subclass that the bench's controller runs
-instead of its own; nothing else changes. The safety overrides (``--proposal-blend``,
+prints it. The events are recorded by ``bench.level_report.recording_replanner``, a ``Replanner``
+subclass that the bench's controller runs instead of its own; nothing else changes. The safety overrides (``--proposal-blend``,
 ``--coherence``, ``--route-proposal``, ...) are ``scripts/collision_report.py``'s
 (``bench.level_report.add_arguments``).
 """
@@ -64,51 +64,6 @@ def jerk_sources(positions: np.ndarray, steps: np.ndarray, events: dict[str, np.
     return count, total
 
 
-def event_replanner(base, max_steps: int):
-    """An instance of a ``Replanner`` subclass built like ``base`` that records, per episode and step,
-    the events of ``EVENTS`` in ``.events`` (name -> (B, max_steps) bool); B from its first ``act``."""
-    import torch
-
-    from lerobot_formation.policy.replanner import Replanner
-
-    class EventReplanner(Replanner):
-        def reset(self, batch_size=None, device="cpu"):
-            super().reset(batch_size, device)
-            self.step, self.events = -1, None
-
-        def act(self, env_now, history, rows=None, noise=None):
-            rows = torch.arange(len(env_now)) if rows is None else rows
-            if self.events is None:
-                B = len(env_now) if self.plan is None else len(self.plan)
-                self.events = {name: np.zeros((B, max_steps + 2), bool) for name in EVENTS}
-            self.step += 1
-            self._rows = rows.cpu().numpy()
-            return super().act(env_now, history, rows, noise)
-
-        def _replan(self, need, view, stacked, noise):
-            idx = need.cpu().numpy()
-            cut = (self.has_last[need] & (self.executed[need] < self.config.n_action_steps)).cpu().numpy()
-            self._need = idx
-            self.events["replan"][idx, self.step] = ~cut
-            self.events["replan_cut"][idx, self.step] = cut
-            super()._replan(need, view, stacked, noise)
-
-        def choose(self, *args, **kwargs):
-            chosen, info = super().choose(*args, **kwargs)
-            self.events["escape"][self._need, self.step] = info["escaped"]
-            self.events["proposal"][self._need, self.step] = info["proposal_kept"]
-            return chosen, info
-
-        def filter(self, view, action):
-            filtered, changed = super().filter(view, action)
-            self.events["filter"][self._rows, self.step] = changed
-            return filtered, changed
-
-    out = EventReplanner(base.policy, base.config, base.experiment)
-    out.step, out.events = -1, None
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench import level_report
     from lerobot_formation.core.rollout import SUCCESS
@@ -120,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     apply_threads(args.threads)
     try:
         settings = {k: getattr(args, k) for k in level_report.RUN_FLAGS}
-        run = level_report.run_flags("diffusion-safe", event_replanner, **settings)
+        run = level_report.run_flags("diffusion-safe", level_report.recording_replanner, **settings)
     except ValueError as e:  # a bad level name
         ap.error(str(e))
     rec = run.records

@@ -103,3 +103,59 @@ def test_summary_line_gives_outcomes_and_the_successes_motion(capsys):
         "pac on level0 (2 scenes from seed 5000000): success 0.0 %, collisions 0, timeouts 2"
     )
     assert last.endswith("no successful episode")
+
+
+def test_the_trace_follows_a_mover_into_a_standing_team():
+    """The trace of the mover test's episode: one line a step of the last ``steps``, the mover named
+    with its gap, where it is in the team's frame (ahead, to the right) and how fast it comes, and
+    the gap below zero at the end."""
+    params = FormationParams()
+    scenes = _scene([3.0, 1.9, 0.3], velocity=[-0.3, 0.0])
+
+    class _DriveThenStand(_Straight):
+        def act(self, view, idx):
+            self.t = getattr(self, "t", 0) + 1
+            return np.tile([[0.4 if self.t <= 40 else 0.0, 0.0]], (len(idx), 1))
+
+    moving = Conditions(moving_obstacles=1, obstacle_speed=0.3)
+    rec = rollout(scenes, _DriveThenStand(), params, max_steps=200, conditions=moving)
+    n = int(rec.steps[0])
+    lines = _script().trace_lines(rec, scenes, params, 0, steps=5)
+    assert (
+        len(lines) == 6
+        and lines[0].startswith(f"step {n - 5:4d} pose")
+        and lines[-1].startswith(f"step {n:4d}")
+    )
+    assert "sent (0.00, +0.00) ran (0.00, +0.00)" in lines[0] and "sent" not in lines[-1]  # the end frame
+    assert "mover 0: gap" in lines[0] and "m right, 0.30 m/s" in lines[0] and "towards agent 1" in lines[0]
+    assert "gap -" in lines[-1].split(" | ")[1]  # the collision frame
+    assert " | replan" not in lines[0]  # no recorder: no layer column
+
+
+def test_a_trace_of_an_episode_not_in_the_run_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        _script().main(["--controller", "pac", "--level", "level0", "--scenes", "2", "--trace", "2"])
+    assert "--trace takes episodes 0 .. 1 of this run, got [2]" in capsys.readouterr().err
+
+
+def test_the_trace_of_the_safety_layer_says_what_each_replan_kept(capsys):
+    policy = str(ROOT / "pretrained" / "formation_diffusion_safe")
+    args = [
+        "--policy.path",
+        policy,
+        "--level",
+        "level0",
+        "--scenes",
+        "2",
+        "--max-steps",
+        "12",
+        "--candidates",
+        "3",
+    ]
+    assert _script().main([*args, "--trace", "1", "--trace-steps", "12", "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    lines = out[out.index("episode 1 (timeout after 12 steps):") :].strip().splitlines()[1:-1]
+    assert len(lines) == 13 and lines[0].startswith("step    0 pose")
+    assert lines[0].endswith("safe, kept a sample") or lines[0].endswith("safe, kept the proposal")
+    assert "replan: " in lines[0] and " of 4 safe" in lines[0]
+    assert any(line.endswith("running on") for line in lines)

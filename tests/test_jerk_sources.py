@@ -1,4 +1,4 @@
-"""scripts/jerk_sources.py: jerk put in the class of the event next to it, and the events recorded."""
+"""scripts/jerk_sources.py: jerk put in the class of the event next to it (the recorder: test_level_report.py)."""
 
 from __future__ import annotations
 
@@ -48,31 +48,6 @@ def test_a_speed_step_is_put_in_the_class_of_the_replan_that_made_it():
     count, total = module.jerk_sources(positions, steps, _events(30, escape=20), DT)
     np.testing.assert_allclose(total["none"], 2 * 0.2 / DT**2)
     assert count["escape"] == 2 and total["escape"] < 1e-9
-
-
-def test_the_event_replanner_records_what_the_controller_did():
-    """The bench's safety-layer controller with the recording replanner: every episode replans at its
-    first step, and the recorded replans are the replanner's own count."""
-    from lerobot_formation.bench.controllers import make_controller
-    from lerobot_formation.bench.scene_sets import level_scenes
-    from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.rollout import rollout
-
-    module = _script()
-    params = FormationParams()
-    options = ControllerOptions(
-        policy_path=str(ROOT / "pretrained" / "formation_diffusion_safe"), candidates=3
-    )
-    controller = make_controller("diffusion-safe", params, options)
-    controller.replanner = module.event_replanner(controller.replanner, 20)
-    rollout(level_scenes("level0", 2, seed=5_000_000), controller, params, max_steps=20)
-    events = controller.replanner.events
-    assert events["replan"][:, 0].all()
-    recorded = events["replan"].sum() + events["replan_cut"].sum()
-    assert recorded == controller.stats["replans"] > 2
-    assert events["proposal"].sum() == controller.stats["proposals"]
-    assert events["filter"].sum() == controller.stats["filter_interventions"]
 
 
 def test_the_report_prints_one_line_per_class_and_the_summary(capsys):

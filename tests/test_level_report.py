@@ -91,3 +91,41 @@ def test_the_flags_pass_on_by_name_to_the_run():
     same = level_report.run_level("pac", "level0", 2, max_steps=30, overrides={"safety_margin": 0.07})
     assert run.summary() == same.summary()
     assert run.seed == same.seed == 5_000_000
+
+
+def test_the_recording_replanner_records_what_the_controller_did():
+    """The bench's safety-layer controller with the recording replanner: every episode replans at its
+    first step, the recorded replans, proposals and filter changes are the replanner's own counts,
+    and every replan recorded how many of its scored chunks were safe (K samples and the proposal)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from lerobot_formation.bench.controllers import make_controller
+    from lerobot_formation.bench.scene_sets import level_scenes
+    from lerobot_formation.bench.settings import ControllerOptions
+    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.rollout import rollout
+
+    root = Path(__file__).resolve().parents[1]
+    params = FormationParams()
+    options = ControllerOptions(
+        policy_path=str(root / "pretrained" / "formation_diffusion_safe"), candidates=3
+    )
+    controller = make_controller("diffusion-safe", params, options)
+    controller.replanner = level_report.recording_replanner(controller.replanner, 20)
+    rollout(level_scenes("level0", 2, seed=5_000_000), controller, params, max_steps=20)
+    recorder = controller.replanner
+    events = recorder.events
+    assert set(events) == set(level_report.EVENTS)
+    assert events["replan"][:, 0].all()
+    replanned = events["replan"] | events["replan_cut"]
+    assert replanned.sum() == controller.stats["replans"] > 2
+    assert events["proposal"].sum() == controller.stats["proposals"]
+    assert events["escape"].sum() == controller.stats["escapes"]
+    assert events["filter"].sum() == controller.stats["filter_interventions"]
+    assert np.all(recorder.scored[replanned] == 4) and np.all(recorder.scored[~replanned] == -1)
+    assert np.all((recorder.safe_count[replanned] >= 0) & (recorder.safe_count[replanned] <= 4))
+    # a fallback is a replan where no scored chunk was safe and no manoeuvre was kept
+    assert np.all(recorder.safe_count[events["fallback"]] == 0)
+    assert not np.any(events["fallback"] & events["escape"])

@@ -1,6 +1,7 @@
 """One controller on one level's scenes, for the per-level report scripts (``scripts/collision_report.py``,
-``scripts/jerk_sources.py``): the safety layer's setting overrides as command-line flags, the run, and
-the summary line both print.
+``scripts/jerk_sources.py``): the safety layer's setting overrides as command-line flags, the run, the
+summary line both print, and a replanner that records what the layer did at every step
+(``recording_replanner``).
 
 ``run_level`` and ``safety_overrides`` are the library calls (typed arguments); ``add_arguments`` adds
 the scripts' shared flags, whose destinations are ``run_flags``' own parameter names (``RUN_FLAGS``),
@@ -89,6 +90,64 @@ def run_level(
     level_set = level_scenes(level.name, scenes, seed=seed)
     rec = rollout(level_set, controller, params, max_steps=max_steps, conditions=level.conditions)
     return LevelRun(controller_name, level.name, seed, controller, level_set, rec, params)
+
+
+# What ``recording_replanner`` records per episode and step (bool): a scheduled replan, a replan the
+# filter or the recheck caused (the plan cut short), and what the replan kept: an escape manoeuvre,
+# route pursuit's proposal, or nothing safe (the "widest" fallback or a stop); the filter's change.
+EVENTS = ("replan", "replan_cut", "escape", "proposal", "fallback", "filter")
+
+
+def recording_replanner(base, max_steps: int):
+    """An instance of a ``Replanner`` subclass built like ``base`` (the bench controller's) that runs
+    as it does and records, per episode and step, the events of ``EVENTS`` in ``.events`` (name -> (B,
+    max_steps + 2) bool) and, at each replan, how many of the scored chunks (the samples and the
+    proposal) were safe and how many were scored, in ``.safe_count`` and ``.scored`` ((B, max_steps + 2)
+    int, -1 where no replan); B from its first ``act``."""
+    import torch
+
+    from lerobot_formation.policy.replanner import Replanner
+
+    class RecordingReplanner(Replanner):
+        def reset(self, batch_size=None, device="cpu"):
+            super().reset(batch_size, device)
+            self.step, self.events = -1, None
+
+        def act(self, env_now, history, rows=None, noise=None):
+            rows = torch.arange(len(env_now)) if rows is None else rows
+            if self.events is None:
+                B, T = (len(env_now) if self.plan is None else len(self.plan)), max_steps + 2
+                self.events = {name: np.zeros((B, T), bool) for name in EVENTS}
+                self.safe_count, self.scored = np.full((B, T), -1), np.full((B, T), -1)
+            self.step += 1
+            self._rows = rows.cpu().numpy()
+            return super().act(env_now, history, rows, noise)
+
+        def _replan(self, need, view, stacked, noise):
+            idx = need.cpu().numpy()
+            cut = (self.has_last[need] & (self.executed[need] < self.config.n_action_steps)).cpu().numpy()
+            self._need = idx
+            self.events["replan"][idx, self.step] = ~cut
+            self.events["replan_cut"][idx, self.step] = cut
+            super()._replan(need, view, stacked, noise)
+
+        def choose(self, *args, **kwargs):
+            chosen, info = super().choose(*args, **kwargs)
+            self.events["escape"][self._need, self.step] = info["escaped"]
+            self.events["proposal"][self._need, self.step] = info["proposal_kept"]
+            self.events["fallback"][self._need, self.step] = ~info["any_safe"] & ~info["escaped"]
+            self.safe_count[self._need, self.step] = info["safe"].sum(axis=1)
+            self.scored[self._need, self.step] = info["safe"].shape[1]
+            return chosen, info
+
+        def filter(self, view, action):
+            filtered, changed = super().filter(view, action)
+            self.events["filter"][self._rows, self.step] = changed
+            return filtered, changed
+
+    out = RecordingReplanner(base.policy, base.config, base.experiment)
+    out.step, out.events = -1, None
+    return out
 
 
 SAFETY_FLAGS = (
