@@ -379,8 +379,9 @@ def select_chunk(
     ``info["choice"]`` is the kept index (K + j for primitive j). ``blend`` = (last executed action
     (B, 2), whether there is one (B,), m): the primitives are blended into the executed action as the
     caller blended the sampled chunks (``core.replan_blend``), so what is scored is what will run.
-    ``blocked_fallback`` (step 4 of the module docstring): "widest" or "stop"; ``info["stopped"]`` says
-    where the team stops. ``obstacle_velocity`` (B, M, 2): the obstacles' velocities (None: static);
+    ``blocked_fallback`` (step 4 of the module docstring): "widest" or "stop"; ``info["blocked"]`` says
+    where nothing scored was safe (the fallback kept; "escaped" then only says it is a manoeuvre),
+    ``info["stopped"]`` where the team stops. ``obstacle_velocity`` (B, M, 2): the obstacles' velocities (None: static);
     ``start``: the commands in flight and the rate limits (``predict_start``; None: the chunk runs
     from now, as commanded). Either changes only the predicted clearances, never the kept chunk's
     commands. ``continuation``: a function of the candidates' end poses (B, K', 3) (body frame) that
@@ -478,6 +479,7 @@ def select_chunk(
         "any_safe": sampled_safe,
         "escaped": (choice >= K) & ~stopped,
         "stopped": stopped,
+        "blocked": blocked,
     }
     return chosen, info
 

@@ -82,7 +82,8 @@ def test_select_chunk_prefers_safe_then_progress():
     chosen, info = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
     assert not info["safe"][0, 0] and info["safe"][0, 1] and info["safe"][0, 2]
     np.testing.assert_array_equal(chosen[0], cand[0, info["choice"][0]])
-    assert info["choice"][0] in (1, 2) and not info["escaped"][0]  # never the colliding one
+    assert info["choice"][0] in (1, 2)  # never the colliding one
+    assert not info["escaped"][0] and not info["blocked"][0]
     # K = 1 and safe: that candidate
     _, info1 = select_chunk(cand[:, 1:2], obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
     assert info1["choice"][0] == 0
@@ -197,11 +198,11 @@ def test_blocked_fallback_stop_turns_a_predicted_contact_into_a_stop():
     cand = np.stack([rng.uniform(0.1, 0.6, (1, 10, T)), rng.uniform(-1.5, 1.5, (1, 10, T))], axis=-1)
     args = (cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
     widest, info_w = select_chunk(*args, escape_advantage=0.1)
-    assert not info_w["any_safe"][0] and not info_w["stopped"][0]
+    assert not info_w["any_safe"][0] and not info_w["stopped"][0] and info_w["blocked"][0]
     assert info_w["clearance"][0].max() < 0  # what "widest" keeps collides
     np.testing.assert_array_equal(widest[0], cand[0, np.argmax(info_w["clearance"][0])])
     stop, info_s = select_chunk(*args, escape_advantage=0.1, blocked_fallback="stop")
-    assert info_s["stopped"][0] and not info_s["escaped"][0]
+    assert info_s["stopped"][0] and not info_s["escaped"][0] and info_s["blocked"][0]
     np.testing.assert_array_equal(stop[0], np.zeros((T, 2)))
     # nothing safe, but no contact: an obstacle 0.3 m ahead of both leaders, every candidate drives
     # 0.25 m toward it (ends inside the 0.1 m margin, not in contact); without escapes it is kept
