@@ -98,8 +98,9 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
     return lines, dwelt, movers, int(struck.sum())
 
 
-# what a replan kept, other than one of the samples (``bench.level_report.EVENTS``)
-KEPT = (("escape", "an escape"), ("proposal", "the proposal"), ("fallback", "the fallback"))
+# what a replan kept, other than one of the samples, the first that applies (``bench.level_report.EVENTS``;
+# the fallback keeps the widest candidate, which may be a manoeuvre or the proposal)
+KEPT = (("fallback", "the fallback"), ("escape", "an escape"), ("proposal", "the proposal"))
 
 
 def trace_lines(rec, scenes, params, b: int, steps: int = 30, recorder=None) -> list[str]:

@@ -122,12 +122,9 @@ def test_the_recording_replanner_records_what_the_controller_did():
     replanned = events["replan"] | events["replan_cut"]
     assert replanned.sum() == controller.stats["replans"] > 2
     assert events["proposal"].sum() == controller.stats["proposals"]
-    # the replanner counts every manoeuvre kept; the recorder only the safe ones (a blocked replan's
-    # widest manoeuvre is a fallback)
-    assert events["escape"].sum() <= controller.stats["escapes"]
+    assert events["escape"].sum() == controller.stats["escapes"]
     assert events["filter"].sum() == controller.stats["filter_interventions"]
     assert np.all(recorder.scored[replanned] == 4) and np.all(recorder.scored[~replanned] == -1)
     assert np.all((recorder.safe_count[replanned] >= 0) & (recorder.safe_count[replanned] <= 4))
-    # a fallback is a replan where no scored chunk was safe and no manoeuvre was kept
+    # a fallback is a replan where nothing scored was safe
     assert np.all(recorder.safe_count[events["fallback"]] == 0)
-    assert not np.any(events["fallback"] & events["escape"])

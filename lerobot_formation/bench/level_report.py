@@ -93,9 +93,9 @@ def run_level(
 
 
 # What ``recording_replanner`` records per episode and step (bool): a scheduled replan, a replan the
-# filter or the recheck caused (the plan cut short), and what the replan kept: a safe escape manoeuvre,
-# route pursuit's proposal, or the fallback where nothing scored was safe (the widest chunk or
-# manoeuvre, or a stop); the filter's change.
+# filter or the recheck caused (the plan cut short), and what the replan kept: an escape manoeuvre (as
+# the replanner counts them), route pursuit's proposal, and whether it was the fallback, nothing
+# scored being safe (the widest chunk or manoeuvre, or a stop); the filter's change.
 EVENTS = ("replan", "replan_cut", "escape", "proposal", "fallback", "filter")
 
 
@@ -134,7 +134,7 @@ def recording_replanner(base, max_steps: int):
 
         def choose(self, *args, **kwargs):
             chosen, info = super().choose(*args, **kwargs)
-            self.events["escape"][self._need, self.step] = info["escaped"] & ~info["blocked"]
+            self.events["escape"][self._need, self.step] = info["escaped"]
             self.events["proposal"][self._need, self.step] = info["proposal_kept"]
             self.events["fallback"][self._need, self.step] = info["blocked"]
             self.safe_count[self._need, self.step] = info["safe"].sum(axis=1)
