@@ -49,6 +49,14 @@ class _Straight:
         return np.tile([[0.4, 0.0]], (len(idx), 1))
 
 
+class _DriveThenStand(_Straight):
+    """Out of the start zone (movers bounce off it), then still."""
+
+    def act(self, view, idx):
+        self.t = getattr(self, "t", 0) + 1
+        return np.tile([[0.4 if self.t <= 40 else 0.0, 0.0]], (len(idx), 1))
+
+
 def test_a_team_driven_into_an_obstacle_is_reported_by_its_leader():
     params = FormationParams()
     scenes = _scene([0.5, 3.0, 0.3])
@@ -63,11 +71,6 @@ def test_a_team_driven_into_an_obstacle_is_reported_by_its_leader():
 def test_a_mover_that_runs_into_a_standing_team_is_named():
     params = FormationParams()
     scenes = _scene([3.0, 1.9, 0.3], velocity=[-0.3, 0.0])
-
-    class _DriveThenStand(_Straight):  # out of the start zone (movers bounce off it), then still
-        def act(self, view, idx):
-            self.t = getattr(self, "t", 0) + 1
-            return np.tile([[0.4 if self.t <= 40 else 0.0, 0.0]], (len(idx), 1))
 
     moving = Conditions(moving_obstacles=1, obstacle_speed=0.3)
     rec = rollout(scenes, _DriveThenStand(), params, max_steps=200, conditions=moving)
@@ -111,11 +114,6 @@ def test_the_trace_follows_a_mover_into_a_standing_team():
     the gap below zero at the end."""
     params = FormationParams()
     scenes = _scene([3.0, 1.9, 0.3], velocity=[-0.3, 0.0])
-
-    class _DriveThenStand(_Straight):
-        def act(self, view, idx):
-            self.t = getattr(self, "t", 0) + 1
-            return np.tile([[0.4 if self.t <= 40 else 0.0, 0.0]], (len(idx), 1))
 
     moving = Conditions(moving_obstacles=1, obstacle_speed=0.3)
     rec = rollout(scenes, _DriveThenStand(), params, max_steps=200, conditions=moving)
