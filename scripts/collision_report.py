@@ -57,7 +57,6 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
     team was within 2 cm in the 10 steps before, how many were with a moving obstacle, and how many
     of those struck a team that was not closing on it (``core.metrics.mover_strikes``)."""
     from lerobot_formation.core.dynamics import desired_follower_positions
-    from lerobot_formation.core.geometry import agent_clearances
     from lerobot_formation.core.metrics import mover_strikes
     from lerobot_formation.core.rollout import COLLISION
 
@@ -69,10 +68,8 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
         paths = rec.obstacle_paths  # the true centres at every frame under conditions; else static
         now, last = (paths[b, t], paths[b, t - 1]) if paths is not None else (scenes.obstacles[b, :, :2],) * 2
         obstacles = np.concatenate([now, scenes.obstacles[b, :, 2:3]], -1)
-        gaps = agent_clearances(pos[None], obstacles[None], params.agent_radius)[0]
-        agent = int(np.argmin(gaps))
-        reach = np.linalg.norm(pos[agent][None] - obstacles[:, :2], axis=-1) - obstacles[:, 2]
-        hit = int(np.argmin(np.where(scenes.mask[b], reach, np.inf)))
+        gap = agent_obstacle_gaps(pos, obstacles, scenes.mask[b], params.agent_radius)
+        agent, hit = (int(i) for i in np.unravel_index(np.argmin(gap), gap.shape))
         surface = np.linalg.norm(last - rec.poses[b, t - 1, :2], axis=-1) - obstacles[:, 2]
         surface = np.where(scenes.mask[b], surface, np.inf)
         rank = int((surface < surface[hit]).sum())
@@ -91,11 +88,20 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
         if struck[b]:
             mover += ", struck: the team was not closing on it"
         lines.append(
-            f"episode {b} step {t}: agent {agent} {-1e3 * gaps[agent]:.1f} mm deep, followers off their "
+            f"episode {b} step {t}: agent {agent} {-1e3 * gap[agent, hit]:.1f} mm deep, followers off their "
             f"slots {off[0]:.3f} / {off[1]:.3f} m, speed {speed:.2f} m/s, closest before {before[0]:.3f} m "
             f"(10 steps) / {before[1]:.3f} m (30), obstacle rank {rank}, radius {obstacles[hit, 2]:.2f} m{mover}"
         )
     return lines, dwelt, movers, int(struck.sum())
+
+
+def agent_obstacle_gaps(positions, obstacles, mask, agent_radius) -> np.ndarray:
+    """(N, M) the gap between each agent disc at positions (N, 2) and each obstacle (M, 3) of one
+    episode, inf where ``mask`` (M,) says there is none."""
+    from lerobot_formation.core.geometry import obstacle_gaps
+
+    gap = obstacle_gaps(positions[None], obstacles[None])[0] - agent_radius
+    return np.where(mask[None], gap, np.inf)
 
 
 # what a replan kept, other than one of the samples, the first that applies (``bench.level_report.EVENTS``;
@@ -117,8 +123,9 @@ def trace_lines(rec, scenes, params, b: int, steps: int = 30, recorder=None) -> 
         earlier = paths[b, max(t - 1, 0)] if paths is not None else centres
         velocity = (later - earlier) / (params.dt * max(min(t + 1, n) - max(t - 1, 0), 1))  # (M, 2)
         pos = rec.positions[b, t]  # (N, 2)
-        gap = np.linalg.norm(pos[:, None] - centres[None], axis=-1) - radius - params.agent_radius  # (N, M)
-        gap = np.where(real[None], gap, np.inf)
+        gap = agent_obstacle_gaps(
+            pos, np.concatenate([centres, radius[:, None]], -1), real, params.agent_radius
+        )
         agent, hit = np.unravel_index(np.argmin(gap), gap.shape)
         x, y, phi = rec.poses[b, t]
         line = f"step {t:4d} pose ({x:6.2f}, {y:6.2f}, {np.degrees(phi) % 360:5.1f} deg)"
