@@ -42,6 +42,7 @@ def test_each_flag_names_its_config_field():
         "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0", "--chunk-smoothing", "0",
         "--mover-uncertainty", "0", "--escape-speeds", "0,0.1,0.2,0.3", "--fallback-all", "off",
         "--recheck", "on", "--halt-lookahead", "20",
+        "--fallback-lookahead", "30",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
@@ -59,6 +60,7 @@ def test_each_flag_names_its_config_field():
         "safety_fallback_all": False,
         "safety_recheck": True,
         "safety_halt_lookahead": 20,
+        "safety_fallback_lookahead": 30,
     }
     assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
 

@@ -166,6 +166,7 @@ SAFETY_FLAGS = (
     "fallback_all",
     "recheck",
     "halt_lookahead",
+    "fallback_lookahead",
 )
 
 
@@ -184,6 +185,7 @@ def safety_overrides(
     fallback_all: bool | None = None,
     recheck: bool | None = None,
     halt_lookahead: int | None = None,
+    fallback_lookahead: int | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
     ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
@@ -194,7 +196,8 @@ def safety_overrides(
     2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too),
     ``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` (0,
     (0, 0.1, 0.2, 0.3) and off: before 2026-12-05, night), ``safety_recheck`` (off: before 2026-12-05,
-    late night), ``safety_halt_lookahead`` (0: before 2026-12-06)."""
+    late night), ``safety_halt_lookahead`` (0: before 2026-12-06), ``safety_fallback_lookahead`` (0:
+    before 2026-12-07)."""
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
@@ -224,6 +227,8 @@ def safety_overrides(
         out["safety_recheck"] = recheck
     if halt_lookahead is not None:
         out["safety_halt_lookahead"] = halt_lookahead
+    if fallback_lookahead is not None:
+        out["safety_fallback_lookahead"] = fallback_lookahead
     return out
 
 
@@ -327,5 +332,11 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         type=int,
         default=None,
         help="steps a team braking after a chunk must stay clear of movers, where no lookahead passes (0: off)",
+    )
+    ap.add_argument(
+        "--fallback-lookahead",
+        type=int,
+        default=None,
+        help="steps past the chunk over which the fallback's width is measured, where nothing is safe (0: the chunk)",
     )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

@@ -23,7 +23,8 @@ allowance for the lag) with it.
   4. if none is safe, a safe escape manoeuvre (a turn in place or an arc, ``escape_primitives``)
      with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
      sampled candidate with the largest predicted clearance (with ``fallback_all``, of the sampled
-     chunks and manoeuvres; a CBF filter then brakes); "stop", the
+     chunks and manoeuvres; with a ``fallback_lookahead``, over the chunk and that many steps
+     more: ``FootprintCheck.outlasting``; a CBF filter then brakes); "stop", the
      chunk or manoeuvre with the largest predicted clearance if it predicts no contact, else a stop
      (zero actions for the chunk, not blended: the leaders are kinematic, and a stopped team stays
      clear) and a fresh draw at the next replan.
@@ -314,6 +315,16 @@ class FootprintCheck:
         )
         return clear, viable, last
 
+    def _alone(self, rows: np.ndarray) -> FootprintCheck:
+        """The same check of episodes ``rows``, of the sequences alone (no continuation)."""
+        return replace(
+            self,
+            obstacles=self.obstacles[rows],
+            obstacle_velocity=None if self.obstacle_velocity is None else self.obstacle_velocity[rows],
+            start=None if self.start is None else self.start[rows],
+            continuation=None,
+        )
+
     def halted(self, commands: np.ndarray, steps: int, rows: np.ndarray | None = None) -> np.ndarray:
         """Smallest clearance (R, C) of command sequences (R, C, T, 2) of episodes ``rows`` (R,)
         (default: the first R), each followed by ``steps`` zero commands (braked as the actuator
@@ -322,14 +333,21 @@ class FootprintCheck:
         clearance, or its braking distance's; a mover that walks into the standing team lowers it."""
         R, C = commands.shape[:2]
         rows = np.arange(R) if rows is None else rows
-        those = replace(  # the same check of those episodes, the sequences alone
-            self,
-            obstacles=self.obstacles[rows],
-            obstacle_velocity=None if self.obstacle_velocity is None else self.obstacle_velocity[rows],
-            start=None if self.start is None else self.start[rows],
-            continuation=None,
-        )
-        return those.footprint(np.concatenate([commands, np.zeros((R, C, steps, 2))], axis=2))[0]
+        stop = np.zeros((R, C, steps, 2))
+        return self._alone(rows).footprint(np.concatenate([commands, stop], axis=2))[0]
+
+    def outlasting(self, commands: np.ndarray, steps: int, rows: np.ndarray | None = None) -> np.ndarray:
+        """Smallest clearance (R, C) of command sequences (R, C, T, 2) of episodes ``rows`` (R,)
+        (default: the first R) over the sequence and ``steps`` more, the wider of two ways on: its
+        last command held (a flight goes on) and braked to a standstill (``halted``). The blocked
+        fallback's measure with a ``fallback_lookahead`` (``select_chunk``): over the chunk alone a
+        turn in place looks widest while a mover is still a chunk away, and is struck after it."""
+        R, C = commands.shape[:2]
+        rows = np.arange(R) if rows is None else rows
+        those = self._alone(rows)
+        held = np.concatenate([commands, np.repeat(commands[:, :, -1:], steps, axis=2)], axis=2)
+        stop = np.concatenate([commands, np.zeros((R, C, steps, 2))], axis=2)
+        return np.maximum(those.footprint(held)[0], those.footprint(stop)[0])
 
 
 def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
@@ -367,6 +385,7 @@ def select_chunk(
     mover_uncertainty: float = 0.0,
     fallback_all: bool = False,
     halt_lookahead: int = 0,
+    fallback_lookahead: int = 0,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
@@ -401,7 +420,10 @@ def select_chunk(
     ``primitives`` (P, 2): the escape manoeuvres (default ``ESCAPE_PRIMITIVES``, ``escape_primitives``).
     ``fallback_all``: the "widest" fallback keeps the widest of every candidate scored (sampled chunks
     and manoeuvres, e.g. a fast arc that a mover strikes later or less deep), not of the sampled
-    chunks only.
+    chunks only. ``fallback_lookahead`` n: the "widest" fallback measures each candidate's clearance
+    over the chunk and n steps more, held on or braked, whichever is wider
+    (``FootprintCheck.outlasting``), not over the chunk alone: where a mover comes, the widest for
+    the chunk's 1.6 s may stand in its way.
     ``mover_uncertainty`` [m/s]: with ``obstacle_velocity``, a moving obstacle's predicted radius grows
     by that much per second ahead (``core.obstacle_tracker.predict_obstacles``), over the chunk and its
     continuation: a chunk that passes a mover closely late in the horizon, where the constant-velocity
@@ -465,6 +487,10 @@ def select_chunk(
     stopped = np.zeros(B, dtype=bool)
     if blocked_fallback == "widest":
         fallback = np.argmax(clear if fallback_all else clear[:, :K], axis=1)  # a filter brakes
+        if fallback_lookahead and blocked.any():
+            rows_at = np.flatnonzero(blocked)
+            scored = pool[rows_at] if fallback_all else pool[rows_at, :K]
+            fallback[rows_at] = np.argmax(check.outlasting(scored, fallback_lookahead, rows_at), axis=1)
     else:  # the widest of all if it predicts no contact, else stop
         fallback = np.argmax(clear, axis=1)
         stopped = blocked & (clear[rows, fallback] < 0.0)

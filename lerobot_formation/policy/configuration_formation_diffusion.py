@@ -176,6 +176,13 @@ class FormationDiffusionConfig(DiffusionConfig):
             (``safety_moving_obstacles``): standing obstacles come no closer to a standing team, and
             the levels without movers keep the layer they were measured with. 0 (default): the chunk
             alone decides there.
+        safety_fallback_lookahead: n >= 0 steps. With n > 0, where nothing scored is safe, the
+            "widest" fallback measures each candidate's clearance over the chunk and n steps more,
+            its last command held or braked to a standstill, whichever stays wider
+            (``core.safety.FootprintCheck.outlasting``): over the chunk alone, a turn in place looks
+            widest while a mover is still a chunk away. Used only where the layer predicts moving
+            obstacles (``safety_moving_obstacles``), as ``safety_halt_lookahead``. 0 (default): the
+            chunk alone (the layer before 2026-12-07).
         safety_proposal_blend: m >= 0 steps. With m > 0 route pursuit's proposal
             (``safety_route_proposal``) enters from the command being executed: its first m actions
             are blended from the last executed one (``core.replan_blend``) before it is scored, as the
@@ -302,6 +309,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_route_proposal: bool = False
     safety_route_lookahead: int = 0
     safety_halt_lookahead: int = 0
+    safety_fallback_lookahead: int = 0
     safety_proposal_blend: int = 0
     safety_coherence: float = 0.0
     safety_progress_resolution: float = 0.2
@@ -464,7 +472,7 @@ class FormationDiffusionConfig(DiffusionConfig):
                 isinstance(value, int | float) and math.isfinite(value) and value >= 0
             ):
                 raise config_error(f"{name} must be a finite std >= 0 [m], got {value!r}")
-        for name in ("safety_route_lookahead", "safety_halt_lookahead"):
+        for name in ("safety_route_lookahead", "safety_halt_lookahead", "safety_fallback_lookahead"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, int) and value >= 0):
                 raise config_error(f"{name} must be an integer >= 0 [steps], got {value!r}")

@@ -647,6 +647,7 @@ class Replanner:
             primitives=_escape_lattice(tuple(cfg.safety_escape_speeds)),
             mover_uncertainty=cfg.safety_mover_uncertainty,
             halt_lookahead=cfg.safety_halt_lookahead if cfg.safety_moving_obstacles else 0,
+            fallback_lookahead=cfg.safety_fallback_lookahead if cfg.safety_moving_obstacles else 0,
             fallback_all=cfg.safety_fallback_all,
         )
         info["proposal_kept"] = (

@@ -661,3 +661,34 @@ def test_halt_lookahead_brakes_as_the_actuator_brakes_and_changes_nothing_where_
     assert with_halt["any_safe"].all()
     for key in ("choice", "safe", "clearance", "progress"):
         np.testing.assert_array_equal(with_halt[key], without[key])
+
+
+def test_fallback_lookahead_keeps_the_candidate_that_outlasts_a_mover():
+    """A mover (r 0.3 m) comes from the right at 0.3 m/s beside the followers; an obstacle stands
+    1.4 m ahead. With a 0.3 m margin nothing is safe. Over the chunk alone standing is widest
+    (0.25 m against 0.17 m for running at the obstacle), and the "widest" fallback keeps it; but a
+    team that stands there is struck within 3 s more, while one that runs ahead and brakes keeps its
+    0.17 m (``FootprintCheck.outlasting``, the wider of held on and braked): with
+    ``fallback_lookahead`` 30 the run is kept. Where a candidate is safe, nothing changes."""
+    obstacles = np.array([[[1.6, -0.8, 0.3], [0.0, 1.4, 0.4]]])
+    left = np.array([[[-0.3, 0.0], [0.0, 0.0]]])
+    chunks = np.array([[np.tile(c, (16, 1)) for c in ([0.0, 0.0], [0.6, 0.0])]])  # stand, run
+    goal = np.array([[0.0, 8.0]])
+    check = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, left)
+    np.testing.assert_allclose(check.footprint(chunks)[0], [[0.251, 0.166]], atol=1e-3)
+    outlast = check.outlasting(chunks, 30)
+    assert outlast[0, 0] < -0.1 and abs(outlast[0, 1] - 0.166) < 1e-3
+    held = np.concatenate([chunks, np.repeat(chunks[:, :, -1:], 30, axis=2)], axis=2)
+    np.testing.assert_array_equal(outlast, np.maximum(check.footprint(held)[0], check.halted(chunks, 30)))
+    args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.3)
+    _, plain = select_chunk(*args, escape=False, obstacle_velocity=left)
+    kept, info = select_chunk(*args, escape=False, obstacle_velocity=left, fallback_lookahead=30)
+    assert plain["blocked"][0] and plain["choice"][0] == 0
+    assert info["blocked"][0] and info["choice"][0] == 1
+    np.testing.assert_array_equal(kept[0], chunks[0, 1])
+    # a margin the run keeps: it is safe, the lookahead is never consulted
+    _, open_road = select_chunk(*args[:-1], 0.1, escape=False, obstacle_velocity=left, fallback_lookahead=30)
+    _, before = select_chunk(*args[:-1], 0.1, escape=False, obstacle_velocity=left)
+    assert not open_road["blocked"][0]
+    for key in ("choice", "safe", "clearance", "progress"):
+        np.testing.assert_array_equal(open_road[key], before[key])

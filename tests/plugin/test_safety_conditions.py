@@ -211,9 +211,10 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
 
 def test_mover_settings_reach_best_of_k(monkeypatch):
     """``safety_mover_uncertainty``, ``safety_escape_speeds``, ``safety_fallback_all`` and (with
-    ``safety_moving_obstacles`` only) ``safety_halt_lookahead`` are what ``select_chunk`` gets (the
-    lattice built from the speeds); the defaults are the scorer of before: the default lattice, an
-    exact prediction, the widest sampled chunk as the fallback, no halt."""
+    ``safety_moving_obstacles`` only) ``safety_halt_lookahead`` and ``safety_fallback_lookahead`` are
+    what ``select_chunk`` gets (the lattice built from the speeds); the defaults are the scorer of
+    before: the default lattice, an exact prediction, the widest sampled chunk as the fallback, no
+    halt, the fallback's width over the chunk alone."""
     from lerobot_formation.core import safety
 
     seen = {}
@@ -240,12 +241,13 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     tuned.choose_raw(env, chunks)
     np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives((0.0, 0.3)))
     assert seen["mover_uncertainty"] == 0.05 and seen["fallback_all"] is True
-    assert seen["halt_lookahead"] == 0
-    # the halt lookahead reaches the scorer only where the layer predicts movers
-    _policy(safety_halt_lookahead=20).replanner.choose_raw(env, chunks)
-    assert seen["halt_lookahead"] == 0
-    _policy(safety_halt_lookahead=20, safety_moving_obstacles=True).replanner.choose_raw(env, chunks)
-    assert seen["halt_lookahead"] == 20
+    assert seen["halt_lookahead"] == 0 and seen["fallback_lookahead"] == 0
+    # the halt and fallback lookaheads reach the scorer only where the layer predicts movers
+    lookaheads = dict(safety_halt_lookahead=20, safety_fallback_lookahead=30)
+    _policy(**lookaheads).replanner.choose_raw(env, chunks)
+    assert seen["halt_lookahead"] == 0 and seen["fallback_lookahead"] == 0
+    _policy(**lookaheads, safety_moving_obstacles=True).replanner.choose_raw(env, chunks)
+    assert seen["halt_lookahead"] == 20 and seen["fallback_lookahead"] == 30
 
 
 @pytest.mark.parametrize("recheck", [False, True])

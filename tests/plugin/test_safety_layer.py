@@ -350,8 +350,9 @@ def test_route_lookahead_is_checked_with_its_value():
     with pytest.raises(ValueError, match="safety_route_lookahead > 0 needs a route hint"):
         nearest_config(safety_route_lookahead=20)
     for bad in (-1, 2.5, True):
-        with pytest.raises(ValueError, match=f"safety_halt_lookahead must be an integer >= 0.*{bad!r}"):
-            nearest_config(safety_halt_lookahead=bad)
+        for name in ("safety_halt_lookahead", "safety_fallback_lookahead"):
+            with pytest.raises(ValueError, match=f"{name} must be an integer >= 0.*{bad!r}"):
+                nearest_config(**{name: bad})
     assert nearest_config(safety_route_lookahead=20, **kw).safety_route_lookahead == 20
 
 
