@@ -24,7 +24,8 @@ agent clearance over the 10 and 30 steps before, and the obstacle's rank among t
 nearest (the ``nearest`` encoding observes 12). The last line is the summary (``bench.level_report``): success %,
 collisions, timeouts, and how many collisions came after the team was already within 2 cm of an
 obstacle in the 10 steps before (grazes, not run-ins), how many were with a moving obstacle (its
-line gives that obstacle's speed over the last step and the part of it towards the agent it hit) and
+line gives that obstacle's speed over the last step, the part of it towards the agent it hit and, on
+a level with a sensing range, how long before the contact the team first sensed it) and
 how many of those struck a team that was not closing on the mover (``core.metrics.mover_strikes``), and
 the mean jerk and control smoothness of the successful episodes (``core.metrics``).
 ``--controller pac-privileged`` (no checkpoint) reports the privileged expert, on the true world.
@@ -53,10 +54,12 @@ import numpy as np  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 
-def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
+def collision_lines(rec, scenes, params, sensing_range=None) -> tuple[list[str], int, int, int]:
     """One line per collision of the records ``rec`` (module docstring), how many came after the
     team was within 2 cm in the 10 steps before, how many were with a moving obstacle, and how many
-    of those struck a team that was not closing on it (``core.metrics.mover_strikes``)."""
+    of those struck a team that was not closing on it (``core.metrics.mover_strikes``). With the
+    level's ``sensing_range`` [m], a mover's line says how long before the contact some agent first
+    came within that range of it (``core.conditions``: from then on it is observed, with memory)."""
     from lerobot_formation.core.dynamics import desired_follower_positions
     from lerobot_formation.core.metrics import mover_strikes
     from lerobot_formation.core.rollout import COLLISION
@@ -86,6 +89,8 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
         moving = bool(np.linalg.norm(step) > 1e-6)
         movers += int(moving)
         mover = f", a mover at {np.linalg.norm(step):.2f} m/s ({closing:+.2f} towards it)" if moving else ""
+        if moving and sensing_range is not None:
+            mover += f", sensed {sensed_for(rec, scenes, b, hit, t, sensing_range) * params.dt:.1f} s before"
         if struck[b]:
             mover += ", struck: the team was not closing on it"
         lines.append(
@@ -94,6 +99,15 @@ def collision_lines(rec, scenes, params) -> tuple[list[str], int, int, int]:
             f"(10 steps) / {before[1]:.3f} m (30), obstacle rank {rank}, radius {obstacles[hit, 2]:.2f} m{mover}"
         )
     return lines, dwelt, movers, int(struck.sum())
+
+
+def sensed_for(rec, scenes, b: int, m: int, t: int, sensing_range: float) -> int:
+    """Steps from the first at which some agent's centre came within ``sensing_range`` of obstacle
+    m's surface (episode b, its true path) to step t."""
+    paths = rec.obstacle_paths[b, : t + 1, m]  # (t + 1, 2)
+    reach = np.linalg.norm(rec.positions[b, : t + 1] - paths[:, None], axis=-1).min(axis=1)
+    within = np.flatnonzero(reach - scenes.obstacles[b, m, 2] <= sensing_range)
+    return t - int(within[0]) if len(within) else 0
 
 
 def agent_obstacle_gaps(positions, obstacles, mask, agent_radius) -> np.ndarray:
@@ -172,6 +186,7 @@ def layer_note(recorder, b: int, t: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench import level_report
     from lerobot_formation.bench.controllers import needs_policy
+    from lerobot_formation.core.levels import get_level
     from lerobot_formation.core.rollout import COLLISION, SUCCESS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -196,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         run = level_report.run_flags(args.controller, wrap, **settings)
     except ValueError as e:  # a bad level name, a missing checkpoint path, a bad trace
         ap.error(str(e))
-    lines, dwelt, movers, struck = collision_lines(run.records, run.scenes, run.params)
+    sensing = get_level(args.level).conditions.sensing_range  # the name passed run_flags
+    lines, dwelt, movers, struck = collision_lines(run.records, run.scenes, run.params, sensing)
     print("\n".join(lines))
     recorder = run.controller.replanner if layer else None
     for b in args.trace:

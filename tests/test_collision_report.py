@@ -80,6 +80,18 @@ def test_a_mover_that_runs_into_a_standing_team_is_named():
         movers == 1 and "speed 0.00 m/s" in lines[0] and "a mover at 0.30 m/s (+0.19 towards it)" in lines[0]
     )
     assert lines[0].endswith("struck: the team was not closing on it") and struck == 1
+    # with a sensing range: how long before the contact some agent first came within it of the mover
+    t = int(rec.steps[0])
+    wide, _, _, _ = _script().collision_lines(rec, scenes, params, sensing_range=3.0)
+    assert f", sensed {t * params.dt:.1f} s before," in wide[0]  # 2.84 m from the right leader at the start
+
+    def sensed(r):
+        line = _script().collision_lines(rec, scenes, params, sensing_range=r)[0][0]
+        return float(line.split(", sensed ")[1].split(" s before")[0])
+
+    # from 0.5 m of an agent's centre to contact (0.1 m, its radius) a 0.3 m/s mover needs >= 1.33 s
+    assert t * params.dt > sensed(1.0) > sensed(0.5) >= 0.4 / 0.3 - 0.05
+    assert "sensed" not in lines[0]
 
 
 def test_a_bad_level_names_the_value(capsys):
