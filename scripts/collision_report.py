@@ -104,9 +104,12 @@ def collision_lines(rec, scenes, params, sensing_range=None) -> tuple[list[str],
 def sensed_for(rec, scenes, b: int, m: int, t: int, sensing_range: float) -> int:
     """Steps from the first at which some agent's centre came within ``sensing_range`` of obstacle
     m's surface (episode b, its true path) to step t."""
-    paths = rec.obstacle_paths[b, : t + 1, m]  # (t + 1, 2)
-    reach = np.linalg.norm(rec.positions[b, : t + 1] - paths[:, None], axis=-1).min(axis=1)
-    within = np.flatnonzero(reach - scenes.obstacles[b, m, 2] <= sensing_range)
+    from lerobot_formation.core.geometry import obstacle_gaps
+
+    radius = np.full((t + 1, 1, 1), scenes.obstacles[b, m, 2])
+    mover = np.concatenate([rec.obstacle_paths[b, : t + 1, m][:, None], radius], -1)  # (t + 1, 1, 3)
+    reach = obstacle_gaps(rec.positions[b, : t + 1], mover)[..., 0].min(axis=1)  # every step's nearest agent
+    within = np.flatnonzero(reach <= sensing_range)
     return t - int(within[0]) if len(within) else 0
 
 

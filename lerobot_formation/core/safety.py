@@ -342,12 +342,9 @@ class FootprintCheck:
         last command held (a flight goes on) and braked to a standstill (``halted``). The blocked
         fallback's measure with a ``fallback_lookahead`` (``select_chunk``): over the chunk alone a
         turn in place looks widest while a mover is still a chunk away, and is struck after it."""
-        R, C = commands.shape[:2]
-        rows = np.arange(R) if rows is None else rows
-        those = self._alone(rows)
+        rows = np.arange(len(commands)) if rows is None else rows
         held = np.concatenate([commands, np.repeat(commands[:, :, -1:], steps, axis=2)], axis=2)
-        stop = np.concatenate([commands, np.zeros((R, C, steps, 2))], axis=2)
-        return np.maximum(those.footprint(held)[0], those.footprint(stop)[0])
+        return np.maximum(self._alone(rows).footprint(held)[0], self.halted(commands, steps, rows))
 
 
 def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
