@@ -74,8 +74,9 @@ def collision_lines(rec, scenes, params, sensing_range=None) -> tuple[list[str],
         obstacles = np.concatenate([now, scenes.obstacles[b, :, 2:3]], -1)
         gap = agent_obstacle_gaps(pos, obstacles, scenes.mask[b], params.agent_radius)
         agent, hit = (int(i) for i in np.unravel_index(np.argmin(gap), gap.shape))
-        surface = np.linalg.norm(last - rec.poses[b, t - 1, :2], axis=-1) - obstacles[:, 2]
-        surface = np.where(scenes.mask[b], surface, np.inf)
+        # the midpoint's gap to each obstacle's surface a step before: the rank the encoding sees
+        before_step = np.concatenate([last, obstacles[:, 2:]], -1)
+        surface = agent_obstacle_gaps(rec.poses[b, t - 1, None, :2], before_step, scenes.mask[b], 0.0)[0]
         rank = int((surface < surface[hit]).sum())
         slots = desired_follower_positions(rec.poses[b, t], params.graph)
         off = np.linalg.norm(pos[2:] - slots, axis=-1)
