@@ -54,12 +54,12 @@ import numpy as np  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 
-def collision_lines(rec, scenes, params, sensing_range=None) -> tuple[list[str], int, int, int]:
+def collision_lines(rec, scenes, params, sensed: bool = False) -> tuple[list[str], int, int, int]:
     """One line per collision of the records ``rec`` (module docstring), how many came after the
     team was within 2 cm in the 10 steps before, how many were with a moving obstacle, and how many
-    of those struck a team that was not closing on it (``core.metrics.mover_strikes``). With the
-    level's ``sensing_range`` [m], a mover's line says how long before the contact some agent first
-    came within that range of it (``core.conditions``: from then on it is observed, with memory)."""
+    of those struck a team that was not closing on it (``core.metrics.mover_strikes``). With
+    ``sensed`` (the run had a sensing range), a mover's line says how long before the contact the
+    team first observed it (``EpisodeRecords.seen_step``: some agent came within the range of it)."""
     from lerobot_formation.core.dynamics import desired_follower_positions
     from lerobot_formation.core.metrics import mover_strikes
     from lerobot_formation.core.rollout import COLLISION
@@ -90,8 +90,8 @@ def collision_lines(rec, scenes, params, sensing_range=None) -> tuple[list[str],
         moving = bool(np.linalg.norm(step) > 1e-6)
         movers += int(moving)
         mover = f", a mover at {np.linalg.norm(step):.2f} m/s ({closing:+.2f} towards it)" if moving else ""
-        if moving and sensing_range is not None:
-            mover += f", sensed {sensed_for(rec, scenes, b, hit, t, sensing_range) * params.dt:.1f} s before"
+        if moving and sensed:
+            mover += f", sensed {(t - max(int(rec.seen_step[b, hit]), 0)) * params.dt:.1f} s before"
         if struck[b]:
             mover += ", struck: the team was not closing on it"
         lines.append(
@@ -100,18 +100,6 @@ def collision_lines(rec, scenes, params, sensing_range=None) -> tuple[list[str],
             f"(10 steps) / {before[1]:.3f} m (30), obstacle rank {rank}, radius {obstacles[hit, 2]:.2f} m{mover}"
         )
     return lines, dwelt, movers, int(struck.sum())
-
-
-def sensed_for(rec, scenes, b: int, m: int, t: int, sensing_range: float) -> int:
-    """Steps from the first at which some agent's centre came within ``sensing_range`` of obstacle
-    m's surface (episode b, its true path) to step t."""
-    from lerobot_formation.core.geometry import obstacle_gaps
-
-    radius = np.full((t + 1, 1, 1), scenes.obstacles[b, m, 2])
-    mover = np.concatenate([rec.obstacle_paths[b, : t + 1, m][:, None], radius], -1)  # (t + 1, 1, 3)
-    reach = obstacle_gaps(rec.positions[b, : t + 1], mover)[..., 0].min(axis=1)  # every step's nearest agent
-    within = np.flatnonzero(reach <= sensing_range)
-    return t - int(within[0]) if len(within) else 0
 
 
 def agent_obstacle_gaps(positions, obstacles, mask, agent_radius) -> np.ndarray:
@@ -215,8 +203,8 @@ def main(argv: list[str] | None = None) -> int:
         run = level_report.run_flags(args.controller, wrap, **settings)
     except ValueError as e:  # a bad level name, a missing checkpoint path, a bad trace
         ap.error(str(e))
-    sensing = get_level(args.level).conditions.sensing_range  # the name passed run_flags
-    lines, dwelt, movers, struck = collision_lines(run.records, run.scenes, run.params, sensing)
+    sensed = get_level(args.level).conditions.sensing_range is not None  # the name passed run_flags
+    lines, dwelt, movers, struck = collision_lines(run.records, run.scenes, run.params, sensed)
     print("\n".join(lines))
     recorder = run.controller.replanner if layer else None
     for b in args.trace:

@@ -81,13 +81,17 @@ def test_a_mover_that_runs_into_a_standing_team_is_named():
     )
     assert lines[0].endswith("struck: the team was not closing on it") and struck == 1
     # with a sensing range: how long before the contact some agent first came within it of the mover
+    # (the controller ignores what it sees, so every range gives the same episode)
     t = int(rec.steps[0])
-    wide, _, _, _ = _script().collision_lines(rec, scenes, params, sensing_range=3.0)
-    assert f", sensed {t * params.dt:.1f} s before," in wide[0]  # 2.84 m from the right leader at the start
 
     def sensed(r):
-        line = _script().collision_lines(rec, scenes, params, sensing_range=r)[0][0]
+        ranged = Conditions(moving_obstacles=1, obstacle_speed=0.3, sensing_range=r, obstacle_memory=True)
+        rec_r = rollout(scenes, _DriveThenStand(), params, max_steps=200, conditions=ranged)
+        assert rec_r.outcome[0] == COLLISION and int(rec_r.steps[0]) == t
+        line = _script().collision_lines(rec_r, scenes, params, sensed=True)[0][0]
         return float(line.split(", sensed ")[1].split(" s before")[0])
+
+    assert sensed(3.0) == round(t * params.dt, 1)  # 2.84 m from the right leader at the start
 
     # from 0.5 m of an agent's centre to contact (0.1 m, its radius) a 0.3 m/s mover needs >= 1.33 s
     assert t * params.dt > sensed(1.0) > sensed(0.5) >= 0.4 / 0.3 - 0.05
