@@ -158,6 +158,7 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     torch.set_num_threads(1)
     headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
     assert "K=2 with the safety layer" in headline and "plain trace" in headline
+    assert "its cost-to-go" in headline and "the whole field" in headline
     shipped = grids[2]  # the K = 2 run with the config as shipped (K = 1 runs unguided and guided first)
     if shipped != bench.PREVIOUS_DEFAULT:  # the previous default's best-of-K, timed in the same run
         assert grids.count(bench.PREVIOUS_DEFAULT) == 1 and "previous default" in headline
@@ -177,6 +178,33 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
         for (_, gg), grid in zip(guided[4:], grids[4:], strict=True)
     )
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
+
+
+def test_scorer_replay_times_both_scorers_on_the_same_calls_and_compares_their_values():
+    """``replay_scorer``: every recorded call runs with both scorers (in alternating order), the
+    medians are per call, and a scorer that returns other values on some call is reported."""
+    import numpy as np
+
+    bench = _script("benchmarks/bench_replan_latency.py")
+    calls = [((np.arange(3.0),), {"scale": 2.0}), ((np.ones(2),), {"scale": 1.0})]
+    seen = []
+
+    def ours(x, scale):
+        seen.append("ours")
+        return x * scale
+
+    def same(x, scale):
+        seen.append("base")
+        return scale * x
+
+    def other(x, scale):
+        return x * scale + (x[0] > 0)
+
+    t_ours, t_base, equal = bench.replay_scorer(calls, ours, same, repeats=2)
+    assert equal and t_ours > 0 and t_base > 0
+    assert seen == ["ours"] * 2 + ["base"] * 2 + ["base"] * 2 + ["ours"] * 2  # interleaved, alternating
+    assert not bench.replay_scorer(calls, ours, other, repeats=1)[2]  # the second call differs
+    assert bench.replay_scorer([], ours, same)[2]
 
 
 @pytest.mark.slow
