@@ -544,23 +544,20 @@ def replay_scorer(calls, ours, base, repeats: int = 3) -> tuple[float, float, bo
     """Median ms a call of ``ours`` and ``base`` on the recorded ``calls`` [(args, kwargs)], each call
     timed ``repeats`` times with each (the fastest kept), the two interleaved in alternating order so
     that both see the same host speed; and whether they returned the same values on every call."""
-    t_ours, t_base, same = [], [], True
+    if not calls:
+        return float("nan"), float("nan"), True
+    fns, ms, same = (ours, base), ([], []), True
     for i, (args, kwargs) in enumerate(calls):
-        order = [(ours, t_ours), (base, t_base)]
-        if i % 2:
-            order.reverse()
-        values = {}
-        for fn, sink in order:
+        values = [None, None]
+        for j in (0, 1) if i % 2 == 0 else (1, 0):
             best = float("inf")
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                values[id(sink)] = fn(*args, **kwargs)
+                values[j] = fns[j](*args, **kwargs)
                 best = min(best, time.perf_counter() - t0)
-            sink.append(1e3 * best)
-        same = same and np.array_equal(values[id(t_ours)], values[id(t_base)])
-    if not calls:
-        return float("nan"), float("nan"), True
-    return statistics.median(t_ours), statistics.median(t_base), same
+            ms[j].append(1e3 * best)
+        same = same and np.array_equal(values[0], values[1])
+    return statistics.median(ms[0]), statistics.median(ms[1]), same
 
 
 def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str:
