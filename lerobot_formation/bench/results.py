@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_formation.bench.artifacts import bench_command, host_description
 from lerobot_formation.bench.paper_tables import adaptive_table, three_way_table
 from lerobot_formation.bench.settings import BenchSettings
 from lerobot_formation.core.dynamics import FormationParams
@@ -160,6 +161,9 @@ def write_results(
         "candidates": settings.options.candidates,
         "num_inference_steps": settings.options.num_inference_steps,
         "date": time.strftime("%Y-%m-%d"),
+        "command": bench_command(),  # None when main() is called from Python (a test)
+        "host": host_description(),
+        "device": settings.options.device,
         "scene_sampling": report.as_dict() if report.drawn else None,
         "shard": settings.shard,
         "incomplete": error is not None,
