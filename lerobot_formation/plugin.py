@@ -1,10 +1,10 @@
 """Everything LeRobot must see registered before it parses a config or loads a checkpoint.
 
-Imported by the discovery shim ``lerobot_env_formation`` (plugin_shim/), which LeRobot's CLIs
-auto-import. Importing registers the env config ``formation``, the policy config
-``formation_diffusion`` (draccus choice registries) and the custom processor step
-``formation_egocentric_obstacles`` (LeRobot's ``ProcessorStepRegistry``, needed to load a checkpoint's
-preprocessor), and nothing else: no LeRobot function is replaced and no environment variable is
+Imported by the discovery module ``lerobot_env_formation`` (installed with this package: the
+distribution is named for it), which LeRobot's CLIs auto-import. Importing registers the env config
+``formation``, the policy config ``formation_diffusion`` (draccus choice registries) and the custom
+processor step ``formation_egocentric_obstacles`` (LeRobot's ``ProcessorStepRegistry``, needed to load
+a checkpoint's preprocessor), and nothing else: no LeRobot function is replaced and no environment variable is
 set. The policy class and its processor factory are found by LeRobot's naming convention
 (``configuration_`` -> ``modeling_`` / ``processor_``). The fast dataset reads switch on when a
 formation policy's processors are made, for formation datasets only (``compat/fast_reads.py``);

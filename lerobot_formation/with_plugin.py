@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    import lerobot_env_formation  # noqa: F401  (the discovery shim: imports the plugin, as LeRobot's CLIs do)
+    import lerobot_env_formation  # noqa: F401  (the discovery module: imports the plugin, as LeRobot's CLIs do)
 
     (script,) = [e for e in entry_points(group="console_scripts") if e.name == argv[0]]
     sys.argv = argv

@@ -103,7 +103,7 @@ torch_build() {
 setup() {
   local stamp=.venv/.installed
   local want start
-  want="$(cat pyproject.toml plugin_shim/pyproject.toml 2>/dev/null | sha256sum | cut -c1-16)"
+  want="$(sha256sum < pyproject.toml | cut -c1-16)"
   if [ -x .venv/bin/python ] && [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
     return 0
   fi
@@ -127,14 +127,17 @@ setup() {
     stage_done "torch $(torch_build 2>/dev/null || echo '(not importable)') installed" "$start"
   fi
   start=$SECONDS
+  # One distribution, lerobot_env_formation (the name LeRobot's CLIs discover), holds the plugin and its
+  # discovery module. A .venv of the earlier layout also has the distribution lerobot_formation (the
+  # shim was a second one): uninstall it first, as its files include the console scripts installed
+  # below (the shim's distribution has the new one's name and is replaced by the install itself).
+  if .venv/bin/python -I -c 'import importlib.metadata as m; m.distribution("lerobot_formation")' 2>/dev/null; then
+    .venv/bin/python -m pip uninstall -q -y lerobot_formation 2>&1 | quiet_pip || true
+    echo "[setup] the earlier layout's distribution lerobot_formation uninstalled (the project is now one: lerobot_env_formation)"
+  fi
   .venv/bin/python -m pip install -q -e '.[dev]' 2>&1 | quiet_pip || true
   stage_done "LeRobot $(.venv/bin/python -c 'import importlib.metadata as m; print(m.version("lerobot"))' 2>/dev/null || echo '?') + lerobot_formation installed" "$start"
-  if [ -d plugin_shim ]; then
-    start=$SECONDS
-    .venv/bin/python -m pip install -q --no-deps ./plugin_shim 2>&1 | quiet_pip || true
-    stage_done "plugin shim lerobot_env_formation installed" "$start"
-  fi
-  .venv/bin/python -c 'import lerobot_formation, lerobot, torch' || { echo "error: install failed" >&2; exit 1; }
+  .venv/bin/python -I -c 'import lerobot_formation, lerobot_env_formation, gym_formation, lerobot, torch' || { echo "error: install failed" >&2; exit 1; }
   echo "$want" > "$stamp"
 }
 

@@ -8,6 +8,7 @@ package is installed and nothing is downloaded.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 from pathlib import Path
@@ -32,6 +33,11 @@ case "$1" in
     esac
     exit 0 ;;
   -) exit 1 ;;  # the CPU-index probe: unreachable
+  -I)  # isolated checks: the earlier layout's distribution (only with the marker file), the final import
+    case "$3" in
+      *'distribution("lerobot_formation")'*) [ -f "$venv/old_layout" ] ;;
+      *) exit 0 ;;
+    esac ;;
   -c)
     case "$2" in
       'import torch') [ -f "$venv/has_torch" ] ;;
@@ -49,8 +55,6 @@ def test_setup_prints_one_line_per_stage_with_time_and_size(tmp_path):
     (bin_dir / "python").write_text(STUB)
     (bin_dir / "python").chmod(0o755)
     (tmp_path / "pyproject.toml").write_text("[project]\nname = 'x'\n")
-    (tmp_path / "plugin_shim").mkdir()
-    (tmp_path / "plugin_shim" / "pyproject.toml").write_text("[project]\nname = 'y'\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith("LEROBOT_FORMATION_TORCH")}
     env["LEROBOT_FORMATION_TORCH"] = "cpu"  # ask for the CPU index: the stub's probe refuses it
     env["LEROBOT_FORMATION_TORCH_INDEX"] = "http://127.0.0.1:9/whl/cpu"
@@ -69,8 +73,7 @@ def test_setup_prints_one_line_per_stage_with_time_and_size(tmp_path):
         "[setup] environment and pip ready",
         "[setup] torch 2.11.0 (CUDA build) installed",
         "[setup] LeRobot 0.6.1 + lerobot_formation installed",
-        "[setup] plugin shim lerobot_env_formation installed",
-    ]
+    ]  # one install: the plugin and its discovery module are one distribution
     sizes = [s.rsplit(".venv now ", 1)[1].split() for s in stages]
     megabytes = [float(n) * (1024 if unit == "GB" else 1) for n, unit in sizes]
     assert megabytes[0] + 2 <= megabytes[1] < megabytes[2]  # torch wrote 3 MB, LeRobot 1 MB more
@@ -114,3 +117,33 @@ def test_quiet_pip_keeps_other_warnings_and_lines():
         "/s/y.py:3: UserWarning: a warning without a box",
         "ERROR: a real error",
     ]
+
+
+def test_setup_uninstalls_the_earlier_layouts_distribution_first(tmp_path):
+    """A .venv set up before the plugin and its discovery module became one distribution
+    (lerobot_env_formation) still has lerobot_formation: setup removes it before installing, in one
+    line, and the stamp is pyproject.toml's hash alone (as benchmarks/bench_demo_time.py reads it)."""
+    venv = tmp_path / ".venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").write_text(STUB)
+    (venv / "bin" / "python").chmod(0o755)
+    (venv / "has_torch").touch()
+    (venv / "old_layout").touch()
+    (tmp_path / "pyproject.toml").write_text("[project]\nname = 'x'\n")
+    proc = subprocess.run(
+        ["bash", "-c", "set -euo pipefail\n" + FUNCTIONS + "setup\n"],
+        cwd=tmp_path,
+        env={**os.environ, "LEROBOT_FORMATION_TORCH": "cuda"},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc
+    notes = [line for line in proc.stdout.splitlines() if "lerobot_formation uninstalled" in line]
+    assert len(notes) == 1 and notes[0].startswith("[setup] "), proc.stdout
+    calls = (venv / "calls.log").read_text().splitlines()
+    uninstall = calls.index("-m pip uninstall -q -y lerobot_formation")
+    install = next(i for i, c in enumerate(calls) if c.startswith("-m pip install -q -e"))
+    assert uninstall < install
+    want = hashlib.sha256((tmp_path / "pyproject.toml").read_bytes()).hexdigest()[:16]
+    assert (venv / ".installed").read_text().strip() == want

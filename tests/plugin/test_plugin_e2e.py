@@ -31,9 +31,10 @@ def ema_step_and_gap(checkpoint: Path) -> tuple[int, float]:
 
 
 def test_shim_distribution_is_installed():
-    """LeRobot's CLIs import distributions named lerobot_env_* (see plugin_shim/)."""
+    """LeRobot's CLIs import distributions named lerobot_env_* as the module of that name: the
+    project's distribution is lerobot_env_formation (pyproject.toml), its module lerobot_env_formation/."""
     dist = importlib.metadata.distribution("lerobot_env_formation")
-    assert dist.metadata["Name"] == "lerobot_env_formation", "run: pip install --no-deps ./plugin_shim"
+    assert dist.metadata["Name"] == "lerobot_env_formation", "run: pip install -e ."
 
 
 @pytest.fixture(scope="module")
