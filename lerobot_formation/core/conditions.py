@@ -21,13 +21,16 @@ encoding get:
   ``max_linear_accel``, ``max_angular_accel``).
 - moving obstacles: ``moving_obstacles`` of a scene's obstacles move at ``obstacle_speed`` in
   directions drawn from the scene's seed (or the scene's own ``velocities``), bouncing off the scene's
-  bounds (``scene_bounds``) and off the start and goal zones (the fairness rule below). Collisions
-  with them count like any other and end the episode.
+  bounds (``scene_bounds``), off the start and goal zones (the fairness rule below) and off every
+  other obstacle, static or moving (a mover never overlaps another obstacle: it is a body a robot
+  could meet, never one that comes out of a wall). Collisions with them count like any other and
+  end the episode.
 
 Fairness: a moving obstacle never enters the start zone (a disc of ``ZONE_RADIUS`` around the start
 midpoint) nor the goal zone (the same around the goal): it bounces off their edge as off a wall. Only
-obstacles that start outside both zones are chosen to move, so a team is never hit where it starts
-and a goal is never blocked for good; the static layout is the scene's own (valid: a passage exists).
+obstacles that start outside both zones and clear of every other obstacle are chosen to move (a
+circle of a wall stays in the wall), so a team is never hit where it starts and a goal is never
+blocked for good; the static layout is the scene's own (valid: a passage exists).
 
 Randomness: every team has its own ``np.random.Generator`` seeded with (scene seed, ``NOISE_TAG``)
 (a scene without a seed, -1, uses its row in the batch), and draws one fixed-size vector per control
@@ -192,6 +195,9 @@ class Perception:
             the observed static obstacles as observed (noisy) at the step ``map_version`` last
             changed, so it is constant between map changes; moving obstacles and unobserved slots
             are padding (FAR, FAR, 0). Without conditions it is ``obstacles``.
+        scene_seed: (B,) int64 each team's scene seed (-1: a scene given by hand), or None: not an
+            observation but the episode's name, which a controller keys its own random draws by
+            (one stream per episode, so an episode's draws do not depend on the others in its batch).
     """
 
     pose: np.ndarray
@@ -202,6 +208,7 @@ class Perception:
     goal: np.ndarray
     map_version: np.ndarray
     map_obstacles: np.ndarray
+    scene_seed: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.pose)
@@ -216,6 +223,7 @@ class Perception:
             self.goal[idx],
             self.map_version[idx],
             self.map_obstacles[idx],
+            None if self.scene_seed is None else self.scene_seed[idx],
         )
 
     @property
@@ -236,6 +244,7 @@ class Perception:
             scenes.goal,
             np.zeros(B, dtype=np.int64),
             scenes.obstacles,
+            scenes.seeds,
         )
 
 
@@ -265,7 +274,9 @@ def obstacle_velocities(scenes: Scenes, conditions: Conditions) -> np.ndarray:
 
     A scene with its own ``velocities`` keeps them. Otherwise ``moving_obstacles`` of its real
     obstacles that start outside the start and goal zones (fewer if it has fewer) are chosen, and
-    their directions drawn, by ``episode_rng(seed, MOTION_TAG)``; they move at ``obstacle_speed``."""
+    their directions drawn, by ``episode_rng(seed, MOTION_TAG)``; they move at ``obstacle_speed``.
+    Only obstacles clear of every other real obstacle move (one that overlaps another is part of a
+    wall or a cluster)."""
     B, M, _ = scenes.obstacles.shape
     vel = np.zeros((B, M, 2))
     given = scenes.velocities
@@ -279,7 +290,8 @@ def obstacle_velocities(scenes: Scenes, conditions: Conditions) -> np.ndarray:
             continue
         centre, r = scenes.obstacles[b, :, :2], scenes.obstacles[b, :, 2]
         gap = np.linalg.norm(centre[:, None] - zones[b][None], axis=-1) - r[:, None]  # (M, 2)
-        free = np.flatnonzero(scenes.mask[b] & (gap > ZONE_RADIUS).all(axis=1))
+        apart = _pair_gaps(scenes.obstacles[b][None], scenes.mask[b][None])[0]  # (M, M), inf off-mask
+        free = np.flatnonzero(scenes.mask[b] & (gap > ZONE_RADIUS).all(axis=1) & (apart > 0).all(axis=1))
         rng = episode_rng(scenes.seeds[b] if scenes.seeds[b] >= 0 else b, MOTION_TAG)
         chosen = rng.permutation(free)[:k]
         angle = rng.uniform(0.0, 2 * np.pi, size=len(chosen))
@@ -287,18 +299,39 @@ def obstacle_velocities(scenes: Scenes, conditions: Conditions) -> np.ndarray:
     return vel
 
 
+def _pair_gaps(obstacles: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(B, M, M) surface gaps |c_i - c_j| - r_i - r_j between the real obstacles (B, M, 3) of each
+    scene; inf on the diagonal and for padding rows (mask (B, M) False)."""
+    d = np.linalg.norm(obstacles[:, :, None, :2] - obstacles[:, None, :, :2], axis=-1)
+    gap = d - obstacles[:, :, None, 2] - obstacles[:, None, :, 2]
+    real = mask[:, :, None] & mask[:, None, :]
+    real &= ~np.eye(obstacles.shape[1], dtype=bool)[None]
+    return np.where(real, gap, np.inf)
+
+
 def move_obstacles(
-    obstacles: np.ndarray, velocity: np.ndarray, dt: float, bounds: np.ndarray, zones: np.ndarray
+    obstacles: np.ndarray,
+    velocity: np.ndarray,
+    dt: float,
+    bounds: np.ndarray,
+    zones: np.ndarray,
+    mask: np.ndarray | None = None,
 ) -> None:
     """Move obstacles (B, M, 3) by velocity (B, M, 2) over dt, in place, and bounce (in place too).
 
     Bounds (B, 4): a centre that leaves the box is reflected back into it and the velocity component
     flips. Zones (B, Z, 2): an obstacle whose surface comes within ``ZONE_RADIUS`` of a zone centre
     while moving toward it gets its velocity reflected about the line to that centre (and keeps its
-    step's position: it turns at the edge)."""
+    step's position: it turns at the edge). Other obstacles (the real ones of ``mask`` (B, M); None:
+    every row): a mover whose step would overlap another obstacle keeps its position and reflects its
+    velocity about the line of centres, v <- v - 2 (v . n) n with n the unit vector from the other
+    obstacle to it, where it moves toward the other (v . n < 0; of two movers closing on each other at
+    least one does); a mover is never moved into an overlap, so from a clear start none ever
+    overlaps another obstacle."""
     moving = np.any(velocity != 0, axis=-1)  # (B, M)
     if not moving.any():
         return
+    before = obstacles[..., :2].copy()
     xy = obstacles[..., :2] + velocity * dt
     for axis in range(2):
         lo, hi = bounds[:, axis][:, None], bounds[:, 2 + axis][:, None]
@@ -316,7 +349,41 @@ def move_obstacles(
         hit = moving & (dist - obstacles[..., 2] < ZONE_RADIUS) & (toward < 0)
         velocity[hit] -= 2 * toward[hit][:, None] * normal[hit]
         xy[hit] = obstacles[hit, :2]  # stay where it was this step, then leave along the new velocity
-    obstacles[..., :2] = np.where(moving[..., None], xy, obstacles[..., :2])
+    xy = np.where(moving[..., None], xy, before)
+    real = np.ones(moving.shape, dtype=bool) if mask is None else mask
+    if (moving.sum(axis=1) > 0).any() and obstacles.shape[1] > 1:
+        _bounce_off_obstacles(obstacles[..., 2], xy, before, velocity, moving & real, real)
+    obstacles[..., :2] = xy
+
+
+def _bounce_off_obstacles(
+    radius: np.ndarray, xy: np.ndarray, before: np.ndarray, velocity: np.ndarray, moving, real
+) -> None:
+    """``move_obstacles``' contacts between obstacles, in place on the stepped centres ``xy`` and the
+    velocities: each mover that overlaps another real obstacle after its step goes back to where it
+    was (``before``, clear of every obstacle's position there) and reflects its velocity off that
+    obstacle where it moved toward it. A mover put back can overlap another mover's new place, so the
+    check repeats until nothing overlaps (at most M rounds: each round puts back at least one mover,
+    and all put back is the clear start)."""
+    obstacles = np.concatenate([xy, radius[..., None]], axis=-1)
+    reflected = np.zeros(moving.shape, dtype=bool)
+    for _ in range(moving.shape[1]):
+        gap = _pair_gaps(obstacles, real)  # (B, M, M)
+        contact = (gap < 0) & moving[:, :, None]
+        stepped = np.any(xy != before, axis=-1)  # only a mover that moved this step goes back
+        contact &= stepped[:, :, None]
+        if not contact.any():
+            return
+        b, i, j = np.nonzero(contact)
+        n = before[b, i] - obstacles[b, j, :2]  # from the other obstacle to the mover, at its old place
+        n /= np.maximum(np.linalg.norm(n, axis=-1), 1e-9)[:, None]
+        toward = np.sum(velocity[b, i] * n, axis=-1)
+        for k in np.flatnonzero(toward < 0):  # one reflection per mover and step, off its first contact
+            if not reflected[b[k], i[k]]:
+                velocity[b[k], i[k]] -= 2 * toward[k] * n[k]
+                reflected[b[k], i[k]] = True
+        xy[b, i] = before[b, i]
+        obstacles[b, i, :2] = before[b, i]
 
 
 class ConditionedWorld:
@@ -436,7 +503,7 @@ class ConditionedWorld:
 
     def move(self, obstacles: np.ndarray) -> None:
         """Move the teams' true obstacles (B, M, 3) one control step, in place."""
-        move_obstacles(obstacles, self.velocity, self.params.dt, self.bounds, self.zones)
+        move_obstacles(obstacles, self.velocity, self.params.dt, self.bounds, self.zones, self.real)
 
     def privileged(self, state: FormationState, scenes: Scenes) -> Perception:
         """The true world of the teams (what a privileged expert acts on; ``Perception.exact`` without
@@ -456,6 +523,7 @@ class ConditionedWorld:
             scenes.goal,
             np.zeros(len(self.real), dtype=np.int64),
             np.where(static[..., None], scenes.obstacles, pad),
+            scenes.seeds,
         )
 
     def perceive(self, state: FormationState, scenes: Scenes) -> Perception:
@@ -493,4 +561,5 @@ class ConditionedWorld:
             scenes.goal,
             self.map_version.copy(),
             self.map_obstacles.copy(),
+            scenes.seeds,
         )

@@ -249,3 +249,57 @@ def test_records_of_a_conditioned_rollout():
     np.testing.assert_array_equal(rec.poses, again.poses)
     # frame 0 holds the true obstacles where they start
     np.testing.assert_array_equal(rec.obstacle_paths[:, 0], scenes.obstacles[..., :2])
+
+
+def _mover_gaps(rec, scenes, moving) -> np.ndarray:
+    """Surface gaps (steps, n) between each mover and every other real obstacle over a rollout's
+    recorded obstacle paths (NaN rows after an episode's end dropped)."""
+    B, T, M, _ = rec.obstacle_paths.shape
+    r = scenes.obstacles[..., 2]
+    gaps = []
+    for b in range(B):
+        for i in np.flatnonzero(moving[b]):
+            others = np.flatnonzero(scenes.mask[b] & (np.arange(M) != i))
+            path = rec.obstacle_paths[b]  # (T, M, 2)
+            d = np.linalg.norm(path[:, i, None] - path[:, others], axis=-1)
+            g = d - r[b, i] - r[b, others]
+            gaps.append(g[~np.isnan(g).any(axis=1)].ravel())
+    return np.concatenate(gaps)
+
+
+@pytest.mark.parametrize(
+    ("preset", "cond"),
+    [
+        ("structures", Conditions(moving_obstacles=2, obstacle_speed=0.3)),  # level5's movers
+        ("mixed-hard", Conditions(moving_obstacles=4, obstacle_speed=0.8)),
+        ("wide", Conditions(moving_obstacles=6, obstacle_speed=0.5)),
+    ],
+)
+def test_movers_never_overlap_another_obstacle(preset, cond):
+    from lerobot_formation.bench.scene_sets import parse_scenes
+
+    scenes = parse_scenes(f"{preset}:40", 1_000_000)
+    moving = np.linalg.norm(obstacle_velocities(scenes, cond), axis=-1) > 0
+    assert moving.sum() >= 40  # the test sees many movers
+    rec = rollout(scenes, Straight(0.0), max_steps=400, conditions=cond)
+    gaps = _mover_gaps(rec, scenes, moving)
+    assert gaps.size > 0 and gaps.min() >= -1e-9
+    # and they do meet obstacles: some come within one step of another and turn there
+    assert (gaps < cond.obstacle_speed * 0.1 + 1e-9).any()
+
+
+def test_a_mover_bounces_off_a_static_obstacle_and_off_another_mover():
+    # a mover heading straight at a standing obstacle turns back at its surface
+    scene = {
+        "obstacles": [[3.0, 5.0, 0.5], [6.0, 5.0, 0.5], [3.0, 8.0, 0.4], [6.0, 8.0, 0.4]],
+        "goal": [0.0, 14.0],
+        "velocities": [[1.0, 0.0], [0.0, 0.0], [1.0, 0.0], [-1.0, 0.0]],
+    }
+    scenes = scenes_from_list([scene])
+    rec = rollout(scenes, Straight(0.0), max_steps=60)
+    x = rec.obstacle_paths[0, :, 0, 0]
+    assert x.max() <= 5.0 + 1e-9 and x[-1] < x.max() - 1.0  # stopped at the surface, then went back
+    np.testing.assert_array_equal(rec.obstacle_paths[0, :, 1], np.tile([6.0, 5.0], (61, 1)))
+    # two movers closing head on part again, never overlapping
+    gap = np.linalg.norm(rec.obstacle_paths[0, :, 2] - rec.obstacle_paths[0, :, 3], axis=-1) - 0.8
+    assert gap.min() >= -1e-9 and gap.min() < 0.2 and gap[-1] > 1.0
