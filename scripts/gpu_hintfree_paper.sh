@@ -100,7 +100,7 @@ MODEL=$RUN/checkpoints/last/pretrained_model
 say "bench: $LEVELS, $SCENES scenes each"
 pids=()
 for level in $LEVELS; do
-    timeout $(($(left) - 10)) "$PYTHON" -m lerobot_formation.bench.cli --controllers diffusion \
+    timeout $(($(left) - 10)) "$PYTHON" -m lerobot_formation.bench.cli --overwrite --controllers diffusion \
         --policy.path "$MODEL" --scenes "$level:$SCENES" --device "$DEVICE" --threads 1 --no-figures \
         --no-progress --out "outputs/hintfree_paper_bench/$level" >"outputs/bench_$level.log" 2>&1 &
     pids+=($!)

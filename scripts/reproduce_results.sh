@@ -4,8 +4,9 @@
 # Since issue 25 (2026-12-03) the policy fields escape_advantage, replan_blend_steps, blocked_fallback
 # and egocentric_state are retired: the derive_checkpoint.py lines below that set them record how the
 # earlier results were made and now stop with an error; the same settings are ReplanExperiment rows of
-# scripts/ablation.py (--escape-advantage, --blend-steps, ...). warm_start_all_candidates, retired
-# with them, is a config field again since 2026-12-05 (late): the shipped default sets it.
+# scripts/ablation.py (--escape-advantage, --blend-steps, ...). The fields retired since
+# (compat/old_checkpoints.py RETIRED_FIELDS) run their shipped values; the lines below no longer set them.
+# The distilled one-step student (not shipped) left with policy/distill.py; its lines are gone.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1
@@ -16,7 +17,7 @@ MODEL=pretrained/formation_diffusion_cpu
 mkdir -p "$OUT"
 
 # World / PAC (issue 2)
-$BIN/lerobot-formation-bench --controllers pac --scenes random:1000 --out $OUT/pac1000 --no-progress | tee $OUT/pac1000.log
+$BIN/lerobot-formation-bench --overwrite --controllers pac --scenes random:1000 --out $OUT/pac1000 --no-progress | tee $OUT/pac1000.log
 $PY benchmarks/bench_env_step.py | tee $OUT/bench_env_step.log
 $PY benchmarks/bench_follower_floor.py | tee $OUT/bench_follower_floor.log
 
@@ -38,10 +39,10 @@ $PY benchmarks/bench_train_throughput.py --dataset.root data/formation_pac_list 
 
 # The paper's experiments (issue 5)
 # (the world-frame "diffusion-adaptive" rule is retired: best-of-K needs an egocentric checkpoint)
-$BIN/lerobot-formation-bench --controllers pac,mppi,diffusion --policy.path $MODEL \
+$BIN/lerobot-formation-bench --overwrite --controllers pac,mppi,diffusion --policy.path $MODEL \
   --scenes dataset:100 --unseen random:100 --out $OUT/bench --no-progress | tee $OUT/bench.log
 for k in 2 5 10 25 100; do
-  $BIN/lerobot-formation-bench --controllers diffusion --policy.path $MODEL --scenes dataset:100 \
+  $BIN/lerobot-formation-bench --overwrite --controllers diffusion --policy.path $MODEL --scenes dataset:100 \
     --num-inference-steps $k --out $OUT/ddim_$k --no-figures --no-progress | tee $OUT/ddim_$k.log
 done
 $PY benchmarks/mppi_sweep.py --scenes 40 --confirm 100 --out $OUT/mppi_sweep.json | tee $OUT/mppi_sweep.log
@@ -94,18 +95,14 @@ $PY benchmarks/bench_eval_speed.py --policy.path $SAFE --episodes 500 --stock 50
 $PY scripts/ablation.py --new $SAFE --dagger outputs/formation_diffusion_dagger --sets random:100,hard:100 \
   --rows "new + DAgger, standard;new + DAgger, best-of-10;new + DAgger, standard, 4 actions per replan" \
   --n-action-steps 4 --out outputs/ablation_dagger
-# Few-step sampling (issue 10): DDIM steps and spacings, and a distilled one-step student
+# Few-step sampling (issue 10): DDIM steps and spacings
 $PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 1,2,3,4,5,10 --spacings leading,trailing \
   --out $OUT/sampling_steps_spacing.json | tee $OUT/sampling_steps_spacing.log
-$PY -m lerobot_formation.policy.distill --teacher $SAFE --dataset.root data/formation_wide_dagger --student-steps 1 \
-  --steps 2000 --lr 3e-4 --batch-size 256 --save-every 200 --out outputs/distill_1step --threads 1
-$PY benchmarks/bench_sampling_steps.py --policy.path $SAFE --threads 1 --steps 2,3,4,10 \
-  --student outputs/distill_1step/pretrained_model --out $OUT/sampling_steps_student.json | tee $OUT/sampling_steps_student.log
 # The shipped sampler and execution: DDIM-4 (within noise of DDIM-10 above) and replan blending over 8 actions
 $PY scripts/derive_checkpoint.py $SAFE $SAFE --set num_inference_steps=4 --set replan_blend_steps=8
 $PY scripts/ablation.py --new $SAFE --sets random:100,hard:100 --blend-steps 8 --out outputs/ablation_default8 \
   --rows "new, standard + blending;new, best-of-10 + escapes + blending;new, best-of-10 + CBF + escapes + blending"
-$PY benchmarks/bench_replan_latency.py --parts cd --lean-steps 4 3 10 --student outputs/distill_1step/pretrained_model \
+$PY benchmarks/bench_replan_latency.py --parts c --lean-steps 4 3 10 \
   --threads 1 --lean-repeats 20 | tee $OUT/replan_latency.log
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time.log
 # Session of 2026-12-02 (evening): a second DAgger round on the shipped weights, warm-started replans,
@@ -164,7 +161,7 @@ $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_d2.log
 dagger_data 3 $SAFE 3200000 formation_wide_dagger2
 dagger_finetune 3 1.5e-4 1003
 for m in $SAFE outputs/formation_diffusion_d3; do for s in random:500 hard:500; do
-  $BIN/lerobot-formation-bench --controllers diffusion --policy.path $m --scenes $s --out outputs/std_$(basename $m)_${s%%:*} \
+  $BIN/lerobot-formation-bench --overwrite --controllers diffusion --policy.path $m --scenes $s --out outputs/std_$(basename $m)_${s%%:*} \
     --no-figures --no-progress | tee -a $OUT/dagger3_standard.log
 done; done
 # DAgger round 4 data (states the round-3 weights visit; used by the wider U-Net below)
@@ -173,11 +170,11 @@ dagger_data 4 outputs/formation_diffusion_d3 3300000 formation_wide_dagger3
 for m in 0.05 0.03; do
   $PY scripts/derive_checkpoint.py $SAFE outputs/safe_margin_$m --set safety_margin=$m
   for p in gates dense; do
-    $BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/safe_margin_$m \
+    $BIN/lerobot-formation-bench --overwrite --controllers diffusion-bestof --candidates 10 --policy.path outputs/safe_margin_$m \
       --scenes $p:125 --seed 5000000 --out outputs/tune_margin_${m}_$p --no-figures --no-progress | tee -a $OUT/tune_margin.log
   done
   for s in random:500 hard:500; do
-    $BIN/lerobot-formation-bench --controllers diffusion-bestof,diffusion-safe --candidates 10 \
+    $BIN/lerobot-formation-bench --overwrite --controllers diffusion-bestof,diffusion-safe --candidates 10 \
       --policy.path outputs/safe_margin_$m --scenes $s --out outputs/margin_${m}_${s%%:*} --no-figures --no-progress \
       | tee -a $OUT/margin.log
   done
@@ -206,7 +203,7 @@ route_export() {
 for s in 016000 032000 044000 060000; do
   route_export train_route $s outputs/route_$s formation_wide_route
   for set in random:500 hard:500; do
-    $BIN/lerobot-formation-bench --controllers diffusion --policy.path outputs/route_$s --scenes $set \
+    $BIN/lerobot-formation-bench --overwrite --controllers diffusion --policy.path outputs/route_$s --scenes $set \
       --out outputs/probe_${s}_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_probe.log
   done
 done
@@ -220,26 +217,26 @@ route_export train_route_hard 008000 outputs/route_hard_008000 formation_wide_ha
 route_export train_route_hard 012000 outputs/route_hard_012000 formation_wide_hard_route
 # Choices on tuning seeds (5,000,000+): checkpoint, escape rule, margin, warm start and blending
 for m in 032000 060000 hard_008000 hard_012000; do for set in random:500 hard:500; do
-  $BIN/lerobot-formation-bench --controllers diffusion --policy.path outputs/route_$m --scenes $set --seed 5000000 \
+  $BIN/lerobot-formation-bench --overwrite --controllers diffusion --policy.path outputs/route_$m --scenes $set --seed 5000000 \
     --out outputs/tune_${m}_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_tune.log
 done; done
-$BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/route_060000 --scenes hard:500 \
+$BIN/lerobot-formation-bench --overwrite --controllers diffusion-bestof --candidates 10 --policy.path outputs/route_060000 --scenes hard:500 \
   --seed 5000000 --out outputs/tune_060000_hard_bestof --no-figures --no-progress | tee -a $OUT/route_tune.log
 $PY scripts/derive_checkpoint.py outputs/route_060000 outputs/r60_noesc --set escape_advantage=null
 $PY scripts/derive_checkpoint.py outputs/route_060000 outputs/r60_m0 --set escape_advantage=null --set safety_margin=0
 for set in random:500 hard:500; do
-  $BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/r60_noesc --scenes $set \
+  $BIN/lerobot-formation-bench --overwrite --controllers diffusion-bestof --candidates 10 --policy.path outputs/r60_noesc --scenes $set \
     --seed 5000000 --out outputs/tune_noesc_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_tune.log
 done
 for v in noesc m0; do
-  $BIN/lerobot-formation-bench --controllers diffusion-bestof --candidates 10 --policy.path outputs/r60_$v --scenes gates:125 \
+  $BIN/lerobot-formation-bench --overwrite --controllers diffusion-bestof --candidates 10 --policy.path outputs/r60_$v --scenes gates:125 \
     --seed 5000000 --out outputs/tune_gates_$v --no-figures --no-progress | tee -a $OUT/route_tune.log
 done
 for wb in "0 0" "0 8" "1 0" "0 2" "1 2" "0 4" "1 4"; do
   set -- $wb
   $PY scripts/derive_checkpoint.py outputs/r60_noesc outputs/r60_w$1_b$2 --set warm_start_step=$1 --set replan_blend_steps=$2
   for set in random:500 hard:500; do
-    $BIN/lerobot-formation-bench --controllers diffusion --policy.path outputs/r60_w$1_b$2 --scenes $set --seed 5000000 \
+    $BIN/lerobot-formation-bench --overwrite --controllers diffusion --policy.path outputs/r60_w$1_b$2 --scenes $set --seed 5000000 \
       --out outputs/tune_w$1_b$2_${set%%:*} --no-figures --no-progress | tee -a $OUT/route_tune.log
   done
 done
@@ -270,12 +267,11 @@ $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_route.l
 # level, several hours on 2 cores), lerobot-eval's agreement on levels 4-5 and the latency.
 $PY scripts/derive_checkpoint.py $SAFE $SAFE --set safety_route_proposal=true --set safety_route_lookahead=20 \
   --set safety_coherence=1.0 --set safety_proposal_blend=4 --set safety_follower_margin=0.03 \
-  --set safety_progress_resolution=0.4 --set safety_progress_interpolation=bilinear \
-  --set warm_start_all_candidates=true --set chunk_smoothing=2 \
-  --set "safety_escape_speeds=[0,0.1,0.2,0.3,0.45,0.6]" --set safety_mover_uncertainty=0.10 --set safety_fallback_all=true \
-  --set safety_recheck=true --set cbf_rate=4.0 --set safety_halt_lookahead=20 --set sampling_guidance=1.0
+  --set chunk_smoothing=2 --set safety_mover_uncertainty=0.10 \
+  --set cbf_rate=4.0 --set safety_halt_lookahead=20 --set sampling_guidance=1.0 \
+  --set num_candidates=10 --set safety_filter=cbf
 for k in 0 1 2 3 4 5; do
-  $BIN/lerobot-formation-bench \
+  $BIN/lerobot-formation-bench --overwrite \
     --controllers pac,mppi,route-pursuit,route-pursuit-safe,route-pursuit-guided,diffusion,diffusion-guided,diffusion-safe,pac-privileged \
     --policy.path $SAFE --scenes level$k:500 --threads 1 --no-figures --no-progress --out outputs/levels/level$k \
     | tee $OUT/level$k.log

@@ -174,7 +174,7 @@ def test_help_shows_the_defaults(build, monkeypatch, capsys):
         else _parser_of(gen.parse_args, ["--episodes", "1"], monkeypatch)
     )
     text = " ".join(ap.format_help().split())
-    assert "default 1000000" in text if build == "bench" else "(default: 1878)" in text
+    assert "(default: 1000000" in text if build == "bench" else "(default: 1878)" in text
 
 
 @pytest.mark.slow  # a fresh interpreter importing LeRobot: ~15 s quiet, ~45 s on the shared machine

@@ -696,7 +696,8 @@ def test_full_disk_leaves_no_partial_file(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(os, "fsync", no_space)
     with pytest.raises(SystemExit) as e:
-        bench_main(["--controllers", "pac", "--scenes", str(f), "--out", str(out), "--no-progress"])
+        argv = ["--controllers", "pac", "--scenes", str(f), "--out", str(out), "--no-progress"]
+        bench_main([*argv, "--overwrite"])  # replace the earlier run: never half of it
     assert e.value.code == 1
     line = last_error_line(capsys.readouterr().err)
     assert line == f"error: cannot write the results into {out}: [Errno 28] No space left on device"

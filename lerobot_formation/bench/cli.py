@@ -15,7 +15,7 @@ dataset never uses; ``<preset>:N`` the same from a scene preset of ``core.scene.
 ``gates:25``; ``hard:N`` N/4 scenes of each of gates, blockers, dense and goals), the
 ``dataset:N`` (the first N episodes of a dataset: ``--dataset.root``, or the
 ``dataset_scenes.json`` shipped with the policy), or a scenes JSON file. ``--unseen random:N`` also
-runs the diffusion controllers on unseen scenes for the standard-vs-adaptive table.
+runs the diffusion controllers on unseen scenes for the standard-vs-best-of-K table.
 
 Realistic conditions: ``--env.<field> VALUE`` with the env config's field names (docs/conditions.md),
 e.g. ``--env.sensing_range 3 --env.action_delay 2 --env.moving_obstacles 2 --env.obstacle_speed 0.3``;
@@ -49,15 +49,22 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.bench.controllers import controller_names, make_controller, needs_policy
+from lerobot_formation.bench.controllers import (
+    controller_names,
+    controller_summary,
+    make_controller,
+    needs_policy,
+)
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import draw_bench_figures
+from lerobot_formation.bench.merge import SETTINGS as MERGE_SETTINGS
 from lerobot_formation.bench.results import collisions_text, controller_results, safety_rates, write_results
 from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
@@ -122,59 +129,151 @@ def run_set(
     return results
 
 
+DESCRIPTION = """\
+Run controllers on a scene set with the batched evaluation engine, and write results.json,
+tables.md and figures into --out (docs/benchmark.md)."""
+EXAMPLES = """\
+examples:
+  lerobot-formation-bench --controllers pac,mppi,route-pursuit --scenes random:100 --out outputs/baselines
+  lerobot-formation-bench --controllers diffusion,diffusion-safe --policy.path CHECKPOINT \\
+      --scenes level5:500 --out outputs/level5
+  lerobot-formation-bench --controllers pac,route-pursuit --scenes level5:500 --shard 0/4 \\
+      --out outputs/level5_0   (shard 0 of 4; lerobot-formation-bench-merge joins the 4 folders)
+  lerobot-formation-bench --controllers diffusion,diffusion-safe --policy.path CHECKPOINT \\
+      --scenes level5:500 --out outputs/level5 --resume   (finish a run that stopped)
+
+CHECKPOINT is a formation_diffusion checkpoint folder (the repository's pretrained/ holds the default).
+"""
+# the bench's own files in an output folder: one of them there means the folder holds a run
+RUN_FILES = ("results.json", "tables.md")
+# the settings a resumed run must share with the run in the folder (meta entries of results.json)
+RESUME_SETTINGS = (*MERGE_SETTINGS, "shard", "seed_policy")
+
+
+def _controller_lines() -> str:
+    """One line per registered controller (``controllers.CONTROLLER_FACTORIES``), in registry order,
+    those that read a checkpoint in a second list."""
+    names = controller_names()
+    width = max(len(n) for n in names) + 2
+    lines = ["controllers (--controllers, comma-separated):"]
+    lines += [f"  {n:<{width}}{controller_summary(n)}" for n in names if not needs_policy(n)]
+    lines.append("controllers that need --policy.path:")
+    lines += [f"  {n:<{width}}{controller_summary(n)}" for n in names if needs_policy(n)]
+    return "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="lerobot-formation-bench",
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description=DESCRIPTION,
+        epilog=f"{EXAMPLES}\n{_controller_lines()}\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    ap.add_argument("--controllers", default="pac", help=f"comma-separated, from {controller_names()}")
-    ap.add_argument(
+    scenes = ap.add_argument_group("scenes")
+    scenes.add_argument(
         "--scenes",
         default="random:20",
         help="random:N, <preset>:N (paper, wide, gates, blockers, dense, goals, bend, trap, crowd, long, "
-        "behind), hard:N, structures:N, mixed-hard:N, levelK:N (K = 0..5), dataset:N or FILE.json",
+        "behind), hard:N, structures:N, mixed-hard:N, levelK:N (K = 0..5, under the level's "
+        "conditions), dataset:N or FILE.json (default: %(default)s)",
     )
-    ap.add_argument(
+    scenes.add_argument(
         "--unseen",
         default=None,
+        metavar="SCENES",
         help="also run the diffusion controllers on these scenes (random:N; levelK:N under its conditions)",
     )
-    ap.add_argument(
+    scenes.add_argument(
         "--seed",
         type=int,
         default=None,
-        help=f"first seed of the scene sets (default {UNSEEN_SEED_START}; a level's own for levelK:N)",
+        help=f"first seed of the scene sets (default: {UNSEEN_SEED_START}, which no dataset uses; a "
+        "level's own for levelK:N)",
     )
-    ap.add_argument(
+    scenes.add_argument(
         "--shard",
         default=None,
-        help="I/N: run only the scenes whose index i has i %% N == I (merge with lerobot-formation-bench-merge)",
+        metavar="I/N",
+        help="run only the scenes whose index i has i %% N == I (merge with lerobot-formation-bench-merge)",
     )
-    ap.add_argument("--policy.path", dest="policy_path", default=None, help="LeRobot checkpoint folder")
-    ap.add_argument("--dataset.root", dest="dataset_root", default=None, help="dataset for dataset:N")
-    ap.add_argument("--candidates", type=int, default=10, help="K of the adaptive policy")
-    ap.add_argument(
-        "--num-inference-steps", type=int, default=None, help="DDIM steps (default: checkpoint's)"
+    scenes.add_argument(
+        "--dataset.root", dest="dataset_root", default=None, metavar="DIR", help="the dataset of dataset:N"
     )
-    ap.add_argument("--seed-policy", type=int, default=0, help="seed of the policies' noise")
-    ap.add_argument(
-        "--device",
-        default="cpu",
-        help="torch device of the diffusion controllers' networks (cpu, cuda, cuda:N); scenes, "
-        "replanning state and safety layer stay on the CPU, and the noise is drawn there, so a seed "
-        "gives the same initial noise on any device",
+    controllers = ap.add_argument_group("controllers")
+    controllers.add_argument(
+        "--controllers",
+        default="pac",
+        help="comma-separated names, listed below (default: %(default)s)",
     )
-    ap.add_argument("--out", default="outputs/bench", help="output folder")
-    ap.add_argument("--no-figures", action="store_true", help="write results.json and tables.md only")
-    ap.add_argument(
+    policy = ap.add_argument_group("policy (the controllers that need --policy.path)")
+    policy.add_argument(
+        "--policy.path",
+        dest="policy_path",
+        default=None,
+        metavar="DIR",
+        help="formation_diffusion checkpoint folder",
+    )
+    policy.add_argument(
+        "--candidates",
+        type=int,
+        default=10,
+        metavar="K",
+        help="samples per replan of the best-of-K controllers (diffusion-bestof, diffusion-safe, "
+        "route-pursuit-safe) (default: %(default)s)",
+    )
+    policy.add_argument(
+        "--num-inference-steps",
+        type=int,
+        default=None,
+        metavar="N",
+        help="DDIM denoising steps (default: the checkpoint's)",
+    )
+    policy.add_argument(
+        "--seed-policy",
+        type=int,
+        default=0,
+        metavar="SEED",
+        help="seed of the controllers' noise (diffusion, MPPI) (default: %(default)s)",
+    )
+    add_condition_arguments(
+        ap,
+        "conditions (docs/conditions.md): all off by default; a level (levelK:N) fixes its own",
+    )
+    output = ap.add_argument_group("output")
+    output.add_argument(
+        "--out",
+        default="outputs/bench",
+        metavar="DIR",
+        help="output folder; one that holds another run is refused unless --overwrite or --resume "
+        "(default: %(default)s)",
+    )
+    output.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run in --out (its results.json and tables.md; figures of the same name are redrawn)",
+    )
+    output.add_argument(
+        "--resume",
+        action="store_true",
+        help="finish the run in --out: the controllers it finished are kept, not rerun (the same "
+        "scenes, seeds, policy and conditions are required)",
+    )
+    output.add_argument("--no-figures", action="store_true", help="write results.json and tables.md only")
+    output.add_argument(
         "--no-progress",
         action="store_true",
         help="no progress bars (there are none either when stderr is not a terminal); the summary "
         "lines are always printed",
     )
-    add_threads_argument(ap, "torch threads of the diffusion controllers")
-    add_condition_arguments(ap)
+    speed = ap.add_argument_group("speed")
+    speed.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device of the diffusion controllers' networks: cpu, cuda or cuda:N; scenes, "
+        "replanning state and the safety layer stay on the CPU, and the noise is drawn there, so a "
+        "seed gives the same initial noise on any device (default: %(default)s)",
+    )
+    add_threads_argument(speed, "torch threads of the diffusion controllers")
     return ap
 
 
@@ -219,6 +318,43 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
     if not 0 <= i < n:
         raise ValueError(f"--shard must be I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
     return i, n
+
+
+def existing_run(out: Path) -> str | None:
+    """The first of the bench's own files (``RUN_FILES``) in folder ``out``: it holds a run; else None."""
+    return next((name for name in RUN_FILES if (out / name).exists()), None)
+
+
+def _normalized(value):
+    """``value`` as results.json stores it (tuples as lists, ...), to compare with what it holds."""
+    return json.loads(json.dumps(value, default=str))
+
+
+def earlier_results(out: Path, settings: dict) -> dict[str, dict]:
+    """The finished controllers' results, by scene set, of the run in ``out`` (its results.json's
+    ``by_scenes``; empty when there is none), after checking that it was run with ``settings`` (the
+    ``RESUME_SETTINGS`` of this run, a missing one not checked). ValueError naming the file and the
+    value that differs."""
+    path = out / "results.json"
+    if not path.is_file():
+        return {}
+    try:
+        payload = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--resume: {path} cannot be read as JSON: {e}") from None
+    meta = payload.get("meta") if isinstance(payload, dict) else None
+    by_scenes = payload.get("by_scenes") if isinstance(payload, dict) else None
+    if not isinstance(meta, dict) or not isinstance(by_scenes, dict):
+        raise ValueError(
+            f"--resume: {path} is not a lerobot-formation-bench results.json (no meta or by_scenes)"
+        )
+    for key, value in settings.items():
+        if key in meta and meta[key] != _normalized(value):
+            raise ValueError(
+                f"--resume: the run in {out} has {key} = {meta[key]!r}, this command {_normalized(value)!r}; "
+                "resume it with its own settings, or use --overwrite or another --out"
+            )
+    return {k: dict(v) for k, v in by_scenes.items() if isinstance(v, dict)}
 
 
 def _write_or_fail(out: Path, results: dict, label: str, settings: BenchSettings, report, **kw) -> None:
@@ -268,6 +404,36 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         _fail(str(e))
     recorded = {"conditions": conditions.changed(), "unseen_conditions": unseen_conditions.changed()}
+    out = Path(args.out)
+    if args.resume and args.overwrite:
+        _fail(
+            "--resume keeps the finished controllers of the run in --out, --overwrite replaces it: give one"
+        )
+    if out.exists() and not out.is_dir():
+        _fail(f"--out {out} is a file, not a folder")
+    held = existing_run(out)
+    if held and not (args.overwrite or args.resume):
+        _fail(
+            f"--out {out} already holds a run ({held}); add --overwrite to replace it, --resume to finish "
+            "it, or choose another folder"
+        )
+    kept: dict[str, dict] = {}
+    if args.resume:
+        this_run = {
+            "scenes": args.scenes,
+            "unseen": args.unseen,
+            "seed": args.seed,
+            "policy_path": args.policy_path,
+            "candidates": args.candidates,
+            "num_inference_steps": args.num_inference_steps,
+            "shard": args.shard,
+            "seed_policy": args.seed_policy,
+            **recorded,
+        }
+        try:
+            kept = earlier_results(out, {k: this_run[k] for k in RESUME_SETTINGS})
+        except ValueError as e:
+            _fail(str(e))
     report = SamplingReport()
     try:
         scenes = parse_scenes(args.scenes, args.seed, args.dataset_root, args.policy_path, report)
@@ -285,9 +451,25 @@ def main(argv: list[str] | None = None) -> int:
             if idx is not None and len(idx) == 0:
                 _fail(f"--shard {args.shard}: the scene set {spec} has no scene of this shard")
     params = FormationParams()
-    out = Path(args.out)
+    label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
+    # --resume: what the run in --out finished is kept as it is; only the rest runs
+    results: dict[str, dict] = {label: dict(kept.get(label, {}))}
+    for key, entries in kept.items():
+        results.setdefault(key, entries)
+    resumed = {key: list(entries) for key, entries in results.items() if entries}
+    todo = [n for n in names if n not in results[label]]
+    todo_unseen = [n for n in diffusion if n not in results.get("unseen", {})] if unseen is not None else []
+    if args.resume:
+        finished = ", ".join(f"{c} ({k})" for k, v in resumed.items() for c in v)
+        if not resumed:
+            print(f"resume: no finished controller in {out}; running them all", flush=True)
+        elif not todo and not todo_unseen:
+            print(f"resume: nothing to run, every controller asked for has finished in {out}: {finished}")
+            return 0
+        else:
+            print(f"resume: kept from {out / 'results.json'}: {finished}", flush=True)
     bundle = None
-    if diffusion:
+    if any(needs_policy(n) for n in (*todo, *todo_unseen)):
         from lerobot_formation.policy.checkpoint import load_policy
 
         # torch's thread count is --threads (apply_threads set OMP_NUM_THREADS before torch loads).
@@ -301,8 +483,6 @@ def main(argv: list[str] | None = None) -> int:
                 f"--num-inference-steps must be in [1, {most}] (the checkpoint's training steps), got {steps}"
             )
     out.mkdir(parents=True, exist_ok=True)
-    label = args.scenes.split(":")[0] if ":" in args.scenes else Path(args.scenes).stem
-    results: dict[str, dict] = {label: {}}
     settings = BenchSettings(
         scenes=args.scenes,
         unseen=args.unseen,
@@ -323,21 +503,22 @@ def main(argv: list[str] | None = None) -> int:
     )
     # each controller's episode records, for the figures drawn after the results are written
     records: dict[str, dict] | None = None if args.no_figures else {label: {}, "unseen": {}}
+    recorded["resumed"] = resumed
     try:
-        kept = None if records is None else records[label]
-        run_set(names, scenes, params, settings, label, bundle, results[label], kept, conditions, indices)
+        into = None if records is None else records[label]
+        run_set(todo, scenes, params, settings, label, bundle, results[label], into, conditions, indices)
         if unseen is not None and diffusion:
-            results["unseen"] = {}
-            kept = None if records is None else records["unseen"]
+            results.setdefault("unseen", {})
+            into = None if records is None else records["unseen"]
             run_set(
-                diffusion,
+                todo_unseen,
                 unseen,
                 params,
                 settings,
                 "unseen",
                 bundle,
                 results["unseen"],
-                kept,
+                into,
                 unseen_conditions,
                 unseen_indices,
             )

@@ -7,7 +7,8 @@ made, so a new controller is one new file and one line here). A controller needs
 ``options`` is a ``ControllerOptions``. Controllers whose name starts with ``diffusion`` run a
 checkpoint: the bench asks for ``--policy.path`` and loads it once into ``bundle``. Each of them is
 the policy's ``Replanner`` with the checkpoint's config and, for K and the filter, an override
-(``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored.
+(``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored
+(the shipped checkpoint's: its safety layer on, best-of-10 and the filter).
 The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
 limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
@@ -84,6 +85,8 @@ def _diffusion(
                 overrides["sampling_guidance"] = bundle[0].config.sampling_guidance or TUNED_SAMPLING_GUIDANCE
             if best_of_k or safety_filter != "none" or guided:  # a safety layer: it knows the run's actuator
                 overrides.update(safety_settings(options.conditions, options.scenes_move))
+        else:  # as stored; a stored safety layer knows the run's world too (inert without one)
+            overrides.update(safety_settings(options.conditions, options.scenes_move))
         return DiffusionController(
             options.policy_path,
             num_inference_steps=options.num_inference_steps,
@@ -136,6 +139,22 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     # the baseline of "diffusion-guided": route pursuit's chunk moved by the same clearance guidance
     "route-pursuit-guided": _diffusion("none", best_of_k=False, sampled=False, guided=True),
 }
+# One line per controller for the command lines' --help (``controller_summary``); a controller
+# registered without one is listed by its factory.
+CONTROLLER_SUMMARIES: dict[str, str] = {
+    "pac": "PAC, the datasets' demonstrator, on what the team perceives",
+    "mppi": "sampling-based model predictive control on a cost-to-go field",
+    "route-pursuit": "learning-free: pure pursuit of a point 1 m down the route hint",
+    "pac-privileged": "a reference: PAC on the true world (all obstacles, exact, movers predicted)",
+    "diffusion": "standard sampling: one sample per replan, no safety layer",
+    "diffusion-guided": "one sample per replan, guided away from the observed obstacles",
+    "diffusion-bestof": "best-of-K: K = --candidates samples per replan, the safest kept",
+    "diffusion-cbf": "one sample per replan, the CBF filter on every action",
+    "diffusion-safe": "the safety layer: best-of-K and the CBF filter",
+    "diffusion-policy": "the checkpoint's config as stored (its own K, filter, guidance)",
+    "route-pursuit-safe": "diffusion-safe's safety layer around route pursuit, no network",
+    "route-pursuit-guided": "route pursuit moved by diffusion-guided's clearance guidance",
+}
 # Controllers that read a checkpoint (--policy.path) without a "diffusion" name: its safety settings
 SAFETY_LAYER_BASELINES = ("route-pursuit-safe", "route-pursuit-guided")
 CONTROLLERS = tuple(CONTROLLER_FACTORIES)
@@ -144,6 +163,17 @@ CONTROLLERS = tuple(CONTROLLER_FACTORIES)
 def controller_names() -> tuple[str, ...]:
     """The registered names, in registry order (``CONTROLLERS`` plus any registered since import)."""
     return tuple(CONTROLLER_FACTORIES)
+
+
+def controller_summary(name: str) -> str:
+    """One line on controller ``name``: its ``CONTROLLER_SUMMARIES`` entry, else its factory's first
+    docstring line, else the factory's name (or ``"module:function"`` path)."""
+    summary = CONTROLLER_SUMMARIES.get(name)
+    if summary is None:
+        factory = CONTROLLER_FACTORIES[name]
+        doc = "" if isinstance(factory, str) else (factory.__doc__ or "").strip()
+        summary = doc.splitlines()[0] if doc else f"made by {getattr(factory, '__name__', factory)}"
+    return summary
 
 
 def needs_policy(name: str) -> bool:

@@ -44,7 +44,9 @@ def main(argv: list[str] | None = None) -> int:
             "training dataset uses (both sets are unseen)"
         )
     start = time.time()
-    code = bench_main(defaults + argv)
+    # the demo's folder is its own: a new demo replaces the last one (unless --resume is asked for)
+    replace = [] if {"--resume", "--overwrite"} & set(argv) else ["--overwrite"]
+    code = bench_main(defaults + replace + argv)
     if code == 0:  # the last line names what to open (the bench listed the figures once, above)
         out = Path(args.out)
         pngs = [p for p in out.glob("*.png") if p.stat().st_mtime >= start - 1] if not args.no_figures else []

@@ -143,12 +143,14 @@ def write_results(
     conditions: dict | None = None,
     figure_errors: list[str] | None = None,
     unseen_conditions: dict | None = None,
+    resumed: dict[str, list[str]] | None = None,
 ):
     """results.json and tables.md of the controllers in ``results`` (each written atomically,
     ``atomic_write_text``); ``error`` marks a run that stopped early (``meta.incomplete``,
     ``meta.error``), with what finished before it; ``conditions``: the realistic conditions that were
     on (``Conditions.changed()``), kept as ``meta.conditions``, and those of the unseen set as
-    ``meta.unseen_conditions``; ``figure_errors`` lists figures that failed."""
+    ``meta.unseen_conditions``; ``figure_errors`` lists figures that failed; ``resumed``: per scene
+    set, the controllers whose results were kept from an earlier run in the folder (``--resume``)."""
     # results.json: keyed by controller for the main scene set (the world issue's keys), plus the
     # other scene sets under "by_scenes".
     payload = dict(results.get(label, {}))
@@ -160,6 +162,7 @@ def write_results(
         "policy_path": settings.options.policy_path,
         "candidates": settings.options.candidates,
         "num_inference_steps": settings.options.num_inference_steps,
+        "seed_policy": settings.options.seed_policy,
         "date": time.strftime("%Y-%m-%d"),
         "command": bench_command(),  # None when main() is called from Python (a test)
         "host": host_description(),
@@ -169,6 +172,7 @@ def write_results(
         "incomplete": error is not None,
         "error": error,
         "figure_errors": figure_errors or [],
+        "resumed": resumed or {},
     }
     payload["meta"]["conditions"] = conditions or {}  # the fields not at their default
     payload["meta"]["unseen_conditions"] = unseen_conditions or {}  # a level's own when --unseen is a level

@@ -41,12 +41,22 @@ def _kind(name: str):
     return float
 
 
-def add_condition_arguments(ap: argparse.ArgumentParser) -> None:
-    """Add ``--env.<field> VALUE`` for every field of ``Conditions`` (all off by default)."""
-    group = ap.add_argument_group("realistic conditions (docs/conditions.md), all off by default")
+def add_condition_arguments(
+    ap: argparse.ArgumentParser, title: str = "realistic conditions (docs/conditions.md), all off by default"
+) -> None:
+    """Add ``--env.<field> VALUE`` for every field of ``Conditions`` (all off by default), in an
+    argument group titled ``title``."""
+    group = ap.add_argument_group(title)
     for f in fields(Conditions):
+        kind = _kind(f.name)
+        metavar = {_bool: "BOOL", int: "N"}.get(kind, "X")
         group.add_argument(
-            f"--env.{f.name}", dest=f"env_{f.name}", type=_kind(f.name), default=None, help=_HELP[f.name]
+            f"--env.{f.name}",
+            dest=f"env_{f.name}",
+            type=kind,
+            default=None,
+            metavar=metavar,
+            help=_HELP[f.name],
         )
 
 
