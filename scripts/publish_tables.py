@@ -161,7 +161,11 @@ def render(
     measured: dict[tuple[str, str], list[str]] = {}
     for name in table.artifacts():
         if name in artifacts:
-            key = (artifacts[name]["date"], artifacts[name]["host"])
+            device = artifacts[name].get("device") or "cpu"
+            key = (
+                artifacts[name]["date"],
+                artifacts[name]["host"] + ("" if device == "cpu" else f", the network on {device}"),
+            )
             measured.setdefault(key, []).append(f"`{results_dir}/{name}.json`")
     parts = [f"{date} on {host}: {', '.join(files)}" for (date, host), files in sorted(measured.items())]
     line = "Measured on " + "; ".join(parts) + " (each file holds its command)."

@@ -116,6 +116,10 @@ def test_the_script_writes_a_table_and_check_passes(bench_run, tmp_path, capsys)
     code, out, err = _run(root, "--check", capsys=capsys)
     assert code == 0, err
     assert "table two: pending, no results/later.json" in out
+    artifact = json.loads((root / "results" / "tiny.json").read_text())  # a run with its network on a GPU
+    (root / "results" / "tiny.json").write_text(json.dumps({**artifact, "device": "cuda"}))
+    assert _run(root, capsys=capsys)[0] == 0
+    assert ", the network on cuda: `results/tiny.json`" in (root / "README.md").read_text()
 
 
 def test_check_fails_when_one_published_number_changes(bench_run, tmp_path, capsys):
