@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The paper-size hint-free student in one sitting on one GPU machine (docs/conditions.md, "The
+# The paper-size hint-free student in one sitting on one GPU machine (docs/log.md, "The
 # paper-size hint-free student on a GPU"): data, training throughput, training, and its level rows.
 #
 #   scripts/gpu_hintfree_paper.sh OUT_DIR [BUDGET_S]

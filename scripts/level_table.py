@@ -1,4 +1,4 @@
-"""Print the level table (docs/benchmark.md) from bench output folders.
+"""Print the level table (the table of docs/log.md's level-table entries) from bench output folders.
 
     python scripts/level_table.py outputs/levels/level0 outputs/levels/level1 ... \
         [--name diffusion="default, standard"]

@@ -263,7 +263,7 @@ $PY benchmarks/bench_replan_latency.py --parts ce --threads 1 --lean-steps 4 3 -
 $PY benchmarks/bench_route_encoding.py --scenes 20 --steps 100 | tee $OUT/route_encoding.log
 $PY benchmarks/bench_demo_time.py --threads 1 | tee $OUT/bench_demo_time_route.log
 # Sessions of 2026-12-04 to -06 (the graded benchmark, issue 24): the safety layer's fields of the
-# shipped config, each chosen on tuning seeds (docs/benchmark.md), then the level table (500 scenes per
+# shipped config, each chosen on tuning seeds (docs/log.md), then the level table (500 scenes per
 # level, several hours on 2 cores), lerobot-eval's agreement on levels 4-5 and the latency.
 $PY scripts/derive_checkpoint.py $SAFE $SAFE --set safety_route_proposal=true --set safety_route_lookahead=20 \
   --set safety_coherence=1.0 --set safety_proposal_blend=4 --set safety_follower_margin=0.03 \

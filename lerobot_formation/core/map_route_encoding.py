@@ -2,7 +2,7 @@
 
 Why: ``nearest+route`` builds its cost-to-go from the 12 map obstacles nearest the midpoint, so in a
 scene of more (a bend's walls, a crowd: 20-30 obstacles) the route can lead into a wall that is not
-among them, where the team stalls (docs/benchmark.md, "The route hint from the whole map"). PAC plans
+among them, where the team stalls (docs/log.md, "The route hint from the whole map"). PAC plans
 on every obstacle of its map; this hint does too.
 
 Layout: that of ``nearest+route`` (2 + 4 slots + 5 values, the same names): the ``nearest`` encoding,

@@ -41,7 +41,7 @@ from lerobot_formation.core.safety import BODY_POSE
 
 @dataclass(frozen=True)
 class RoutePursuitConfig:
-    """Gains of route pursuit; defaults tuned on tuning seeds 5,000,000+ (docs/benchmark.md)."""
+    """Gains of route pursuit; defaults tuned on tuning seeds 5,000,000+ (docs/log.md, "Route pursuit: tuning its gains")."""
 
     v_max: float = 0.5  # [m/s] cruise speed (the dynamics clip at FormationParams.v_max = 0.6)
     k: float = 2.0  # [1/s] heading gain
