@@ -5,6 +5,9 @@ the stock behaviour is used where one exists (with one logged warning per use), 
 names what changed. The uses:
 
 - ``global_conditioning``: ``DiffusionModel._prepare_global_conditioning`` (batched candidate sampling);
+- ``use_conditioning_method`` / ``stock_global_conditioning`` / ``diffusion_unet``: a ``DiffusionModel``
+  subclass that computes the conditioning itself (the obstacle-token encoder) overrides
+  ``_prepare_global_conditioning`` and builds ``DiffusionConditionalUnet1d`` for its width;
 - ``push_observation`` / ``queued_history``: ``DiffusionPolicy._queues``, the observation history
   ``select_action`` keeps (the safety layer's ``select_action`` and the lean ``predict_action_chunk``);
 - ``add_weights_loaded_hook``: wraps ``PreTrainedPolicy._load_as_safetensor``, the one method that
@@ -93,6 +96,40 @@ def global_conditioning(model, batch: dict[str, Tensor]) -> Tensor:
     returns it; ``generate_actions`` computes it and samples in one go."""
     fn = _private(model, "_prepare_global_conditioning", "DiffusionModel", "batched candidate sampling")
     return fn(batch)
+
+
+def use_conditioning_method(model_cls: type, method: str) -> None:
+    """Make the ``DiffusionModel`` subclass ``model_cls`` compute its FiLM conditioning vector with its
+    own ``method(batch)``: LeRobot computes it in ``_prepare_global_conditioning``, which
+    ``compute_loss``, ``generate_actions`` and ``global_conditioning`` above call, so training, every
+    sampler and every caller of ``global_conditioning`` see the subclass's vector."""
+
+    def prepare(self, batch: dict[str, Tensor]) -> Tensor:
+        return getattr(self, method)(batch)
+
+    model_cls._prepare_global_conditioning = prepare
+
+
+def stock_global_conditioning(model, batch: dict[str, Tensor]) -> Tensor:
+    """LeRobot's own ``DiffusionModel._prepare_global_conditioning`` on ``model``, whatever its class
+    overrides: [state, environment state] per observation step, flattened to (B, n_obs_steps (S + D))."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel
+
+    needed_by = "the 'flat' obstacle encoder"
+    return _private(DiffusionModel, "_prepare_global_conditioning", "DiffusionModel", needed_by)(model, batch)
+
+
+def diffusion_unet(config, global_cond_dim: int):
+    """LeRobot's conditional 1-D U-Net (``DiffusionConditionalUnet1d``) for a FiLM conditioning vector of
+    ``global_cond_dim`` values, compiled as ``DiffusionModel`` compiles its own with ``compile_model``
+    (which builds it for the flattened state and environment values)."""
+    import torch
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionConditionalUnet1d
+
+    unet = DiffusionConditionalUnet1d(config, global_cond_dim=global_cond_dim)
+    if config.compile_model:
+        unet = torch.compile(unet, mode=config.compile_mode)
+    return unet
 
 
 def _queues(policy) -> dict:

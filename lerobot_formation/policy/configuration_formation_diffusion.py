@@ -20,11 +20,13 @@ from lerobot_formation.core.obstacle_grid import (
     get_encoding,
     route_encodings,
 )
+from lerobot_formation.policy.obstacle_tokens import TOKEN_HEADS, token_layout
 
 ACTION_DIM = 2  # [v, omega]
 SAFETY_FILTERS = ("none", "cbf")
 PROGRESS_INTERPOLATIONS = ("nearest", "bilinear")  # how best-of-K reads its cost-to-go grid
 INFERENCE_BACKENDS = ("eager", "lean", "trace")
+OBSTACLE_ENCODERS = ("flat", "tokens")  # how the network reads environment_state
 TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
 _BOUNDS = FormationParams()
 
@@ -98,6 +100,14 @@ class FormationDiffusionConfig(DiffusionConfig):
             every checkpoint, never guessed from the feature's size.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
             "grid+list", 12 for the "nearest" family).
+        obstacle_encoder: how the network reads ``observation.environment_state``. "flat" (default):
+            LeRobot's, the values flattened with the state into the U-Net's FiLM conditioning. "tokens":
+            each obstacle slot a token and the team an ego token that attends to the present ones,
+            plus a max-pool over them (``policy.obstacle_tokens``: permutation-invariant, indifferent
+            to the obstacle count); needs an encoding of the "nearest" family and ENV IDENTITY.
+        token_dim: width d of the tokens (a multiple of ``TOKEN_HEADS`` = 4); the U-Net sees 2 d
+            values per observation step instead of the environment state. Only with "tokens".
+        token_layers: ego-to-obstacle attention layers (>= 1). Only with "tokens".
         fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
             ``action_high`` (v in [0, 0.6], omega in [-1.5, 1.5]) instead of the dataset's min/max, so
             the policy itself knows the action in physical units (the safety layer needs it).
@@ -286,6 +296,9 @@ class FormationDiffusionConfig(DiffusionConfig):
     egocentric_obstacles: bool = False
     obstacle_encoding: str = "grid"
     max_obstacles: int | None = None
+    obstacle_encoder: str = "flat"
+    token_dim: int = 64
+    token_layers: int = 1
     fixed_action_bounds: bool = False
     action_low: tuple[float, float] = (0.0, -_BOUNDS.omega_max)
     action_high: tuple[float, float] = (_BOUNDS.v_max, _BOUNDS.omega_max)
@@ -414,6 +427,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
             )
+        if self.obstacle_encoder not in OBSTACLE_ENCODERS:
+            raise config_error(
+                f"obstacle_encoder must be one of {OBSTACLE_ENCODERS}, got obstacle_encoder={self.obstacle_encoder!r}"
+            )
+        if self.obstacle_encoder == "tokens":
+            self._check_tokens()
         if self.inference_backend not in INFERENCE_BACKENDS:
             raise config_error(
                 f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
@@ -545,6 +564,28 @@ class FormationDiffusionConfig(DiffusionConfig):
         if not all(lo < hi for lo, hi in zip(self.action_low, self.action_high, strict=True)):
             raise config_error(f"need action_low < action_high, got {self.action_low} and {self.action_high}")
         super().__post_init__()
+
+    def _check_tokens(self) -> None:
+        """The checks of ``obstacle_encoder="tokens"``, each a one-line error naming field and value."""
+        if token_layout(get_encoding(self.obstacle_encoding), self.max_obstacles) is None:
+            raise config_error(
+                "obstacle_encoder='tokens' needs an obstacle-slot encoding of the 'nearest' family, "
+                f"got obstacle_encoding={self.obstacle_encoding!r} (max_obstacles={self.max_obstacles})"
+            )
+        env_norm = self.normalization_mapping.get("ENV", NormalizationMode.IDENTITY)
+        if env_norm != NormalizationMode.IDENTITY:  # the encoder reads metres and the present flags
+            raise config_error(
+                f"obstacle_encoder='tokens' reads environment_state in metres, got normalization_mapping "
+                f"ENV={getattr(env_norm, 'value', env_norm)!r} (set it to IDENTITY)"
+            )
+        dim = self.token_dim
+        if isinstance(dim, bool) or not (isinstance(dim, int) and dim > 0 and dim % TOKEN_HEADS == 0):
+            raise config_error(
+                f"token_dim must be a positive multiple of {TOKEN_HEADS} (the attention heads), got token_dim={dim!r}"
+            )
+        layers = self.token_layers
+        if isinstance(layers, bool) or not (isinstance(layers, int) and layers >= 1):
+            raise config_error(f"token_layers must be an integer >= 1, got token_layers={layers!r}")
 
     @property
     def safety_layer(self) -> bool:

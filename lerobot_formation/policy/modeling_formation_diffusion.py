@@ -5,6 +5,13 @@ warm starts on) the per-episode ``Replanner`` (``policy/replanner.py``) behind `
 The U-Net, noise scheduler, loss and training forward are LeRobot's; with the default config
 (K = 1, no filter, no warm start) ``select_action`` is LeRobot's, action queue included.
 
+Both diffusion models (live and EMA) are ``FormationDiffusionModel``: with ``obstacle_encoder="flat"``
+(the default) LeRobot's ``DiffusionModel`` exactly (the same weights, the same initial draws); with
+"tokens" the U-Net's conditioning per observation step is [state, the obstacle-token encoder's feature]
+(``policy.obstacle_tokens``), which every path reads through ``_prepare_global_conditioning``: the
+training loss, LeRobot's sampler, ``sample_action_chunks`` (the safety layer, warm starts) and the
+lean and trace samplers (the trace holds the U-Net only; the encoder runs eagerly once per replan).
+
 EMA (as diffusers' ``EMAModel`` and the original Diffusion Policy define it):
 
 - ``ema_diffusion`` is a second ``DiffusionModel``, never trained (``requires_grad=False``, left out of
@@ -65,7 +72,7 @@ import torch
 from diffusers.schedulers.scheduling_ddim import DDIMScheduler
 from diffusers.training_utils import EMAModel
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel, DiffusionPolicy
-from lerobot.utils.constants import ACTION, OBS_ENV_STATE
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from safetensors import safe_open
 from torch import Tensor
 
@@ -73,11 +80,16 @@ from lerobot_formation.compat import fast_reads
 from lerobot_formation.compat.lerobot_compat import (
     add_weights_loaded_hook,
     denoiser_parts,
+    diffusion_unet,
     global_conditioning,
     push_observation,
     queued_history,
+    stock_global_conditioning,
+    use_conditioning_method,
 )
+from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
+from lerobot_formation.policy.obstacle_tokens import ObstacleTokenEncoder, token_layout
 from lerobot_formation.policy.replanner import Replanner, check_observation
 from lerobot_formation.policy.unet_inference import SMALL_BATCH_ROWS, inference_copy
 
@@ -252,6 +264,36 @@ class _LeanCache:
         self.__init__()
 
 
+class FormationDiffusionModel(DiffusionModel):
+    """LeRobot's ``DiffusionModel``, whose FiLM conditioning is ``conditioning(batch)``: with
+    ``obstacle_encoder="flat"`` LeRobot's own ([state, environment state] per observation step,
+    flattened; no other module), with "tokens" [state, ``ObstacleTokenEncoder`` feature (2 token_dim)]
+    per step, flattened the same way, and a U-Net built for that width."""
+
+    def __init__(self, config: FormationDiffusionConfig):
+        super().__init__(config)
+        self.obstacle_tokens: ObstacleTokenEncoder | None = None
+        if config.obstacle_encoder == "tokens":
+            layout = token_layout(get_encoding(config.obstacle_encoding), config.max_obstacles)
+            state_dim = config.robot_state_feature.shape[0]
+            self.obstacle_tokens = ObstacleTokenEncoder(
+                state_dim, layout, config.token_dim, config.token_layers
+            )
+            per_step = state_dim + self.obstacle_tokens.out_dim
+            self.unet = diffusion_unet(config, per_step * config.n_obs_steps)
+
+    def conditioning(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, cond) FiLM conditioning of normalised observation histories (B, n_obs_steps, ...)."""
+        if self.obstacle_tokens is None:
+            return stock_global_conditioning(self, batch)
+        state = batch[OBS_STATE]
+        features = self.obstacle_tokens(state, batch[OBS_ENV_STATE])
+        return torch.cat([state, features], dim=-1).flatten(start_dim=1)
+
+
+use_conditioning_method(FormationDiffusionModel, "conditioning")
+
+
 class FormationDiffusionPolicy(DiffusionPolicy):
     """LeRobot's diffusion policy with an EMA copy of the diffusion model (see the module docstring)."""
 
@@ -269,13 +311,17 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 f"got {type(config).__name__} (type {got!r}). A checkpoint of another policy type must be "
                 f"loaded with that type's policy class (lerobot.policies.factory.get_policy_class({got!r}))."
             )
-        super().__init__(config, **kwargs)
+        # LeRobot's __init__ builds a DiffusionModel, replaced here; with the RNG state restored the
+        # replacement draws the initial weights that one drew (a "flat" model: the same, bit for bit)
+        with torch.random.fork_rng(devices=[]):
+            super().__init__(config, **kwargs)
+        self.diffusion = FormationDiffusionModel(config)
         fast_reads.install()  # a formation run: fast windowed reads of formation datasets only
         self._lean = _LeanCache()  # inference_backend "lean" / "trace" (never in the state_dict)
-        self.ema_diffusion: DiffusionModel | None = None
+        self.ema_diffusion: FormationDiffusionModel | None = None
         self._ema: EMAModel | None = None
         if config.use_ema:
-            self.ema_diffusion = DiffusionModel(config)
+            self.ema_diffusion = FormationDiffusionModel(config)
             self.ema_diffusion.load_state_dict(self.diffusion.state_dict())
             self.ema_diffusion.requires_grad_(False)
             self.register_buffer("ema_step", torch.zeros((), dtype=torch.long))
