@@ -25,7 +25,9 @@ Run (full size, ~1 h with every stock setting at 100 episodes of the default pol
 **The safety layer** (``--candidates K``, ``--safety-filter none|cbf``): both paths run the policy's own
 best-of-K and filter (config fields ``num_candidates`` / ``safety_filter``): the engine as the bench's
 ``diffusion-bestof`` / ``diffusion-safe`` controllers, the stock run with ``--policy.num_candidates=K
---policy.safety_filter=...``. With K = 1 and no filter (the defaults) both run standard sampling.
+--policy.safety_filter=...``, always given: the checkpoint's own (the shipped one's K = 10 and CBF
+filter) are not the benchmark's. With K = 1 and no filter (the defaults) both run the checkpoint's
+sampler alone.
 The two success rates are compared with a pooled two-proportion z-test (``within noise``: |z| < 1.96).
 
 **A graded level** (``--level levelK``): both paths play the level's first ``--episodes`` scenes under
@@ -118,8 +120,8 @@ def stock_command(
         f"--eval.n_episodes={args.episodes}",
         f"--output_dir={out}",
     ]
+    cmd += [f"--policy.num_candidates={args.candidates}", f"--policy.safety_filter={args.safety_filter}"]
     if args.candidates != 1 or args.safety_filter != "none":
-        cmd += [f"--policy.num_candidates={args.candidates}", f"--policy.safety_filter={args.safety_filter}"]
         for field, value in (safety_fields or {}).items():
             cmd.append(f"--policy.{field}={str(value).lower() if isinstance(value, bool) else value}")
     if batch is not None:
@@ -251,17 +253,11 @@ def main(argv: list[str] | None = None) -> int:
 
     # Engine.
     t0 = time.perf_counter()
-    if safety:  # the policy's own safety layer, as lerobot-eval's --policy.num_candidates/safety_filter
-        ctrl = DiffusionController(
-            args.policy_path,
-            overrides={
-                "num_candidates": args.candidates,
-                "safety_filter": args.safety_filter,
-                **safety_fields,
-            },
-        )
-    else:
-        ctrl = DiffusionController(args.policy_path)
+    # the policy's own safety layer, as lerobot-eval's --policy.num_candidates/safety_filter
+    ctrl = DiffusionController(
+        args.policy_path,
+        overrides={"num_candidates": args.candidates, "safety_filter": args.safety_filter, **safety_fields},
+    )
     load_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     rec = evaluate(ctrl, scenes, FormationParams(max_steps=args.episode_length), conditions=conditions)

@@ -32,23 +32,12 @@ Run (full size)::
 
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_replan_latency.py --parts c --threads 1
 
-(d) The distilled few-step sampler (``--student PATH``, ``python -m lerobot_formation.policy.distill``): one
-    replan at B=1 through LeRobot's ``select_action`` with the checkpoint's processors (``reset()``
-    first), teacher (``--policy.path``) with its own sampler against the student with its own, for K in
-    ``--lean-candidates`` (K > 1: the safety layer's best-of-K), both traced. ``--parts d`` runs only
-    this part; it also runs with the default ``--parts`` when ``--student`` is given.
-
 (e) The safety layer (``--parts e``): every replan at B=1 through ``select_action`` over whole episodes
     of ``--safety-scenes`` unseen paper scenes, K = 1 and K = max(``--lean-candidates``) (best-of-K),
     the scorer's cost-to-go against its whole-field baseline on the same calls (``replay_scorer``: the
-    calls of a best-of-K run recorded, then each timed with both, interleaved), a checkpoint whose best-of-K differs
-    from the default's before 2026-12-05 (late) (``PREVIOUS_DEFAULT``: 0.2 m progress cells read at the
-    nearest cell, the first candidate warm, no chunk smoothing, the escape lattice, mover prediction
-    and fallback of before, no recheck, no halt lookahead) against the same weights with those settings in the same run, the
-    policy's traced U-Net against a plain trace of LeRobot's (``plain_trace``: the policy's trace until
-    2026-12-05) in the same run,
-    and with a warm-starting checkpoint the other warm start (all K candidates warm-started, or the
-    first only: ``warm_start_all_candidates``). Its headline is the last line
+    calls of a best-of-K run recorded, then each timed with both, interleaved), the policy's traced
+    U-Net against a plain trace of LeRobot's (``plain_trace``) in the same run. Its headline is the
+    last line
     when it runs. ``--level levelK``: the level's scenes (its first seeds) under its conditions instead,
     with the safety layer told the conditions as the bench tells it (``safety_settings``).
 
@@ -64,7 +53,7 @@ Run (full size)::
             --level level5 --safety-scenes 10 --threads 1
 
 ``--quick``: one repeat, batch 10 (and 5 rounds in (c)). The last line is the headline of (f) when it
-runs, else of (e) when it runs, else of (d) when it runs (``replan latency B=1 via select_action: student K=1 ...``), else of (c) when it
+runs, else of (e) when it runs, else of (c) when it
 runs (``replan latency B=1 K=1: ...``: the trace backend against the eager baseline at the first of
 ``--lean-steps``), else the ratio of (a): stock DDPM-100 select_action over our batched DDIM per episode.
 """
@@ -89,21 +78,6 @@ from lerobot_formation.bench.timing import median_seconds  # noqa: E402
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-# the shipped default's best-of-K before 2026-12-05 (late): its progress grid and its warm start
-# (``safety_progress_resolution``, ``safety_progress_interpolation``, ``warm_start_all_candidates``),
-# timed on the same weights beside a checkpoint that sets them otherwise
-PREVIOUS_DEFAULT = {
-    "safety_progress_resolution": 0.2,
-    "safety_progress_interpolation": "nearest",
-    "warm_start_all_candidates": False,
-    "chunk_smoothing": 0,
-    "safety_mover_uncertainty": 0.0,
-    "safety_escape_speeds": (0.0, 0.1, 0.2, 0.3),
-    "safety_fallback_all": False,
-    "safety_recheck": False,
-    "safety_halt_lookahead": 0,
-    "sampling_guidance": 0.0,
-}
 
 
 def paper_policy(config_path: Path):
@@ -294,41 +268,6 @@ def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) 
     return headline
 
 
-def student_part(teacher_path: str, student_path: str, candidates: list[int], repeats: int) -> str:
-    """Print part (d); return its headline: one replan at B=1 through LeRobot's ``select_action`` (the
-    checkpoint's pre- and postprocessors, ``reset()`` first so the chunk is sampled), the teacher with its
-    own sampler against the distilled student with its own, for K in ``candidates`` (K > 1: the
-    safety layer's best-of-K, ``num_candidates``), both with inference_backend "trace"."""
-    from lerobot_formation.policy.checkpoint import load_policy
-
-    rows = {}
-    for name, path in (("teacher", teacher_path), ("student", student_path)):
-        policy, pre, post = load_policy(path)
-        policy.reconfigure(inference_backend="trace")
-        cfg = policy.config
-        env_dim = cfg.input_features["observation.environment_state"].shape[0]
-        sampler = f"DDIM {cfg.num_inference_steps} {cfg.timestep_spacing}, {cfg.prediction_type} prediction"
-        for k in candidates:
-            policy.reconfigure(num_candidates=k)
-            rows[name, k] = 1e3 * stock_replan_s(policy, pre, post, env_dim, repeats)
-        rows[name] = sampler
-    print(
-        f"(d) few-step sampler: one replan at B=1 through select_action (pre/post processors, reset first), "
-        f"median of {repeats}; teacher {teacher_path} ({rows['teacher']}), student {student_path} "
-        f"({rows['student']}):"
-    )
-    for k in candidates:
-        t, s = rows["teacher", k], rows["student", k]
-        print(f"    K={k:<3} teacher {t:7.2f} ms   student {s:7.2f} ms   ({t / s:.2f}x)")
-    k1, kmax = candidates[0], candidates[-1]
-    return (
-        f"replan latency B=1 via select_action: student K={k1} {rows['student', k1]:.1f} ms, K={kmax} "
-        f"{rows['student', kmax]:.1f} ms; teacher K={k1} {rows['teacher', k1]:.1f} ms, K={kmax} "
-        f"{rows['teacher', kmax]:.1f} ms; ratio {rows['teacher', k1] / rows['student', k1]:.2f}x "
-        f"({torch.get_num_threads()} thread(s))"
-    )
-
-
 def episode_replans_ms(
     policy,
     pre,
@@ -344,8 +283,8 @@ def episode_replans_ms(
     every call that replanned (sampled and, with K > 1, scored a new chunk) and the actions taken.
     ``scorer``: a replacement for ``core.safety.cost_to_go_at`` (the baseline), else the shipped one.
     ``env_kwargs``: ``FormationEnv`` keyword arguments (a level's scenes and conditions). Torch's generator is seeded per episode, so two scorers that keep the same chunks take the same
-    actions. ``plain_trace``: the policy's trace is a plain ``torch.jit.trace`` of LeRobot's U-Net (its
-    trace until 2026-12-05), not of ``policy.unet_inference``'s copies."""
+    actions. ``plain_trace``: the policy's trace is a plain ``torch.jit.trace`` of LeRobot's U-Net, not
+    of ``policy.unet_inference``'s copies."""
     from lerobot.envs.utils import preprocess_observation
 
     from lerobot_formation.core import safety
@@ -587,10 +526,8 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
 
     runs = {}
     plain = f"K={k}, plain trace"
-    shipped = {name: getattr(cfg, name) for name in PREVIOUS_DEFAULT}
-    previous = f"K={k}, previous default"
-    other_warm = "first candidate warm" if cfg.warm_start_all_candidates else "all candidates warm"
-    # every variant sets all these fields: reconfigure keeps what an earlier variant changed
+    shipped = {"sampling_guidance": cfg.sampling_guidance}
+    # every variant sets these fields: reconfigure keeps what an earlier variant changed
     guided = {**shipped, "sampling_guidance": cfg.sampling_guidance or TUNED_SAMPLING_GUIDANCE}
     unguided = {**shipped, "sampling_guidance": 0.0}
     # best-of-K with the other guidance setting than the checkpoint's
@@ -603,11 +540,6 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         (other_guidance, k, None, unguided if cfg.sampling_guidance else guided, False),
         (f"K={k}, recorded", k, recording, shipped, False),  # its calls for the scorer's replay
     ]
-    if shipped != PREVIOUS_DEFAULT:  # the default's best-of-K before 2026-12-05 (late), same weights
-        variants.append((previous, k, None, PREVIOUS_DEFAULT, False))
-    if cfg.warm_start_step:  # every candidate warm-started (j fewer denoiser calls), or the first only
-        toggled = {**shipped, "warm_start_all_candidates": not cfg.warm_start_all_candidates}
-        variants.append((f"K={k}, {other_warm}", k, None, toggled, False))
     variants.append((plain, k, None, shipped, True))  # last: it traces again on its first call
     for label, kk, scorer, fields, plain_trace in variants:
         policy.reconfigure(num_candidates=kk, **fields)  # a new config: a fresh replanner (reset)
@@ -620,9 +552,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     print(
         f"(e) safety layer: every replan at B=1 through select_action (pre/post processors) over whole "
         f"episodes of {where}; {path} (DDIM {cfg.num_inference_steps}, warm start "
-        f"{cfg.warm_start_step}{', all candidates' if cfg.warm_start_all_candidates else ''}, "
-        f"{cfg.safety_progress_resolution:g} m progress grid read {cfg.safety_progress_interpolation}, "
-        f"{cfg.chunk_smoothing} smoothing passes, traced U-Net):"
+        f"{cfg.warm_start_step}, {cfg.chunk_smoothing} smoothing passes, traced U-Net):"
     )
     med = {}
     for label, (times, _) in runs.items():
@@ -637,12 +567,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         f"    the scorer's cost-to-go on the {len(calls)} recorded calls: median {ctg_ours:.3f} ms a call, the "
         f"whole field {ctg_base:.3f} ms ({ctg_base / ctg_ours:.2f}x); the same values: {same_values}"
     )
-    extra = ""
-    if previous in med:
-        extra += f", previous default {med[previous]:.1f} ms (ratio {med[previous] / ours:.2f}x)"
-    if f"K={k}, {other_warm}" in med:
-        extra += f", {other_warm} {med[f'K={k}, {other_warm}']:.1f} ms"
-    extra += f", {other_setting} {med[other_guidance]:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
+    extra = f", {other_setting} {med[other_guidance]:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
         f"{extra} (its cost-to-go {ctg_ours:.2f} ms a call, the whole field {ctg_base:.2f} ms, ratio "
@@ -665,12 +590,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lean-candidates", type=int, nargs="+", default=[1, 10], help="K in part (c)")
     ap.add_argument("--lean-steps", type=int, nargs="+", default=[10, 3], help="DDIM steps in part (c)")
     ap.add_argument("--lean-repeats", type=int, default=30, help="timing rounds in part (c)")
-    ap.add_argument(
-        "--student",
-        default=None,
-        help="a distilled few-step checkpoint (python -m lerobot_formation.policy.distill): part (d) times it "
-        "against --policy.path (default pretrained/formation_diffusion_safe) through select_action",
-    )
     ap.add_argument("--safety-scenes", type=int, default=10, help="unseen scenes of part (e)")
     ap.add_argument(
         "--level", default=None, help="part (e) on this level's scenes and conditions (e.g. level5)"
@@ -683,6 +602,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.policy.checkpoint import load_policy
+    from lerobot_formation.policy.configuration_formation_diffusion import LAYER_OFF
 
     print(
         f"torch threads {threads}, {os.cpu_count()} CPUs; median of {args.repeats} after a warm-up",
@@ -692,6 +612,7 @@ def main(argv: list[str] | None = None) -> int:
     # (b) The default model.
     if args.policy_path and "b" in args.parts:
         bundle = load_policy(args.policy_path)
+        bundle[0].reconfigure(**LAYER_OFF)  # the network's replan: standard sampling, K = 1
         cfg = bundle[0].config
         env_dim = cfg.input_features["observation.environment_state"].shape[0]
         sampler = f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps"
@@ -714,10 +635,6 @@ def main(argv: list[str] | None = None) -> int:
         paper_part(args)
     if "c" in args.parts:
         print(lean_part(path, args.lean_candidates, args.lean_steps, args.lean_repeats))
-    if "d" in args.parts or (args.student and "d" not in args.parts and args.parts == "abc"):
-        if not args.student:
-            ap.error("part (d) needs --student PATH (a distilled checkpoint)")
-        print(student_part(path, args.student, args.lean_candidates, 10 * args.repeats))
     if "e" in args.parts:
         print(safety_part(path, max(args.lean_candidates), args.safety_scenes, args.level))
     if "f" in args.parts:

@@ -19,14 +19,15 @@ evaluation pays it, not the bare sampler's latency (benchmarks/bench_replan_late
 A controller without ``stats['replans']`` is reported in total wall seconds.
 
 "Within noise of 10 steps": a setting whose success count is not distinguishable from the reference
-setting's (``--reference`` steps, default 10, with the checkpoint's own timestep spacing) on any scene
+setting's (``--reference`` steps, default 10, spaced "leading" as the policy samples) on any scene
 set by a pooled two-proportion z-test at 5 % (|z| < 1.96; ``same_rate``). Of those, the one with the
 lowest time per replan is marked and is the headline, with its time per replan against the reference's.
 
-Samplers: every step count of ``--steps`` runs with every timestep spacing of ``--spacings`` (default:
-the checkpoint's; "trailing" starts the first DDIM step at the last training timestep, which 1-3 step
-sampling needs), and every ``--student PATH`` (a distilled few-step checkpoint,
-``python -m lerobot_formation.policy.distill``) runs with its own step count and spacing, all in one run.
+Samplers: every step count of ``--steps`` runs with every DDIM timestep spacing of ``--spacings``
+(diffusers' ``timestep_spacing``; default "leading", diffusers' and so LeRobot's and the policy's:
+0, T/S, 2T/S, ...; "trailing" starts the first step at the last training timestep T - 1, which 1-3
+step sampling needs, Lin et al. 2024; this script sets it on the scheduler, ``use_spacing``: the
+policy has no such setting), all in one run.
 
 Options: ``--n-action-steps N`` executes N actions per replan instead of the checkpoint's;
 ``--inference-backend eager|lean|trace`` sets the loaded policy config's ``inference_backend``
@@ -58,7 +59,18 @@ from lerobot_formation.threads import add_threads_argument, apply_threads  # noq
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_POLICY = REPO / "pretrained" / "formation_diffusion_safe"
 BACKENDS = ("eager", "lean", "trace")  # configuration_formation_diffusion.INFERENCE_BACKENDS
-SPACINGS = ("leading", "trailing", "linspace")  # configuration_formation_diffusion.TIMESTEP_SPACINGS
+SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
+
+
+def use_spacing(policy, spacing: str) -> None:
+    """Give the policy's diffusion models' schedulers the DDIM ``timestep_spacing`` ``spacing`` (the
+    policy samples with the scheduler it holds; ``set_inference_steps`` builds one spaced "leading")."""
+    for model in (policy.diffusion, getattr(policy, "ema_diffusion", None)):
+        if model is None:
+            continue
+        scheduler = model.noise_scheduler
+        if getattr(scheduler.config, "timestep_spacing", None) != spacing:
+            model.noise_scheduler = type(scheduler).from_config(scheduler.config, timestep_spacing=spacing)
 
 
 def int_list(text: str) -> list[int]:
@@ -171,14 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         "--spacings",
         default=None,
         help="comma-separated DDIM timestep spacings to run every step count with: leading, trailing, "
-        "linspace (default: the checkpoint's timestep_spacing)",
-    )
-    ap.add_argument(
-        "--student",
-        action="append",
-        default=[],
-        help="a distilled few-step checkpoint (python -m lerobot_formation.policy.distill), run with its own "
-        "num_inference_steps and timestep_spacing beside the teacher's settings; repeatable",
+        "linspace (default: leading, the policy's)",
     )
     ap.add_argument("--out", default=None, help="write every number to this JSON file")
     add_threads_argument(ap, "torch threads")
@@ -219,27 +224,21 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         ap.error(str(e))
     cfg = bundle[0].config
-    cfg_spacing = cfg.timestep_spacing
     if max(args.steps) > cfg.num_train_timesteps:
         ap.error(f"--steps must be <= {cfg.num_train_timesteps} (the checkpoint's training steps)")
-    spacings = [t.strip() for t in (args.spacings or cfg.timestep_spacing).split(",") if t.strip()]
+    spacings = [t.strip() for t in (args.spacings or "leading").split(",") if t.strip()]
     bad = [t for t in spacings if t not in SPACINGS]
     if bad or not spacings:
         ap.error(f"--spacings must name some of {SPACINGS}, got {args.spacings!r}")
-    try:
-        students = [(path, load_policy(path)) for path in args.student]
-    except ValueError as e:
-        ap.error(str(e))
-    for bun in [bundle] + [b for _, b in students]:
-        c = bun[0].config
-        if args.n_action_steps is not None:
-            if args.n_action_steps > c.horizon - c.n_obs_steps + 1:
-                ap.error(f"--n-action-steps must be <= {c.horizon - c.n_obs_steps + 1} for this checkpoint")
-            c.n_action_steps = args.n_action_steps
-        if args.inference_backend is not None:
-            c.inference_backend = args.inference_backend
+    c = bundle[0].config
+    if args.n_action_steps is not None:
+        if args.n_action_steps > c.horizon - c.n_obs_steps + 1:
+            ap.error(f"--n-action-steps must be <= {c.horizon - c.n_obs_steps + 1} for this checkpoint")
+        c.n_action_steps = args.n_action_steps
+    if args.inference_backend is not None:
+        c.inference_backend = args.inference_backend
     own = (
-        f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps {cfg.timestep_spacing}, "
+        f"{cfg.noise_scheduler_type} {cfg.num_inference_steps or cfg.num_train_timesteps} steps, "
         f"warm start {getattr(cfg, 'warm_start_step', 0)}"
     )
     print(
@@ -250,25 +249,19 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
 
-    # (label, checkpoint, policy bundle, DDIM steps, timestep spacing); the reference is the teacher's
-    # --reference steps with its own spacing.
+    # (label, checkpoint, policy bundle, DDIM steps, timestep spacing); the reference is
+    # --reference steps spaced "leading", as the policy samples.
     settings = [(f"DDIM {k} {sp}", args.policy_path, bundle, k, sp) for sp in spacings for k in args.steps]
-    ref = f"DDIM {args.reference} {cfg.timestep_spacing}"
+    ref = f"DDIM {args.reference} leading"
     if ref not in {lab for lab, *_ in settings}:
-        settings.append((ref, args.policy_path, bundle, args.reference, cfg.timestep_spacing))
-    for path, bun in students:
-        c = bun[0].config
-        k = c.num_inference_steps or c.num_train_timesteps
-        settings.append(
-            (f"student {Path(path).name}: DDIM {k} {c.timestep_spacing}", path, bun, k, c.timestep_spacing)
-        )
+        settings.append((ref, args.policy_path, bundle, args.reference, "leading"))
 
     params = FormationParams()
     results: dict[str, dict[str, dict]] = {}
-    # each checkpoint's own warm start, restored per setting (a step count at or below it turns it off)
-    warm = {id(b): b[0].config.warm_start_step for b in [bundle] + [b for _, b in students]}
+    # the checkpoint's own warm start, restored per setting (a step count at or below it turns it off)
+    warm = cfg.warm_start_step
     for label, path, bun, k, spacing in settings:
-        bun[0].reconfigure(timestep_spacing=spacing, warm_start_step=warm[id(bun)])
+        bun[0].reconfigure(warm_start_step=warm)
         options = ControllerOptions(
             candidates=args.candidates, num_inference_steps=k, seed_policy=args.seed_policy, policy_path=path
         )
@@ -278,6 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                 ctrl = make_controller(args.controller, params, options, bun)
             except ValueError as e:  # e.g. a safety-layer controller on a world-frame checkpoint
                 ap.error(f"controller {args.controller}: {e}")
+            use_spacing(bun[0], spacing)  # on the scheduler its step count was set on
             t0 = time.perf_counter()
             rec = evaluate(ctrl, scenes[s], params, progress=False)
             wall = time.perf_counter() - t0
@@ -303,7 +297,6 @@ def main(argv: list[str] | None = None) -> int:
                 f"(collisions {e['collisions']}, timeouts {e['timeouts']}) in {wall:.1f} s, {e['replans']} replans{per}",
                 flush=True,
             )
-        bundle[0].reconfigure(timestep_spacing=cfg_spacing)
 
     ok = within_noise(results, ref)
     per_replan = {lab: seconds_per_replan(results[lab]) for lab in results}
@@ -343,7 +336,6 @@ def main(argv: list[str] | None = None) -> int:
         payload = {
             "meta": {
                 "policy_path": args.policy_path,
-                "students": args.student,
                 "controller": args.controller,
                 "candidates": args.candidates,
                 "scenes": sets,

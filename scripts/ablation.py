@@ -23,12 +23,10 @@ model executing N instead of its trained number of actions per replan (an action
 "+ blending": ``ReplanExperiment.blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
 executed one, ``core.replan_blend``; the other rows run without it); "+ warm start":
 ``warm_start_step`` = ``--warm-start-step`` (a replan starts from the last chunk's unexecuted rest,
-noised; the other rows sample from pure noise; with ``--blend-steps 0`` these rows are named without
-"+ blending"); "+ stop": ``ReplanExperiment.blocked_fallback`` "stop"; with ``--student CKPT`` a
-distilled few-step checkpoint (``python -m lerobot_formation.policy.distill``) standard and with its best
-safety layer. The blending, escape and stop settings are the replanner's experiment settings
-(``policy.replanner.ReplanExperiment``), not policy config fields; "(all candidates)" is the config
-field ``warm_start_all_candidates``.
+noised, every candidate with its own noise; the other rows sample from pure noise; with
+``--blend-steps 0`` these rows are named without "+ blending"); "+ stop":
+``ReplanExperiment.blocked_fallback`` "stop". The blending, escape and stop settings are the
+replanner's experiment settings (``policy.replanner.ReplanExperiment``), not policy config fields.
 """
 
 from __future__ import annotations
@@ -105,34 +103,15 @@ def row_specs(args) -> list[tuple[str, str | None, str, int | None, dict]]:
                 ),
             ]
         if args.warm_start_step:
-            # the first candidate warm, the others from noise, unless a row says all candidates
-            warm = {**blend, "warm_start_step": args.warm_start_step, "warm_start_all_candidates": False}
+            warm = {**blend, "warm_start_step": args.warm_start_step}
             ws = " + blending + warm start" if args.blend_steps else " + warm start"
             k = args.candidates
             rows += [
                 (f"{tag}, standard{ws}", path, "diffusion", None, warm),
                 (f"{tag}, best-of-{k}{ws}", path, "diffusion-bestof", None, {**no_adv, **warm}),
                 (f"{tag}, best-of-{k} + escapes{ws}", path, "diffusion-bestof", None, {**adv, **warm}),
-                (
-                    f"{tag}, best-of-{k} + escapes{ws} (all candidates)",
-                    path,
-                    "diffusion-bestof",
-                    None,
-                    {**adv, **warm, "warm_start_all_candidates": True},
-                ),
                 (f"{tag}, best-of-{k} + CBF{ws}", path, "diffusion-safe", None, {**no_adv, **warm}),
             ]
-    if args.student:
-        rows += [
-            ("distilled 1-step student, standard", args.student, "diffusion", None, {}),
-            (
-                f"distilled 1-step student, best-of-{args.candidates} + escapes + blending",
-                args.student,
-                "diffusion-bestof",
-                None,
-                {**adv, **blend},
-            ),
-        ]
     if args.n_action_steps:
         best = args.dagger or args.new
         tag = "new + DAgger" if args.dagger else "new"
@@ -208,7 +187,6 @@ def main(argv: list[str] | None = None) -> int:
         default=0,
         help="warm_start_step of the '+ warm start' rows (policy config field; 0: no such rows)",
     )
-    ap.add_argument("--student", default=None, help="a distilled few-step checkpoint (its own rows)")
     ap.add_argument("--n-action-steps", type=int, default=None)
     ap.add_argument("--rows", default=None, help="only these rows: exact labels separated by ';'")
     ap.add_argument("--out", default="outputs/ablation")

@@ -5,19 +5,18 @@ and how long the team had already been that close.
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
         [--safety-margin 0.11] [--follower-margin 0.03] [--layer-ignores-noise] [--layer-ignores-motion] \
         [--route-proposal on|off] [--route-lookahead N] [--coherence W] [--proposal-blend M] \
-        [--halt-lookahead N] [--fallback-lookahead N] [--trace EPISODE ...] [--trace-steps N]
+        [--halt-lookahead N] [--trace EPISODE ...] [--trace-steps N]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
 level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin
 (``--follower-margin`` its ``safety_follower_margin``),
-``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing: the layer
-before 2026-12-04), ``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
-``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``
-(``off`` and 0: the layer before 2026-12-04 night), ``--coherence`` its ``safety_coherence`` (0: the
-layer before 2026-12-04 late), ``--proposal-blend`` its ``safety_proposal_blend`` (0: the layer before
-2026-12-05), ``--chunk-smoothing`` its ``chunk_smoothing`` (0: before 2026-12-05, evening),
-``--halt-lookahead`` its ``safety_halt_lookahead`` (0: before 2026-12-06), ``--fallback-lookahead`` its
-``safety_fallback_lookahead`` (0: before 2026-12-07); these flags are ``bench.level_report``'s, shared with ``scripts/jerk_sources.py``. One
+``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing),
+``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
+``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``,
+``--coherence`` its ``safety_coherence``, ``--proposal-blend`` its ``safety_proposal_blend``,
+``--chunk-smoothing`` its ``chunk_smoothing``, ``--halt-lookahead`` its ``safety_halt_lookahead`` (0 or
+off: without it); these flags are ``bench.level_report``'s,
+shared with ``scripts/jerk_sources.py``. One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's

@@ -5,7 +5,7 @@
 # and egocentric_state are retired: the derive_checkpoint.py lines below that set them record how the
 # earlier results were made and now stop with an error; the same settings are ReplanExperiment rows of
 # scripts/ablation.py (--escape-advantage, --blend-steps, ...). The fields retired since
-# (compat/old_checkpoints.py RETIRED_FIELDS) run their shipped values; the lines below no longer set them.
+# (compat/run_checks.py RETIRED_FIELDS) run their shipped values; the lines below no longer set them.
 # The distilled one-step student (not shipped) left with policy/distill.py; its lines are gone.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 # The obstacle encoding of a size of observation.environment_state, for the sizes the tests use.
-ENCODING_OF_ENV_DIM = {66: "grid+list", 51: "grid"}
+ENCODING_OF_ENV_DIM = {66: "grid+list", 51: "grid", 50: "nearest", 55: "nearest+route"}
 
 
 def last_error_line(err: str) -> str:
@@ -42,6 +42,17 @@ def tiny_diffusion_kwargs(env_dim: int = 66) -> dict:
     )
 
 
+def standard_policy_kwargs(env_dim: int = 66) -> dict:
+    """``FormationDiffusionConfig`` fields of the standard policy that most tests are written for: the
+    encoding of ``env_dim`` (``ENCODING_OF_ENV_DIM``) and every sampling and safety field at the value
+    it had before the shipped layer became the default (``compat.run_checks.FIELDS_BEFORE``:
+    K = 1, no filter, no guidance, no warm start, no smoothing, the eager backend, the dataset's action
+    range, margin 0.1, rate 2, ...)."""
+    from lerobot_formation.compat.run_checks import FIELDS_BEFORE
+
+    return {**FIELDS_BEFORE, "obstacle_encoding": ENCODING_OF_ENV_DIM[env_dim]}
+
+
 def tiny_formation_checkpoint(path: Path, env_dim: int = 66) -> Path:
     """A tiny untrained formation_diffusion policy (``ENCODING_OF_ENV_DIM[env_dim]``, 2 DDIM steps) saved
     in ``path`` with its processors (fixed normalisation stats); returns ``path``."""
@@ -57,7 +68,7 @@ def tiny_formation_checkpoint(path: Path, env_dim: int = 66) -> Path:
     torch.manual_seed(0)
     cfg = FormationDiffusionConfig(
         **tiny_diffusion_kwargs(env_dim),
-        obstacle_encoding=ENCODING_OF_ENV_DIM[env_dim],
+        **standard_policy_kwargs(env_dim),
         noise_scheduler_type="DDIM",
         num_inference_steps=2,
     )

@@ -32,7 +32,7 @@ def _script(relpath: str):
         (
             "benchmarks/bench_sampling_steps.py",
             ["--quick", "--threads N", "--steps", "--scenes", "--controller", "--inference-backend", "--out"]
-            + ["--spacings", "--student"],
+            + ["--spacings"],
         ),
     ],
 )
@@ -59,7 +59,8 @@ def test_eval_speed_stock_command_carries_the_safety_layer(tmp_path):
         policy_path="ckpt", episode_length=60, episodes=10, candidates=1, safety_filter="none"
     )
     plain = m.stock_command(args, 10, False, tmp_path / "s.json", "nearest", tmp_path / "o")
-    assert not any(c.startswith("--policy.num_candidates") for c in plain)
+    # K and the filter always given: the checkpoint's own (the shipped one's layer) are not the run's
+    assert "--policy.num_candidates=1" in plain and "--policy.safety_filter=none" in plain
     assert "--eval.batch_size=10" in plain and "--eval.use_async_envs=false" in plain
     args.candidates, args.safety_filter = 10, "cbf"
     safe = m.stock_command(args, None, None, tmp_path / "s.json", "nearest", tmp_path / "o")
@@ -149,34 +150,25 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     def spy(policy, *args, **kwargs):
         seen.append((policy.config.safety_action_delay, policy.config.safety_moving_obstacles, args[5]))
         plain.append(args[6])
-        grids.append({name: getattr(policy.config, name) for name in bench.PREVIOUS_DEFAULT})
         guided.append((policy.config.num_candidates, policy.config.sampling_guidance))
         return real(policy, *args, **kwargs)
 
-    grids, guided = [], []
+    guided = []
     bench.episode_replans_ms = spy
     torch.set_num_threads(1)
     headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
     assert "K=2 with the safety layer" in headline and "plain trace" in headline
     assert "its cost-to-go" in headline and "the whole field" in headline
-    shipped = grids[2]  # the K = 2 run with the config as shipped (K = 1 runs unguided and guided first)
-    if shipped != bench.PREVIOUS_DEFAULT:  # the previous default's best-of-K, timed in the same run
-        assert grids.count(bench.PREVIOUS_DEFAULT) == 1 and "previous default" in headline
-    toggled = {**shipped, "warm_start_all_candidates": not shipped["warm_start_all_candidates"]}
-    assert grids.count(toggled) == 1  # the other warm start
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
     assert plain.count(True) == 1  # the policy's trace against a plain one, in the same run
     assert all(delay == 1 and moving for delay, moving, _ in seen), seen
     # standard sampling (unguided) and one guided sample at K = 1; best-of-K with the checkpoint's
-    # guidance and with the other setting; every other variant as the checkpoint, the previous default unguided
-    g = shipped["sampling_guidance"]
+    # guidance (the K = 2 run as shipped) and with the other setting; every other variant as the checkpoint
+    g = guided[2][1]
     assert (
         guided[:4] == [(1, 0.0), (1, g or 1.0), (2, g), (2, 0.0 if g else 1.0)] and "K=1 guided" in headline
     )
-    assert all(
-        gg == (0.0 if grid == bench.PREVIOUS_DEFAULT else g)
-        for (_, gg), grid in zip(guided[4:], grids[4:], strict=True)
-    )
+    assert all(gg == g for _, gg in guided[4:])
     assert all(env_kwargs["conditions"].moving_obstacles == 2 for *_, env_kwargs in seen)
 
 

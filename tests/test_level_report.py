@@ -25,13 +25,6 @@ def test_a_bad_route_proposal_value_is_refused(capsys):
     assert "maybe" in capsys.readouterr().err
 
 
-def test_a_bad_escape_speed_is_refused_by_name(capsys):
-    with pytest.raises(SystemExit):
-        _parse("--escape-speeds", "0,x")
-    err = capsys.readouterr().err
-    assert "comma-separated numbers" in err and "'x'" in err and "<lambda>" not in err
-
-
 def test_no_flag_keeps_the_checkpoints_settings():
     assert _overrides(_parse()) == {}
 
@@ -40,9 +33,7 @@ def test_each_flag_names_its_config_field():
     args = _parse(
         "--safety-margin", "0.11", "--follower-margin", "0.03", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
         "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0", "--chunk-smoothing", "0",
-        "--mover-uncertainty", "0", "--escape-speeds", "0,0.1,0.2,0.3", "--fallback-all", "off",
-        "--recheck", "on", "--halt-lookahead", "20",
-        "--fallback-lookahead", "30",
+        "--mover-uncertainty", "0", "--halt-lookahead", "20",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
@@ -56,11 +47,7 @@ def test_each_flag_names_its_config_field():
         "safety_proposal_blend": 0,
         "chunk_smoothing": 0,
         "safety_mover_uncertainty": 0.0,
-        "safety_escape_speeds": (0.0, 0.1, 0.2, 0.3),
-        "safety_fallback_all": False,
-        "safety_recheck": True,
         "safety_halt_lookahead": 20,
-        "safety_fallback_lookahead": 30,
     }
     assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
 

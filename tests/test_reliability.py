@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import last_error_line, stock_diffusion_checkpoint, tiny_diffusion_kwargs
+from helpers import last_error_line, standard_policy_kwargs, stock_diffusion_checkpoint, tiny_diffusion_kwargs
 
 from datasets_scripts import generate_pac_dataset as gen_mod
 from lerobot_formation.bench.cli import main as bench_main
@@ -461,18 +461,19 @@ def test_seed_past_the_end_of_a_scenes_file(tmp_path):
 def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up(tmp_path):
     """lerobot-train validates its config, builds the policy, then calls make_env_pre_post_processors(env_cfg,
     policy_cfg) before its first step; lerobot-eval's config loads the policy config and the same call
-    comes before the first episode. Both pipeline configs hand our env config the policy config."""
+    comes before the first episode. Both pipeline configs hand our env config the policy config: an
+    env given no encoding takes the policy's, one given another is refused naming both."""
     from lerobot.configs.default import DatasetConfig
     from lerobot.configs.eval import EvalPipelineConfig
     from lerobot.configs.train import TrainPipelineConfig
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from lerobot_formation.envs.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig, check_policy_features
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
-    policy_cfg = FormationDiffusionConfig(**tiny_diffusion_kwargs(66), obstacle_encoding="grid+list")
+    policy_cfg = FormationDiffusionConfig(**tiny_diffusion_kwargs(66), **standard_policy_kwargs(66))
 
-    def train(encoding: str) -> TrainPipelineConfig:
+    def train(encoding: str | None) -> TrainPipelineConfig:
         env = FormationEnvConfig(obstacle_encoding=encoding)
         cfg = TrainPipelineConfig(
             dataset=DatasetConfig(repo_id="local/x", root=str(tmp_path)), env=env, policy=policy_cfg
@@ -480,19 +481,25 @@ def test_env_encoding_that_does_not_fit_the_policy_fails_at_start_up(tmp_path):
         cfg.validate()
         return cfg
 
-    def evaluate(encoding: str) -> EvalPipelineConfig:
+    def evaluate(encoding: str | None) -> EvalPipelineConfig:
         return EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding=encoding), policy=policy_cfg)
 
-    for pipeline in (train("grid+list"), evaluate("grid+list")):
-        assert pipeline.env.run_policy is policy_cfg
+    for pipeline in (train("grid+list"), evaluate("grid+list"), train(None), evaluate(None)):
+        assert pipeline.env.run_policy is policy_cfg and pipeline.env.obstacle_encoding == "grid+list"
         make_env_pre_post_processors(pipeline.env, pipeline.policy)
-    for pipeline in (train("grid"), evaluate("grid")):
+    for build in (train, evaluate):
         with pytest.raises(ValueError) as e:
-            make_env_pre_post_processors(pipeline.env, pipeline.policy)
+            build("grid")
         assert str(e.value) == (
-            "--env.obstacle_encoding=grid gives 'observation.environment_state' 51 values, but the policy takes "
-            "66 (its dataset or checkpoint uses 'grid+list'): pass --env.obstacle_encoding=grid+list"
+            "--env.obstacle_encoding=grid differs from the policy's obstacle_encoding=grid+list: drop "
+            "--env.obstacle_encoding (the env then observes the policy's) or pass --env.obstacle_encoding=grid+list"
         )
+    with pytest.raises(ValueError) as e:  # the processors' check, where the sizes differ
+        check_policy_features(FormationEnvConfig(obstacle_encoding="grid"), policy_cfg)
+    assert str(e.value) == (
+        "--env.obstacle_encoding=grid gives 'observation.environment_state' 51 values, but the policy takes "
+        "66 (its dataset or checkpoint uses 'grid+list'): pass --env.obstacle_encoding=grid+list"
+    )
 
 
 def test_env_encoding_of_the_same_size_but_another_route_hint_fails_at_start_up():
@@ -500,15 +507,22 @@ def test_env_encoding_of_the_same_size_but_another_route_hint_fails_at_start_up(
     from lerobot.configs.eval import EvalPipelineConfig
     from lerobot.envs.factory import make_env_pre_post_processors
 
-    from lerobot_formation.envs.env_config import FormationEnvConfig
+    from lerobot_formation.envs.env_config import FormationEnvConfig, check_policy_features
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
-    policy_cfg = FormationDiffusionConfig(**tiny_diffusion_kwargs(55), obstacle_encoding="nearest+maproute")
+    policy_cfg = FormationDiffusionConfig(
+        **tiny_diffusion_kwargs(55), **{**standard_policy_kwargs(55), "obstacle_encoding": "nearest+maproute"}
+    )
     same = EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding="nearest+maproute"), policy=policy_cfg)
     make_env_pre_post_processors(same.env, same.policy)
-    other = EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding="nearest+route"), policy=policy_cfg)
     with pytest.raises(ValueError) as e:
-        make_env_pre_post_processors(other.env, other.policy)
+        EvalPipelineConfig(env=FormationEnvConfig(obstacle_encoding="nearest+route"), policy=policy_cfg)
+    assert (
+        "--env.obstacle_encoding=nearest+route differs from the policy's obstacle_encoding=nearest+maproute"
+        in str(e.value)
+    )
+    with pytest.raises(ValueError) as e:  # the processors' check of the same
+        check_policy_features(FormationEnvConfig(obstacle_encoding="nearest+route"), policy_cfg)
     assert str(e.value) == (
         "--env.obstacle_encoding=nearest+route gives 'observation.environment_state' the size the policy "
         "takes, but the policy observes 'nearest+maproute': pass --env.obstacle_encoding=nearest+maproute"
@@ -525,7 +539,7 @@ def test_missing_dataset_root_offline_is_a_clear_error(tmp_path, monkeypatch):
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     def validate(root: Path) -> None:
-        policy = FormationDiffusionConfig(**tiny_diffusion_kwargs(66))
+        policy = FormationDiffusionConfig(**tiny_diffusion_kwargs(66), **standard_policy_kwargs(66))
         TrainPipelineConfig(
             dataset=DatasetConfig(repo_id="local/x", root=str(root)), policy=policy
         ).validate()
@@ -584,6 +598,7 @@ def _tiny_policy(**overrides):
     torch.manual_seed(0)
     kwargs = {
         **tiny_diffusion_kwargs(51),
+        **standard_policy_kwargs(51),
         "noise_scheduler_type": "DDIM",
         "num_inference_steps": 4,
         **overrides,
@@ -777,7 +792,6 @@ def test_second_training_run_into_one_output_dir_refuses(tmp_path):
         ("cbf_rate", float("inf"), r"config values must be finite numbers, got cbf_rate=inf"),
         ("ema_power", float("nan"), r"got ema_power=nan"),
         ("optimizer_lr", float("nan"), r"got optimizer_lr=nan"),
-        ("action_high", (0.6, float("nan")), r"got action_high=\(0.6, nan\)"),
     ],
 )
 def test_config_values_are_checked(field, value, message):

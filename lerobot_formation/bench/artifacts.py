@@ -6,7 +6,7 @@ sharded run), reduced by ``reduce_results``::
 
     {"format": "lerobot-formation-results", "version": 1,
      "command": "lerobot-formation-bench --controllers pac,... --scenes level5:500 ...",
-     "date": "2026-12-07", "host": "Linux x86_64, 2 cores (...)", "device": "cpu",
+     "date": "YYYY-MM-DD", "host": "Linux x86_64, 2 cores (...)", "device": "cpu",
      "policy_path": "pretrained/...", "candidates": 10, "main": "level5",
      "sets": {"level5": {"spec": "level5:500", "seed": 1000000, "conditions": {...},
                          "controllers": {"pac": {"n": 500, "successes": 271, "collisions": 189,

@@ -8,7 +8,8 @@ made, so a new controller is one new file and one line here). A controller needs
 checkpoint: the bench asks for ``--policy.path`` and loads it once into ``bundle``. Each of them is
 the policy's ``Replanner`` with the checkpoint's config and, for K and the filter, an override
 (``dataclasses.replace``, so the config's checks run): "diffusion-policy" runs the config as stored
-(the shipped checkpoint's: its safety layer on, best-of-10 and the filter).
+(the shipped checkpoint's: its safety layer on, best-of-10 and the filter), as ``lerobot-eval
+--policy.path`` runs it: not told the run's conditions.
 The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
 limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
@@ -85,8 +86,6 @@ def _diffusion(
                 overrides["sampling_guidance"] = bundle[0].config.sampling_guidance or TUNED_SAMPLING_GUIDANCE
             if best_of_k or safety_filter != "none" or guided:  # a safety layer: it knows the run's actuator
                 overrides.update(safety_settings(options.conditions, options.scenes_move))
-        else:  # as stored; a stored safety layer knows the run's world too (inert without one)
-            overrides.update(safety_settings(options.conditions, options.scenes_move))
         return DiffusionController(
             options.policy_path,
             num_inference_steps=options.num_inference_steps,

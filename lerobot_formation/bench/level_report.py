@@ -162,11 +162,7 @@ SAFETY_FLAGS = (
     "proposal_blend",
     "chunk_smoothing",
     "mover_uncertainty",
-    "escape_speeds",
-    "fallback_all",
-    "recheck",
     "halt_lookahead",
-    "fallback_lookahead",
 )
 
 
@@ -181,23 +177,17 @@ def safety_overrides(
     proposal_blend: int | None = None,
     chunk_smoothing: int | None = None,
     mover_uncertainty: float | None = None,
-    escape_speeds: tuple[float, ...] | None = None,
-    fallback_all: bool | None = None,
-    recheck: bool | None = None,
     halt_lookahead: int | None = None,
-    fallback_lookahead: int | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
-    ``safety_margin``; ``safety_follower_margin`` (0: the layer before the follower allowance,
-    2026-12-05); ``layer_ignores_noise``: the layer is not told the sensing noise (no smoothing, the
-    layer before 2026-12-04); ``layer_ignores_motion``: not told that obstacles move;
-    ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: the layer before 2026-12-04
-    night), ``safety_coherence`` (0: before 2026-12-04 late), ``safety_proposal_blend`` (0: before
-    2026-12-05), ``chunk_smoothing`` (0: before 2026-12-05, evening; it acts with K = 1 too),
-    ``safety_mover_uncertainty``, ``safety_escape_speeds`` and ``safety_fallback_all`` (0,
-    (0, 0.1, 0.2, 0.3) and off: before 2026-12-05, night), ``safety_recheck`` (off: before 2026-12-05,
-    late night), ``safety_halt_lookahead`` (0: before 2026-12-06), ``safety_fallback_lookahead`` (0:
-    before 2026-12-07)."""
+    ``safety_margin``; ``safety_follower_margin`` (0: no follower allowance); ``layer_ignores_noise``:
+    the layer is not told the sensing noise (no smoothing); ``layer_ignores_motion``: not told that
+    obstacles move; ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: neither route
+    pursuit's proposal nor its lookahead), ``safety_coherence`` (0: progress alone),
+    ``safety_proposal_blend`` (0: the proposal as computed), ``chunk_smoothing`` (0: the samples as
+    drawn; it acts with K = 1 too), ``safety_mover_uncertainty`` (0: a mover's prediction as exact),
+    ``safety_halt_lookahead`` (0: no braking check). The fields' docs are
+    ``FormationDiffusionConfig``'s."""
     out = {}
     if safety_margin is not None:
         out["safety_margin"] = safety_margin
@@ -219,16 +209,8 @@ def safety_overrides(
         out["chunk_smoothing"] = chunk_smoothing
     if mover_uncertainty is not None:
         out["safety_mover_uncertainty"] = mover_uncertainty
-    if escape_speeds is not None:
-        out["safety_escape_speeds"] = tuple(escape_speeds)
-    if fallback_all is not None:
-        out["safety_fallback_all"] = fallback_all
-    if recheck is not None:
-        out["safety_recheck"] = recheck
     if halt_lookahead is not None:
         out["safety_halt_lookahead"] = halt_lookahead
-    if fallback_lookahead is not None:
-        out["safety_fallback_lookahead"] = fallback_lookahead
     return out
 
 
@@ -260,19 +242,6 @@ def _on_off(text: str):
 def _add_on_off(ap: argparse.ArgumentParser, flag: str, help: str | None = None) -> None:
     """An on/off flag (``_on_off``), None when not given (the checkpoint's setting)."""
     ap.add_argument(flag, type=_on_off, choices=(True, False), default=None, metavar="{on,off}", help=help)
-
-
-def _speeds(text: str) -> tuple[float, ...]:
-    """Comma-separated speeds [m/s] -> a tuple; a part that is not a number is refused by name."""
-    out = []
-    for part in text.split(","):
-        try:
-            out.append(float(part))
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"speeds must be comma-separated numbers [m/s], got {part.strip()!r} in {text!r}"
-            ) from None
-    return tuple(out)
 
 
 def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) -> None:
@@ -320,23 +289,9 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         help="growth of a moving obstacle's predicted radius per second ahead [m/s]",
     )
     ap.add_argument(
-        "--escape-speeds",
-        type=_speeds,
-        default=None,
-        help="the escape manoeuvres' speeds, comma-separated [m/s], e.g. 0,0.1,0.2,0.3",
-    )
-    _add_on_off(ap, "--fallback-all", "where nothing is safe, the widest of every candidate scored")
-    _add_on_off(ap, "--recheck", "check a kept chunk again at every step; replan where it no longer passes")
-    ap.add_argument(
         "--halt-lookahead",
         type=int,
         default=None,
         help="steps a team braking after a chunk must stay clear of movers, where no lookahead passes (0: off)",
-    )
-    ap.add_argument(
-        "--fallback-lookahead",
-        type=int,
-        default=None,
-        help="steps past the chunk over which the fallback's width is measured, where nothing is safe (0: the chunk)",
     )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

@@ -1,12 +1,20 @@
-"""The one loader for checkpoints written before the lean policy config (issue 25).
+"""The one loader for checkpoints written before the current policy config.
 
+Every local ``formation_diffusion`` ``config.json`` that LeRobot loads (``PreTrainedConfig.from_pretrained``:
+``lerobot-eval --policy.path``, ``lerobot-train --policy.path``, the bench's loader) is read through
+``compat.run_checks.drop_retired_fields`` first (``run_checks.install_config_upgrade``, installed when
+the policy config module is imported; one without ``obstacle_encoding`` is refused there, naming
+this command); the file itself is left as it is.
 ``python -m lerobot_formation.compat.old_checkpoints FOLDER`` rewrites ``config.json`` (and the
-``policy`` part of ``train_config.json``) of a ``formation_diffusion`` checkpoint in place, written to
-a temporary file and renamed into position:
+``policy`` part of ``train_config.json``, which ``lerobot-train --resume`` reads) in place, written to
+a temporary file and renamed into position. Either way:
 
 - a retired field (``RETIRED_FIELDS``) is dropped when it holds the value the code now hard-wires;
-  any other value is refused with the field named (an experiment setting: pass it to
-  ``scripts/ablation.py``, i.e. ``policy.replanner.ReplanExperiment``);
+  any other value is refused, one line naming the field, its value and the wired one (the setting is
+  gone, or an experiment setting of ``scripts/ablation.py``, i.e. ``policy.replanner.ReplanExperiment``);
+- a config without a field whose default now turns part of the shipped safety layer on
+  (``FIELDS_BEFORE``) was written before that field existed, and ran without it: it gets the value
+  it ran with (a K = 1 checkpoint stays K = 1);
 - a config without ``obstacle_encoding`` (checkpoints from before the field) gets the encoding whose
   ``observation.environment_state`` size at its default slot count is the feature's size: the only
   place where an encoding is inferred from a size. An ambiguous or unknown size is refused.
@@ -21,36 +29,21 @@ import os
 import sys
 from pathlib import Path
 
+from lerobot_formation.compat.run_checks import (  # noqa: F401  (re-exported)
+    FIELDS_BEFORE,
+    RETIRED_FIELDS,
+    OldCheckpointError,
+    drop_retired_fields,
+)
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
 
 OBS_ENV_STATE = "observation.environment_state"  # lerobot.utils.constants.OBS_ENV_STATE (no torch here)
-
-# field -> the value the code now runs with
-RETIRED_FIELDS = {
-    "escape_advantage": None,
-    "blocked_fallback": "widest",
-    "replan_blend_steps": 0,
-    "egocentric_state": False,
-}
-
-
-class OldCheckpointError(ValueError):
-    """A checkpoint that cannot be carried over as it is (the message says which field and why)."""
 
 
 def upgrade_policy_config(raw: dict, where: str = "config.json") -> dict:
     """The policy config dict ``raw`` without retired fields, with ``obstacle_encoding`` (see the
     module docstring); ``raw`` itself is left as it is."""
-    out = dict(raw)
-    for key, wired in RETIRED_FIELDS.items():
-        if key not in out:
-            continue
-        if out[key] != wired:
-            raise OldCheckpointError(
-                f"{where}: retired field {key}={out[key]!r} differs from the value the policy now runs "
-                f"with ({wired!r}); it is an experiment setting now (scripts/ablation.py, ReplanExperiment)"
-            )
-        del out[key]
+    out = drop_retired_fields(raw, where)
     if out.get("obstacle_encoding") is None:
         env = (out.get("input_features") or {}).get(OBS_ENV_STATE) or {}
         size = tuple(env.get("shape") or ())

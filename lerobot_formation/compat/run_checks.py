@@ -6,9 +6,17 @@
   ``config_errors_in_draccus_messages`` make LeRobot's CLIs print it as one ``error:`` line.
 - ``lerobot-train``'s start (``install_train_checks``): a missing ``--dataset.root`` offline is one
   clear error, the output folder is locked (below), and a resumed run with nothing left to train says so.
+- A ``formation_diffusion`` ``config.json`` of an earlier version (``install_config_upgrade``, installed
+  when the policy config module is imported): every local one that ``PreTrainedConfig.from_pretrained``
+  loads is read through ``drop_retired_fields`` (the file is left as it is): a retired field
+  (``RETIRED_FIELDS``) is dropped where it holds the value the code now hard-wires, any other value is
+  one line naming the field, its value and the wired one; a field whose default now turns part of the
+  shipped safety layer on (``FIELDS_BEFORE``) is, where the file lacks it (it predates the field),
+  the value it ran with. ``compat.old_checkpoints`` rewrites such a folder in place.
 - The env config meets the policy config (``hand_env_its_policy``): ``lerobot-train`` and
-  ``lerobot-eval``'s pipeline configs hand ``FormationEnvConfig`` the run's policy config, which its
-  ``get_env_processors`` checks against the env's observation.
+  ``lerobot-eval``'s pipeline configs hand ``FormationEnvConfig`` the run's policy config: an env
+  whose obstacle encoding the user did not give takes the policy's (a given one that differs is an
+  error naming both), and its ``get_env_processors`` checks the policy against the env's observation.
 
 ``install_run_hooks`` switches these on; our configs call it when they are built, so a LeRobot run of
 another project is untouched. This module imports nothing else of ours: every config imports it.
@@ -30,9 +38,11 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import json
 import logging
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 
@@ -156,7 +166,9 @@ def check_dataset_root_offline(root) -> None:
 
 def hand_env_its_policy(pipeline) -> None:
     """Give the run's env config its policy config: ``pipeline.env.run_policy = pipeline.policy`` when
-    the env config declares ``run_policy`` (``FormationEnvConfig``; other env configs are left alone).
+    the env config declares ``run_policy`` (``FormationEnvConfig``; other env configs are left alone),
+    and let it take the policy's observation encoding where the user gave none
+    (``FormationEnvConfig.take_policy_encoding``; a given one that differs is a ``ConfigError``).
 
     LeRobot's ``make_env_pre_post_processors(env_cfg, policy_cfg)`` calls ``env_cfg.get_env_processors()``
     with no argument, and our env checks there that the policy takes its observation; the policy's
@@ -165,6 +177,8 @@ def hand_env_its_policy(pipeline) -> None:
     env = getattr(pipeline, "env", None)
     if env is not None and hasattr(type(env), "run_policy"):
         env.run_policy = pipeline.policy
+        if pipeline.policy is not None and hasattr(env, "take_policy_encoding"):
+            env.take_policy_encoding(pipeline.policy)
 
 
 def report_resume_with_nothing_to_train(resume: bool, steps: int, checkpoint_path, step: int) -> str | None:
@@ -309,3 +323,128 @@ def install_run_hooks() -> None:
     config_errors_in_draccus_messages()
     install_train_checks()
     install_eval_checks()
+
+
+# -- a config.json of an earlier version -----------------------------------------------------------------
+# field -> the value the code now runs with
+RETIRED_FIELDS = {
+    # experiment settings now (scripts/ablation.py, ReplanExperiment)
+    "escape_advantage": None,
+    "blocked_fallback": "widest",
+    "replan_blend_steps": 0,
+    "egocentric_state": False,
+    # the shipped safety layer's, now wired (policy.replanner's constants)
+    "safety_escape_speeds": [0.0, 0.1, 0.2, 0.3, 0.45, 0.6],
+    "safety_fallback_all": True,
+    "safety_recheck": True,
+    "safety_progress_resolution": 0.4,
+    "safety_progress_interpolation": "bilinear",
+    "warm_start_all_candidates": True,
+    "replan_on_intervention": True,
+    "guidance_distance": 0.3,
+    "guidance_steps": 1,
+    # experiments that were not kept
+    "safety_fallback_lookahead": 0,
+    "timestep_spacing": "leading",
+    # diffusers' EMA defaults (modeling_formation_diffusion.EMA_*), and the env's action bounds
+    "ema_inv_gamma": 1.0,
+    "ema_min_decay": 0.0,
+    "ema_max_decay": 0.9999,
+    "ema_update_after_step": 0,
+    "action_low": [0.0, -1.5],
+    "action_high": [0.6, 1.5],
+}
+
+EXPERIMENT_SETTINGS = ("escape_advantage", "blocked_fallback", "replan_blend_steps")
+
+# field -> the value a config.json without it ran with: fields whose default is now the shipped
+# policy's layer (LeRobot writes every field, so a config.json lacking one predates it)
+FIELDS_BEFORE = {
+    "fixed_action_bounds": False,
+    "num_candidates": 1,
+    "safety_filter": "none",
+    "safety_margin": 0.1,
+    "safety_follower_margin": 0.0,
+    "cbf_rate": 2.0,
+    "safety_mover_uncertainty": 0.0,
+    "safety_route_proposal": False,
+    "safety_route_lookahead": 0,
+    "safety_halt_lookahead": 0,
+    "safety_proposal_blend": 0,
+    "safety_coherence": 0.0,
+    "warm_start_step": 0,
+    "chunk_smoothing": 0,
+    "sampling_guidance": 0.0,
+    "inference_backend": "eager",
+}
+
+
+class OldCheckpointError(ConfigError):
+    """A checkpoint that cannot be carried over as it is (the message says which field and why); a
+    ``ConfigError``, so a LeRobot CLI prints it as one line."""
+
+
+def _as_json(value):
+    return list(value) if isinstance(value, tuple) else value
+
+
+def drop_retired_fields(raw: dict, where: str = "config.json") -> dict:
+    """The policy config dict ``raw`` without retired fields and with ``FIELDS_BEFORE`` where it lacks
+    them (the module docstring); ``raw`` itself is left as it is.
+
+    Raises:
+        OldCheckpointError: a retired field holds another value than the one the code runs.
+    """
+    out = dict(raw)
+    for key, wired in RETIRED_FIELDS.items():
+        if key not in out:
+            continue
+        if _as_json(out[key]) != wired:
+            gone = (
+                "it is an experiment setting now (scripts/ablation.py, ReplanExperiment)"
+                if key in EXPERIMENT_SETTINGS
+                else "no setting of this version runs another"
+            )
+            raise OldCheckpointError(
+                f"{where}: retired field {key}={json.dumps(out[key])} differs from the value the policy "
+                f"now runs with ({json.dumps(wired)}); {gone}"
+            )
+        del out[key]
+    for key, before in FIELDS_BEFORE.items():
+        out.setdefault(key, before)
+    return out
+
+
+def install_config_upgrade() -> None:
+    """Read every local ``formation_diffusion`` ``config.json`` that ``PreTrainedConfig.from_pretrained``
+    loads through ``drop_retired_fields`` (idempotent; the file is left as it is, the upgraded dict
+    is parsed from a temporary folder). Other policy types, hub ids and current configs go to LeRobot's
+    loader unchanged. A refused field is an ``OldCheckpointError`` (one ``error:`` line)."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    original = PreTrainedConfig.from_pretrained.__func__
+    if getattr(original, "_formation_upgrade", False):
+        return
+
+    def from_pretrained(cls, pretrained_name_or_path, **kwargs):
+        config_file = Path(str(pretrained_name_or_path)) / "config.json"
+        try:
+            raw = json.loads(config_file.read_text()) if config_file.is_file() else None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            raw = None  # LeRobot's loader reports it
+        if isinstance(raw, dict) and raw.get("type") == "formation_diffusion":
+            install_run_hooks()  # a formation run: the refusal below is one error line
+            if raw.get("obstacle_encoding") is None:  # older than the field: its size decides, once
+                raise OldCheckpointError(
+                    f"{config_file} has no obstacle_encoding; carry the checkpoint over with "
+                    f"python -m lerobot_formation.compat.old_checkpoints {config_file.parent}"
+                )
+            upgraded = drop_retired_fields(raw, str(config_file))
+            if upgraded != raw:
+                with tempfile.TemporaryDirectory() as tmp:
+                    (Path(tmp) / "config.json").write_text(json.dumps(upgraded))
+                    return original(cls, tmp, **kwargs)
+        return original(cls, pretrained_name_or_path, **kwargs)
+
+    from_pretrained._formation_upgrade = True  # type: ignore[attr-defined]
+    PreTrainedConfig.from_pretrained = classmethod(from_pretrained)

@@ -23,8 +23,7 @@ allowance for the lag) with it.
   4. if none is safe, a safe escape manoeuvre (a turn in place or an arc, ``escape_primitives``)
      with the most progress; if none of those is safe either (``blocked_fallback``): "widest", the
      sampled candidate with the largest predicted clearance (with ``fallback_all``, of the sampled
-     chunks and manoeuvres; with a ``fallback_lookahead``, over the chunk and that many steps
-     more: ``FootprintCheck.outlasting``; a CBF filter then brakes); "stop", the
+     chunks and manoeuvres; a CBF filter then brakes); "stop", the
      chunk or manoeuvre with the largest predicted clearance if it predicts no contact, else a stop
      (zero actions for the chunk, not blended: the leaders are kinematic, and a stopped team stays
      clear) and a fresh draw at the next replan.
@@ -210,7 +209,8 @@ def decode_nearest(env_state: np.ndarray, slots: int) -> tuple[np.ndarray, np.nd
 # most cost-to-go progress) instead of pressing against the obstacle while the filter holds it.
 SLIDE_TOLERANCE = 0.02  # [m] how much closer than now a chunk may come when already inside the margin
 BLOCKED_FALLBACKS = ("widest", "stop")
-ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3)  # [m/s] the lattice's speeds before 2026-12-05 (night)
+ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3)  # [m/s] the default lattice: turns in place and slow arcs
+PROGRESS_WINDOW = 6.0  # [m] best-of-K's cost-to-go grid reaches +-(window + 2) m (``cost_to_go_progress``)
 ESCAPE_TURN_RATES = (-1.5, -1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0, 1.5)  # [rad/s]
 
 
@@ -336,22 +336,12 @@ class FootprintCheck:
         stop = np.zeros((R, C, steps, 2))
         return self._alone(rows).footprint(np.concatenate([commands, stop], axis=2))[0]
 
-    def outlasting(self, commands: np.ndarray, steps: int, rows: np.ndarray | None = None) -> np.ndarray:
-        """Smallest clearance (R, C) of command sequences (R, C, T, 2) of episodes ``rows`` (R,)
-        (default: the first R) over the sequence and ``steps`` more, the wider of two ways on: its
-        last command held (a flight goes on) and braked to a standstill (``halted``). The blocked
-        fallback's measure with a ``fallback_lookahead`` (``select_chunk``): over the chunk alone a
-        turn in place looks widest while a mover is still a chunk away, and is struck after it."""
-        rows = np.arange(len(commands)) if rows is None else rows
-        held = np.concatenate([commands, np.repeat(commands[:, :, -1:], steps, axis=2)], axis=2)
-        return np.maximum(self._alone(rows).footprint(held)[0], self.halted(commands, steps, rows))
-
 
 def plan_is_safe(plan: np.ndarray, check: FootprintCheck, margin: float) -> np.ndarray:
     """Whether each plan (B, T, 2) [v, omega] (e.g. the rest of the chunk being executed) still passes
     best-of-K's check on a newer view (B,) bool: the plan and, with the check's continuation, what
     follows it keep ``check.floor(margin)``. Where it fails the replanner replans at once
-    (``safety_recheck``): a chunk kept as safe is otherwise run for n_action_steps on the view it was
+    (best-of-K's recheck): a chunk kept as safe is otherwise run for n_action_steps on the view it was
     scored on, while a mover's estimated velocity and the sensed obstacles change under it."""
     floor = check.floor(margin)
     clear, viable, _ = check.footprint(np.asarray(plan, dtype=np.float64)[:, None], floor)
@@ -366,9 +356,6 @@ def select_chunk(
     dt: float,
     agent_radius: float | np.ndarray,
     margin: float,
-    progress_measure: str = "cost_to_go",
-    window: float = 6.0,
-    escape: bool = True,
     escape_advantage: float | None = None,
     blend: tuple[np.ndarray, np.ndarray, int] | None = None,
     blocked_fallback: str = "widest",
@@ -382,13 +369,12 @@ def select_chunk(
     mover_uncertainty: float = 0.0,
     fallback_all: bool = False,
     halt_lookahead: int = 0,
-    fallback_lookahead: int = 0,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The kept chunk (B, T, 2) [v, omega] among candidates (B, K, T, 2), and diagnostics.
 
-    ``obstacles`` (B, M, 3) and ``goal`` (B, 2) are in the body frame. ``progress_measure``
-    "cost_to_go" (default) or "euclidean" (see ``cost_to_go_progress``). With ``escape``, when no
-    candidate is safe the safe ``ESCAPE_PRIMITIVES`` chunk with the most progress is kept, if any.
+    ``obstacles`` (B, M, 3) and ``goal`` (B, 2) are in the body frame. Progress is the cost-to-go's
+    (``cost_to_go_progress`` within ``PROGRESS_WINDOW`` m). When no candidate is safe the safe escape
+    manoeuvre (``primitives``) with the most progress is kept, if any.
     With ``escape_advantage`` (metres), a safe primitive is also kept when its progress beats every
     safe sampled chunk's by that much: a team the policy keeps pressing against an obstacle (its
     chunks safe only because they barely move) goes round it instead of timing out there.
@@ -417,10 +403,7 @@ def select_chunk(
     ``primitives`` (P, 2): the escape manoeuvres (default ``ESCAPE_PRIMITIVES``, ``escape_primitives``).
     ``fallback_all``: the "widest" fallback keeps the widest of every candidate scored (sampled chunks
     and manoeuvres, e.g. a fast arc that a mover strikes later or less deep), not of the sampled
-    chunks only. ``fallback_lookahead`` n: the "widest" fallback measures each candidate's clearance
-    over the chunk and n steps more, held on or braked, whichever is wider
-    (``FootprintCheck.outlasting``), not over the chunk alone: where a mover comes, the widest for
-    the chunk's 1.6 s may stand in its way.
+    chunks only.
     ``mover_uncertainty`` [m/s]: with ``obstacle_velocity``, a moving obstacle's predicted radius grows
     by that much per second ahead (``core.obstacle_tracker.predict_obstacles``), over the chunk and its
     continuation: a chunk that passes a mover closely late in the horizon, where the constant-velocity
@@ -440,7 +423,7 @@ def select_chunk(
     # escape_advantage): elsewhere none of them could be kept, so they are scored only if some
     # episode needs them (most replans then score 11 sequences, not 11 + the lattice).
     sure = (clear if viable is None else viable) >= floor
-    if escape and (escape_advantage is not None or not sure.any(axis=1).all()):
+    if escape_advantage is not None or not sure.any(axis=1).all():
         lattice = ESCAPE_PRIMITIVES if primitives is None else np.asarray(primitives, dtype=np.float64)
         prim = np.broadcast_to(lattice[None, :, None, :], (B, len(lattice), T, 2))
         if blend is not None:
@@ -451,13 +434,9 @@ def select_chunk(
         end = np.concatenate([end, prim_end], axis=1)
         if viable is not None:
             viable = np.concatenate([viable, prim_viable], axis=1)
-    if progress_measure == "euclidean":
-        dist0 = np.linalg.norm(goal, axis=-1)
-        progress = dist0[:, None] - np.linalg.norm(goal[:, None, :] - end[..., :2], axis=-1)
-    else:
-        progress = cost_to_go_progress(
-            obstacles, goal, end[..., :2], window, progress_resolution, progress_bilinear
-        )
+    progress = cost_to_go_progress(
+        obstacles, goal, end[..., :2], PROGRESS_WINDOW, progress_resolution, progress_bilinear
+    )
     safe = clear >= floor
     strict = None if viable is None else viable >= floor
     if halt_lookahead:  # second preference: a chunk after which the team may stop
@@ -484,10 +463,6 @@ def select_chunk(
     stopped = np.zeros(B, dtype=bool)
     if blocked_fallback == "widest":
         fallback = np.argmax(clear if fallback_all else clear[:, :K], axis=1)  # a filter brakes
-        if fallback_lookahead and blocked.any():
-            rows_at = np.flatnonzero(blocked)
-            scored = pool[rows_at] if fallback_all else pool[rows_at, :K]
-            fallback[rows_at] = np.argmax(check.outlasting(scored, fallback_lookahead, rows_at), axis=1)
     else:  # the widest of all if it predicts no contact, else stop
         fallback = np.argmax(clear, axis=1)
         stopped = blocked & (clear[rows, fallback] < 0.0)

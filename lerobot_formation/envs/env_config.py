@@ -46,6 +46,9 @@ from lerobot_formation.envs.render import FINAL_FRAME_KEY, EpisodeOverlay
 
 ACTION_DIM = 2  # [v, omega]
 SCENE_CHOICES = (*SCENE_PRESETS, *SCENE_MIXES)  # what env.scene_preset takes: a preset or a mixture
+# The encoding of an env config whose obstacle_encoding nobody gave and no policy handed over: the gym
+# env's own default (``FormationEnv``), the paper's grid.
+DEFAULT_OBSTACLE_ENCODING = "grid"
 
 
 def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
@@ -56,13 +59,13 @@ def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
     feature = (getattr(policy_cfg, "input_features", None) or {}).get(OBS_ENV_STATE)
     if feature is None:
         return
-    ours = environment_state_dim(env_cfg.obstacle_encoding)
+    ours = environment_state_dim(env_cfg.encoding)
     theirs = tuple(feature.shape)
     wanted = getattr(policy_cfg, "obstacle_encoding", None)
     if theirs == (ours,):
-        if wanted in ENCODINGS and wanted != env_cfg.obstacle_encoding:
+        if wanted in ENCODINGS and wanted != env_cfg.encoding:
             raise config_error(
-                f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' the size the "
+                f"--env.obstacle_encoding={env_cfg.encoding} gives '{OBS_ENV_STATE}' the size the "
                 f"policy takes, but the policy observes {wanted!r}: pass --env.obstacle_encoding={wanted}"
             )
         return
@@ -70,7 +73,7 @@ def check_policy_features(env_cfg: FormationEnvConfig, policy_cfg) -> None:
     hint = f"pass --env.obstacle_encoding={wanted}" if wanted else f"the encodings' sizes: {sizes}"
     size = theirs[0] if len(theirs) == 1 else theirs
     raise config_error(
-        f"--env.obstacle_encoding={env_cfg.obstacle_encoding} gives '{OBS_ENV_STATE}' {ours} values, but the "
+        f"--env.obstacle_encoding={env_cfg.encoding} gives '{OBS_ENV_STATE}' {ours} values, but the "
         f"policy takes {size} (its dataset or checkpoint{f' uses {wanted!r}' if wanted else ''}): {hint}"
     )
 
@@ -136,7 +139,11 @@ class FormationEnvConfig(EnvConfig):
             ``"nearest+route"`` (the same plus PAC's cost-to-go route hint from those obstacles, 55
             values) or ``"nearest+maproute"`` (the same 55, the route planned on every obstacle of
             the team's map) or ``"nearest+velocity"`` / ``"nearest+route+velocity"`` (with each observed
-            obstacle's velocity, 74 / 79 values). Must match the policy's ``obstacle_encoding``.
+            obstacle's velocity, 74 / 79 values). None (default): the run's policy's ``obstacle_encoding``
+            (``lerobot-eval`` / ``lerobot-train`` hand the env its policy config at start-up,
+            ``take_policy_encoding``), or without one ``DEFAULT_OBSTACLE_ENCODING`` ("grid", the gym
+            env's own default); a given value that differs from the policy's is a config error naming
+            both. ``encoding`` is the resolved value.
         level: a graded level (``core.levels``: "0".."5" or "level0".."level5"), or None. When set, the
             level's scene preset and all its conditions apply (``level_env_fields``); ``scene_preset``,
             ``scenes_file`` and the condition fields must then be left at their defaults (or equal the
@@ -175,9 +182,9 @@ class FormationEnvConfig(EnvConfig):
     episode_length: int = 600
     # Obstacle observation: grid (the paper's 7x7 radius grid + goal, 51 values), grid+list (plus the 5
     # obstacles [x, y, r], 66 values), nearest (goal + 12 nearest obstacles in the team's frame, 50
-    # values) or nearest+route / nearest+maproute (plus a route hint, 55). Must match the policy's
-    # obstacle_encoding.
-    obstacle_encoding: str = "grid"
+    # values) or nearest+route / nearest+maproute (plus a route hint, 55). None: the run's policy's
+    # obstacle_encoding (without a policy: grid, DEFAULT_OBSTACLE_ENCODING); another given one is an error.
+    obstacle_encoding: str | None = None
     # A graded level (core/levels.py: 0..5): its scene preset and conditions, fixed; the condition fields
     # and scene_preset below must then stay at their defaults. lerobot-eval --seed=1000000 plays its scenes.
     level: str | None = None
@@ -244,7 +251,7 @@ class FormationEnvConfig(EnvConfig):
 
     def __post_init__(self) -> None:
         install_run_hooks()  # a formation run: one-line config errors, the training output lock
-        if self.obstacle_encoding not in ENCODINGS:
+        if self.obstacle_encoding is not None and self.obstacle_encoding not in ENCODINGS:
             raise config_error(
                 f"env.obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
             )
@@ -268,9 +275,35 @@ class FormationEnvConfig(EnvConfig):
                 check_metrics_file(self.episode_metrics_path, self.episode_metrics_exists)
             except (ValueError, FileExistsError) as e:
                 raise config_error(str(e)) from e
+        self._set_environment_state_feature()
+
+    @property
+    def encoding(self) -> str:
+        """The obstacle encoding the env observes: ``obstacle_encoding``, or where none was given and no
+        policy handed one over, ``DEFAULT_OBSTACLE_ENCODING``."""
+        return self.obstacle_encoding or DEFAULT_OBSTACLE_ENCODING
+
+    def _set_environment_state_feature(self) -> None:
         self.features["environment_state"] = PolicyFeature(
-            type=FeatureType.ENV, shape=(environment_state_dim(self.obstacle_encoding),)
+            type=FeatureType.ENV, shape=(environment_state_dim(self.encoding),)
         )
+
+    def take_policy_encoding(self, policy_cfg) -> None:
+        """At start-up (``compat.run_checks.hand_env_its_policy``): an env whose ``obstacle_encoding`` was
+        not given takes the policy's; a given one that differs is a config error naming both. A policy
+        config without an encoding (another policy type) leaves the env as it is."""
+        wanted = getattr(policy_cfg, "obstacle_encoding", None)
+        if wanted not in ENCODINGS:
+            return
+        if self.obstacle_encoding is None:
+            self.obstacle_encoding = wanted
+            self._set_environment_state_feature()
+        elif self.obstacle_encoding != wanted:
+            raise config_error(
+                f"--env.obstacle_encoding={self.obstacle_encoding} differs from the policy's "
+                f"obstacle_encoding={wanted}: drop --env.obstacle_encoding (the env then observes the "
+                f"policy's) or pass --env.obstacle_encoding={wanted}"
+            )
 
     @property
     def package_name(self) -> str:
@@ -336,7 +369,7 @@ class FormationEnvConfig(EnvConfig):
         kwargs = {
             "render_mode": self.render_mode,
             "scenes_file": self.scenes_file,
-            "obstacle_encoding": self.obstacle_encoding,
+            "obstacle_encoding": self.encoding,
             "scene_config": self._scene_config(),
         }
         if self.effective_scene_preset in SCENE_MIXES:

@@ -119,6 +119,5 @@ def set_inference_steps(policy, steps: int | None) -> None:
             clip_sample=cfg.clip_sample,
             clip_sample_range=cfg.clip_sample_range,
             prediction_type=cfg.prediction_type,
-            timestep_spacing=cfg.timestep_spacing,
         )
         model.num_inference_steps = steps

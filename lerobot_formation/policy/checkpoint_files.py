@@ -12,7 +12,7 @@ file, the step and the class, before anything is imported or instantiated.
 
 Where it runs: ``FormationDiffusionPolicy.from_pretrained`` (which ``lerobot-eval``, ``lerobot-train
 --policy.path`` and resumed runs call before they load the processors) and the plugin's own loader
-(``diffusion_controller.load_policy``: the bench, the demo, distillation).
+(``diffusion_controller.load_policy``: the bench, the demo).
 """
 
 from __future__ import annotations

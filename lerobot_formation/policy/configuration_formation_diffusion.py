@@ -10,7 +10,7 @@ from lerobot.optim import AdamWConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.compat.run_checks import config_error, install_run_hooks
+from lerobot_formation.compat.run_checks import config_error, install_config_upgrade, install_run_hooks
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import (
@@ -24,11 +24,15 @@ from lerobot_formation.policy.obstacle_tokens import TOKEN_HEADS, token_layout
 
 ACTION_DIM = 2  # [v, omega]
 SAFETY_FILTERS = ("none", "cbf")
-PROGRESS_INTERPOLATIONS = ("nearest", "bilinear")  # how best-of-K reads its cost-to-go grid
 INFERENCE_BACKENDS = ("eager", "lean", "trace")
 OBSTACLE_ENCODERS = ("flat", "tokens")  # how the network reads environment_state
-TIMESTEP_SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
 _BOUNDS = FormationParams()
+# The env's action bounds [v, omega] (``FormationParams``): what ``fixed_action_bounds`` normalises with.
+ACTION_LOW = (0.0, -_BOUNDS.omega_max)
+ACTION_HIGH = (_BOUNDS.v_max, _BOUNDS.omega_max)
+# The standard policy: one sample per replan, no filter, no clearance guidance (the safety layer off;
+# warm starts and chunk smoothing stay as configured). The bench's "diffusion" controller runs it.
+LAYER_OFF = {"num_candidates": 1, "safety_filter": "none", "sampling_guidance": 0.0}
 
 
 def _non_finite_fields(config) -> list[str]:
@@ -57,25 +61,31 @@ def _describe(features: dict[str, PolicyFeature] | None) -> str:
     return ", ".join(f"'{k}' ({ft.type.name}, shape {tuple(ft.shape)})" for k, ft in features.items())
 
 
-# The clearance guidance of the bench's ``diffusion-guided`` where a checkpoint sets none: eta = 1 with
-# guidance_distance 0.3 m and one gradient step per denoising step, chosen on level3's and level5's
-# tuning scenes (docs/benchmark.md, "Clearance guidance").
+# The clearance guidance of the bench's ``diffusion-guided`` where a checkpoint sets none: eta = 1 (with
+# the replanner's GUIDANCE_DISTANCE 0.3 m and one gradient step per denoising step), chosen on level3's
+# and level5's tuning scenes (docs/benchmark.md, "Clearance guidance").
 TUNED_SAMPLING_GUIDANCE = 1.0
 
 
 @PreTrainedConfig.register_subclass("formation_diffusion")
 @dataclass
 class FormationDiffusionConfig(DiffusionConfig):
-    """LeRobot's ``DiffusionConfig`` with an EMA of the weights; defaults are the paper's hyperparameters.
+    """LeRobot's ``DiffusionConfig`` with an EMA of the weights. The network and training defaults are
+    the paper's hyperparameters; the observation, sampling and safety defaults are the shipped
+    policy's (``pretrained/formation_diffusion_safe``: best-of-10 with the CBF filter and the rest of
+    its safety layer, below).
 
     Every ``DiffusionConfig`` field keeps its meaning (see its docstring). The defaults differ where
     the paper's Table "Training and Model Hyperparameters" (SPEC "The policy") sets a value: U-Net
     ``down_dims`` (256, 512, 1024), ``kernel_size`` 5, ``n_groups`` 8, ``diffusion_step_embed_dim``
-    256; DDPM with 100 steps, ``squaredcos_cap_v2``, epsilon prediction, ``clip_sample``; T_p =
+    256; 100 training timesteps, ``squaredcos_cap_v2``, epsilon prediction, ``clip_sample``; T_p =
     ``horizon`` 64, T_o = ``n_obs_steps`` 2, T_a = ``n_action_steps`` 10; AdamW (the optimizer preset
     is ``AdamWConfig``, where ``DiffusionConfig``'s is Adam) with ``optimizer_lr`` 1.05e-4,
     ``optimizer_weight_decay`` 1e-6, cosine schedule with 1000 warm-up steps; EMA power 0.75. The
-    batch size (256) is ``lerobot-train``'s ``--batch_size``, not a policy field.
+    batch size (256) is ``lerobot-train``'s ``--batch_size``, not a policy field. The sampler is the
+    shipped policy's: DDIM (``noise_scheduler_type``; its training loss is DDPM's, the same forward
+    process) with ``num_inference_steps`` 4, where the paper samples DDPM's 100 steps
+    (``configs/formation_diffusion_paper.json`` sets that).
 
     Features (checked by ``validate_features`` when the policy is built, i.e. at start-up):
     ``observation.state`` (STATE, (7,)): the midpoint [x, y, cos phi, sin phi, x', y', omega];
@@ -93,10 +103,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
             (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
-            (``core.obstacle_grid.ENCODING_REGISTRY``: "grid" (default, the paper's), "grid+list",
-            "nearest", "nearest+route", "nearest+maproute", "nearest+velocity", "nearest+route+velocity");
-            it must match
-            the env's ``--env.obstacle_encoding``. Stored in
+            (``core.obstacle_grid.ENCODING_REGISTRY``: "nearest+route" (default, the shipped policy's:
+            the safety layer needs the "nearest" family, route pursuit's proposal a route hint),
+            "grid" (the paper's), "grid+list", "nearest", "nearest+maproute", "nearest+velocity",
+            "nearest+route+velocity"). ``lerobot-eval`` and ``lerobot-train`` give the env this encoding
+            when ``--env.obstacle_encoding`` is not given (another given one is an error). Stored in
             every checkpoint, never guessed from the feature's size.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for
             "grid+list", 12 for the "nearest" family).
@@ -109,22 +120,28 @@ class FormationDiffusionConfig(DiffusionConfig):
             values per observation step instead of the environment state. Only with "tokens".
         token_layers: ego-to-obstacle attention layers (>= 1). Only with "tokens".
         fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
-            ``action_high`` (v in [0, 0.6], omega in [-1.5, 1.5]) instead of the dataset's min/max, so
-            the policy itself knows the action in physical units (the safety layer needs it).
+            ``action_high`` (``ACTION_LOW`` / ``ACTION_HIGH``: v in [0, 0.6], omega in [-1.5, 1.5]), so
+            the policy itself knows the action in physical units (the safety layer needs it). True
+            (default); false: the dataset's min/max (the paper's).
         num_candidates: K action chunks drawn per replan in one batched call; with K > 1 the safety
             layer keeps the best (``core.safety.select_chunk``: no predicted collision of the whole
-            formation's footprint, then progress toward the goal). 1: the standard policy.
-        safety_filter: "none", or "cbf": every executed action passes a control-barrier-function
-            filter on [v, omega] for all four agents (``core.safety.cbf_filter``). Needs an egocentric
-            encoding ("nearest") and ``fixed_action_bounds``; it uses only the observed obstacles.
+            formation's footprint, then cost-to-go progress toward the goal on a 0.4 m grid read
+            bilinearly; the escape manoeuvres of ``policy.replanner.ESCAPE_SPEEDS`` where no sample is
+            safe, else the widest of every candidate scored), and at every step checks the rest of
+            the kept chunk again on the newest view (``core.safety.plan_is_safe``), replanning at
+            once where it fails. 10 (default, the shipped policy's); 1: the standard policy.
+        safety_filter: "none", or "cbf" (default): every executed action passes a control-barrier-
+            function filter on [v, omega] for all four agents (``core.safety.cbf_filter``); an episode
+            whose action it changed replans at its next step. Needs an egocentric encoding ("nearest")
+            and ``fixed_action_bounds``; it uses only the observed obstacles.
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
-            obstacle (followers lag their square slots by up to ~0.1 m).
+            obstacle (followers lag their square slots by up to ~0.1 m). Default 0.05.
         safety_follower_margin: clearance [m] the safety layer keeps for the two followers on top of
             ``safety_margin`` (the layer places them on their square slots; they lag them, most in
-            turns and under noise). 0 (default): the same margin for all four agents. Not used where
-            the layer predicts moving obstacles (``safety_moving_obstacles``): the team then needs
-            its room to get out of a mover's way.
-        cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h.
+            turns and under noise). Default 0.03; 0: the same margin for all four agents. Not used
+            where the layer predicts moving obstacles (``safety_moving_obstacles``): the team then
+            needs its room to get out of a mover's way.
+        cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h. Default 4.
         safety_moving_obstacles: the safety layer predicts every observed obstacle at constant
             velocity (best-of-K checks a chunk against where the obstacles will be, the filter's
             barrier counts their approach): the velocities the "nearest+velocity" encoding observes,
@@ -134,24 +151,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             moving obstacle's predicted radius by u t at t seconds ahead (over the chunk and its route
             lookahead; ``core.obstacle_tracker.predict_obstacles``): its constant-velocity prediction
             drifts with the velocity estimate's error and with every bounce, so a chunk that passes a
-            mover closely late in the horizon is not safe. 0 (default): the prediction as exact.
-        safety_escape_speeds: the speeds [m/s] of best-of-K's escape manoeuvres (each with every turn
-            rate of ``core.safety.ESCAPE_TURN_RATES``; ``core.safety.escape_primitives``), each in
-            [0, action_high[0]]. Default (0.0, 0.1, 0.2, 0.3), the lattice before 2026-12-05 (night):
-            turns in place and slow arcs. Faster ones let a team outrun a mover that comes up behind
-            it (the leaders cannot back up); each speed adds 9 manoeuvres to score.
-        safety_fallback_all: where no candidate is safe, best-of-K keeps the one with the largest
-            predicted clearance among the sampled chunks and every manoeuvre it scored (one that
-            outruns a mover for longer), not among the sampled chunks only (false, default: the
-            layer before 2026-12-05, night).
-        safety_recheck: with best-of-K (num_candidates > 1), at every step the rest of the kept
-            chunk is checked again, with its route lookahead, on the newest view
-            (``core.safety.plan_is_safe``, best-of-K's own check); where it does not pass, the
-            episode replans at once instead of running the chunk out (a mover's estimated velocity
-            and the sensed obstacles change under a chunk in n_action_steps; a chunk kept where
-            nothing was safe is rechecked too, so the episode replans at every step while its rest
-            still fails). False (default): the layer before
-            2026-12-05 (late night), which replans early only where the filter intervened.
+            mover closely late in the horizon is not safe. Default 0.1; 0: the prediction as exact.
         safety_action_delay: control steps between sending a command and its execution, a known
             property of the robot (the env's ``action_delay``): best-of-K and the filter start from
             the pose predicted after the commands already sent. 0 (default): at once.
@@ -170,13 +170,13 @@ class FormationDiffusionConfig(DiffusionConfig):
             (``core.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
             a route encoding, "nearest+route", "nearest+maproute" or "nearest+route+velocity") beside the K sampled
             ones, and keeps it when it is safe and makes the most
-            progress (the ``proposals`` count says how often).
+            progress (the ``proposals`` count says how often). True (default).
         safety_route_lookahead: n >= 0 steps. With n > 0 best-of-K follows every candidate with n
             steps of route pursuit from its end pose (``pursuit_chunk``; needs a route encoding),
             checks the footprint over both (a chunk that ends facing a wall the team cannot turn away
             from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
             and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
-            counts). 0 (default): the chunk alone.
+            counts). Default 20; 0: the chunk alone.
         safety_halt_lookahead: n >= 0 steps. With n > 0, where no candidate passes with its route
             lookahead, best-of-K prefers the candidates after which the team, braking to a standstill
             (rate limited) and standing for the rest of n steps, keeps the margin
@@ -184,15 +184,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             where a standing team is struck by a mover it could have left is not one to stop in
             (the leaders cannot back up). Used only where the layer predicts moving obstacles
             (``safety_moving_obstacles``): standing obstacles come no closer to a standing team, and
-            the levels without movers keep the layer they were measured with. 0 (default): the chunk
-            alone decides there.
-        safety_fallback_lookahead: n >= 0 steps. With n > 0, where nothing scored is safe, the
-            "widest" fallback measures each candidate's clearance over the chunk and n steps more,
-            its last command held or braked to a standstill, whichever stays wider
-            (``core.safety.FootprintCheck.outlasting``): over the chunk alone, a turn in place looks
-            widest while a mover is still a chunk away. Used only where the layer predicts moving
-            obstacles (``safety_moving_obstacles``), as ``safety_halt_lookahead``. 0 (default): the
-            chunk alone (the layer before 2026-12-07).
+            the levels without movers keep the layer they were measured with. Default 20; 0: the
+            chunk alone decides there.
         safety_proposal_blend: m >= 0 steps. With m > 0 route pursuit's proposal
             (``safety_route_proposal``) enters from the command being executed: its first m actions
             are blended from the last executed one (``core.replan_blend``) before it is scored, as the
@@ -200,67 +193,42 @@ class FormationDiffusionConfig(DiffusionConfig):
             starts with a step in [v, omega]). Not with a rate-limited actuator
             (``safety_max_linear_accel`` / ``safety_max_angular_accel``), which ramps that step by
             itself, nor without the proposal (``safety_route_proposal=false`` turns both off).
-            0 (default): the proposal as computed.
+            Default 4; 0: the proposal as computed.
         safety_coherence: w >= 0 [m]. With w > 0 best-of-K prefers, among the safe candidates, the
             one closest to the rest of the plan it replaces: a candidate whose first
             ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
             scores w d less progress (``core.safety.select_chunk``); not after a plan the filter cut
-            short (it met a barrier). 0 (default): progress alone.
-        safety_progress_resolution: cell size [m] of the grid cost-to-go that best-of-K measures
-            progress on (``core.safety.cost_to_go_progress``), in [0.05, 1.0]. Its wavefront was most
-            of the scorer's time, and that falls with the cell count and the rounds (about 1 / r^2;
-            one level5 replan's query on one thread: 3.1 ms at 0.2 m, 1.3 ms at 0.3 m, 0.9 ms at
-            0.4 m with bilinear reads). 0.2 (default): the scorer before 2026-12-05; the shipped
-            default uses 0.4 with bilinear reads (chosen on tuning seeds, docs/benchmark.md).
-        safety_progress_interpolation: how a candidate's end point reads that grid: "nearest"
-            (default; the scorer before 2026-12-05) its nearest cell, "bilinear" the four cells around
-            it, so that progress is continuous in the end point (nearest reads tie the ends that
-            share a cell and flip the ranking at cell borders, which raises the jerk).
-        warm_start_step: j >= 0. 0 (default): every replan samples from pure noise, as LeRobot does.
-            j > 0: a replan starts at the sampler's j-th timestep from the unexecuted rest of the
-            episode's previous chunk, noised to that level (SDEdit; the module docstring of
-            ``modeling_formation_diffusion``): the plan keeps its way round an obstacle from one replan
-            to the next, and costs j fewer denoiser calls. Must be below ``num_inference_steps``.
-        warm_start_all_candidates: with ``warm_start_step`` j > 0 and K > 1, every best-of-K candidate
-            starts from the previous chunk (each with its own noise), not the first one only (the
-            others from pure noise): no candidate then needs the sampler's first j denoiser calls, so
-            a replan at K = 10 makes j fewer batched U-Net calls (2.2 ms of about 15 ms per level5
-            replan on one thread). The escape manoeuvres and route pursuit's proposal still offer other
-            ways. False (default): the first candidate only, the sampler before 2026-12-05 (late). No
-            effect without a warm start.
+            short (it met a barrier). Default 1; 0: progress alone.
+        warm_start_step: j >= 0. j > 0: a replan starts at the sampler's j-th timestep from the
+            unexecuted rest of the episode's previous chunk, noised to that level (SDEdit; the module
+            docstring of ``modeling_formation_diffusion``), every best-of-K candidate with its own
+            noise: the plan keeps its way round an obstacle from one replan to the next, and costs j
+            fewer denoiser calls. Must be below ``num_inference_steps``. Default 1; 0: every replan
+            samples from pure noise, as LeRobot does.
         chunk_smoothing: n >= 0 passes of the [1, 2, 1] / 4 kernel over every sampled chunk along
             time, entered from the command being executed (``core.replan_blend.smooth_chunks``), before
             best-of-K scores the candidates (so it judges what will run); with K = 1 too. A diffusion
             sample's step-to-step noise is most of the jerk where a chunk runs on. Route pursuit's
-            proposal is smoothed too where it is blended in (``safety_proposal_blend``). 0 (default):
-            the samples as drawn, the policy before 2026-12-05 (evening).
+            proposal is smoothed too where it is blended in (``safety_proposal_blend``). Default 2;
+            0: the samples as drawn.
         sampling_guidance: eta >= 0. With eta > 0 every denoising step moves the sampler's estimate
             of the clean chunk down the gradient of a clearance barrier on the whole formation's
             footprint against the observed obstacles (movers at their velocities; from the actuator's
             predicted start where the layer knows it): the commands change by -eta dJ/da, J the sum
-            of 0.5 max(0, ``guidance_distance`` - clearance)^2 over steps, agents and obstacles
+            of 0.5 max(0, delta - clearance)^2 over steps, agents and obstacles, delta =
+            ``policy.replanner.GUIDANCE_DISTANCE`` (0.3 m), one gradient step per denoising step
             (``core.guidance``; cost guidance of diffusion planners). With K = 1 too: it shapes the
-            sample itself, before best-of-K or the filter. Needs the lean or trace backend. 0
-            (default): unguided sampling.
-        guidance_distance: delta > 0 [m], the clearance below which the guidance cost grows (0.3).
-        guidance_steps: n >= 1 gradient steps of ``sampling_guidance`` per denoising step (1).
-        replan_on_intervention: when the filter changes an action, drop the rest of the chunk and
-            replan at the next step (the plan assumed a motion the filter did not allow).
+            sample itself, before best-of-K or the filter. Needs the lean or trace backend and DDIM.
+            Default 1; 0: unguided sampling.
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,
-            the engine). "eager" (default): LeRobot's own ``DiffusionModel.conditional_sample``. "lean":
+            the engine). "eager": LeRobot's own ``DiffusionModel.conditional_sample``. "lean":
             under ``torch.inference_mode``, with the DDIM steps' timesteps and coefficients precomputed
             once per scheduler and step count (checked against diffusers' ``step``; other schedulers
             keep diffusers' ``step``). "trace": "lean" with a ``torch.jit`` traced and frozen U-Net,
             built on first use in eval mode, rebuilt when the weights change, never saved (the
             ``state_dict`` is unchanged); falls back to the eager U-Net if tracing fails. On a CPU
             it traces ``policy.unet_inference``'s copies (matrix-product convolutions up to 64 rows).
-            Same noise, same chunks within 1e-5 (modeling_formation_diffusion.py).
-        timestep_spacing: where a DDIM sampler of ``num_inference_steps`` steps puts its timesteps
-            (diffusers' ``DDIMScheduler`` ``timestep_spacing``). "leading" (default, diffusers' and so
-            LeRobot's): 0, T/S, 2T/S, ...; with S = 1 the only step is t = 0, which cannot denoise.
-            "trailing": T-1, T-1-T/S, ...; the first step starts from pure noise, as few-step samplers
-            need (Lin et al. 2024, "Common diffusion noise schedules and sample steps are flawed",
-            Table 2). A distilled student (``lerobot_formation.policy.distill``) is trained for "trailing".
+            Same noise, same chunks within 1e-5 (modeling_formation_diffusion.py). "trace" (default).
         drop_n_last_frames: frames at each episode's end the training sampler never starts a window
             at; must be ``horizon - n_action_steps - n_obs_steps + 1`` (the original Diffusion
             Policy's rule, 53 for the paper). None (default): derived from that formula; a set value
@@ -269,14 +237,11 @@ class FormationDiffusionConfig(DiffusionConfig):
             use it for inference in eval mode. ``--policy.use_ema=false`` at evaluation uses the live
             weights of an EMA checkpoint.
         ema_power: EMA warm-up power (paper: 0.75).
-        ema_inv_gamma: EMA warm-up inverse multiplicative factor.
-        ema_min_decay: lower bound on the EMA decay (after the first update).
-        ema_max_decay: upper bound on the EMA decay.
-        ema_update_after_step: optimizer steps during which the EMA just copies the live weights.
 
     The EMA decay after the k-th optimizer step is diffusers' ``EMAModel.get_decay(k)`` with
-    ``use_ema_warmup=True``: with s = k - ema_update_after_step - 1, 0 if s <= 0, else
-    clamp(1 - (1 + s / ema_inv_gamma) ** -ema_power, ema_min_decay, ema_max_decay).
+    ``use_ema_warmup=True`` and diffusers' other defaults (inverse gamma 1, decay bounds 0 and
+    0.9999, no steps before the first update; ``modeling_formation_diffusion.EMA_MAX_DECAY``): with
+    s = k - 1, 0 if s <= 0, else min(1 - (1 + s) ** -ema_power, 0.9999).
     """
 
     # Inputs / output structure.
@@ -294,49 +259,36 @@ class FormationDiffusionConfig(DiffusionConfig):
     drop_n_last_frames: int | None = None  # None: horizon - n_action_steps - n_obs_steps + 1
     # Goal and obstacle list in the midpoint's frame, nearest first (processor_formation_diffusion.py).
     egocentric_obstacles: bool = False
-    obstacle_encoding: str = "grid"
+    obstacle_encoding: str = "nearest+route"
     max_obstacles: int | None = None
     obstacle_encoder: str = "flat"
     token_dim: int = 64
     token_layers: int = 1
-    fixed_action_bounds: bool = False
-    action_low: tuple[float, float] = (0.0, -_BOUNDS.omega_max)
-    action_high: tuple[float, float] = (_BOUNDS.v_max, _BOUNDS.omega_max)
+    fixed_action_bounds: bool = True
 
-    # Safety layer (inference only; see the Args above).
-    num_candidates: int = 1
-    safety_filter: str = "none"
-    safety_margin: float = 0.1
-    safety_follower_margin: float = 0.0
-    cbf_rate: float = 2.0
+    # Sampling and safety layer (inference only; see the Args above): the shipped policy's settings.
+    num_candidates: int = 10
+    safety_filter: str = "cbf"
+    safety_margin: float = 0.05
+    safety_follower_margin: float = 0.03
+    cbf_rate: float = 4.0
     safety_moving_obstacles: bool = False
-    safety_mover_uncertainty: float = 0.0
-    safety_escape_speeds: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3)
-    safety_fallback_all: bool = False
-    safety_recheck: bool = False
+    safety_mover_uncertainty: float = 0.1
     safety_action_delay: int = 0
     safety_max_linear_accel: float | None = None
     safety_max_angular_accel: float | None = None
     safety_obstacle_noise: float = 0.0
     safety_pose_noise: float = 0.0
-    safety_route_proposal: bool = False
-    safety_route_lookahead: int = 0
-    safety_halt_lookahead: int = 0
-    safety_fallback_lookahead: int = 0
-    safety_proposal_blend: int = 0
-    safety_coherence: float = 0.0
-    safety_progress_resolution: float = 0.2
-    safety_progress_interpolation: str = "nearest"
-    replan_on_intervention: bool = True
-    warm_start_step: int = 0
-    warm_start_all_candidates: bool = False
-    chunk_smoothing: int = 0
-    sampling_guidance: float = 0.0
-    guidance_distance: float = 0.3
-    guidance_steps: int = 1
+    safety_route_proposal: bool = True
+    safety_route_lookahead: int = 20
+    safety_halt_lookahead: int = 20
+    safety_proposal_blend: int = 4
+    safety_coherence: float = 1.0
+    warm_start_step: int = 1
+    chunk_smoothing: int = 2
+    sampling_guidance: float = 1.0
     # Inference path (see the Args above; not a training setting).
-    inference_backend: str = "eager"
-    timestep_spacing: str = "leading"
+    inference_backend: str = "trace"
 
     # Unet.
     down_dims: tuple[int, ...] = (256, 512, 1024)
@@ -344,9 +296,10 @@ class FormationDiffusionConfig(DiffusionConfig):
     n_groups: int = 8
     diffusion_step_embed_dim: int = 256
 
-    # Noise scheduler.
-    noise_scheduler_type: str = "DDPM"
+    # Noise scheduler (training as the paper's; the sampler is the shipped policy's, see above).
+    noise_scheduler_type: str = "DDIM"
     num_train_timesteps: int = 100
+    num_inference_steps: int | None = 4
     beta_schedule: str = "squaredcos_cap_v2"
     prediction_type: str = "epsilon"
     clip_sample: bool = True
@@ -362,10 +315,6 @@ class FormationDiffusionConfig(DiffusionConfig):
     # EMA (diffusers EMAModel with use_ema_warmup=True, as in the original Diffusion Policy).
     use_ema: bool = True
     ema_power: float = 0.75
-    ema_inv_gamma: float = 1.0
-    ema_min_decay: float = 0.0
-    ema_max_decay: float = 0.9999
-    ema_update_after_step: int = 0
 
     def __post_init__(self):
         install_run_hooks()  # a formation run: one-line config errors, the training output lock
@@ -411,18 +360,8 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"n_obs_steps + 1 = {self.horizon} - {self.n_action_steps} - {self.n_obs_steps} + 1 = "
                 f"{expected_drop}. Set it to {expected_drop}, or to null to derive it."
             )
-        if self.ema_power <= 0 or self.ema_inv_gamma <= 0:
-            raise config_error(
-                "ema_power and ema_inv_gamma must be > 0, got "
-                f"ema_power={self.ema_power}, ema_inv_gamma={self.ema_inv_gamma}"
-            )
-        if not 0.0 <= self.ema_min_decay <= self.ema_max_decay <= 1.0:
-            raise config_error(
-                "need 0 <= ema_min_decay <= ema_max_decay <= 1, got "
-                f"ema_min_decay={self.ema_min_decay}, ema_max_decay={self.ema_max_decay}"
-            )
-        if self.ema_update_after_step < 0:
-            raise config_error(f"ema_update_after_step must be >= 0, got {self.ema_update_after_step}")
+        if self.ema_power <= 0:
+            raise config_error(f"ema_power must be > 0, got ema_power={self.ema_power}")
         if self.obstacle_encoding not in ENCODINGS:
             raise config_error(
                 f"obstacle_encoding must be one of {ENCODINGS}, got {self.obstacle_encoding!r}"
@@ -442,10 +381,6 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"warm_start_step must be in [0, {steps}) (num_inference_steps {steps}), got {self.warm_start_step}"
             )
-        if self.timestep_spacing not in TIMESTEP_SPACINGS:
-            raise config_error(
-                f"timestep_spacing must be one of {TIMESTEP_SPACINGS}, got {self.timestep_spacing!r}"
-            )
         if self.num_candidates < 1:
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
         if self.safety_filter not in SAFETY_FILTERS:
@@ -462,19 +397,6 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"safety_mover_uncertainty must be a number >= 0 [m/s], got {self.safety_mover_uncertainty!r}"
             )
-        speeds = self.safety_escape_speeds
-        if (
-            not isinstance(speeds, (list, tuple))
-            or not speeds
-            or not all(_is_finite_nonnegative(v) and v <= self.action_high[0] for v in speeds)
-        ):
-            raise config_error(
-                f"safety_escape_speeds must be a non-empty list of speeds in [0, action_high[0] = "
-                f"{self.action_high[0]}] [m/s], got {speeds!r}"
-            )
-        for name in ("safety_fallback_all", "safety_recheck"):
-            if not isinstance(getattr(self, name), bool):
-                raise config_error(f"{name} must be true or false, got {getattr(self, name)!r}")
         if isinstance(self.safety_action_delay, bool) or not (
             isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0
         ):
@@ -491,7 +413,7 @@ class FormationDiffusionConfig(DiffusionConfig):
                 isinstance(value, int | float) and math.isfinite(value) and value >= 0
             ):
                 raise config_error(f"{name} must be a finite std >= 0 [m], got {value!r}")
-        for name in ("safety_route_lookahead", "safety_halt_lookahead", "safety_fallback_lookahead"):
+        for name in ("safety_route_lookahead", "safety_halt_lookahead"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, int) and value >= 0):
                 raise config_error(f"{name} must be an integer >= 0 [steps], got {value!r}")
@@ -513,44 +435,21 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"sampling_guidance must be a finite step >= 0, got {self.sampling_guidance!r}"
             )
-        if not (_is_finite_nonnegative(self.guidance_distance) and self.guidance_distance > 0):
-            raise config_error(
-                f"guidance_distance must be a finite distance > 0 [m], got {self.guidance_distance!r}"
-            )
-        if isinstance(self.guidance_steps, bool) or not (
-            isinstance(self.guidance_steps, int) and self.guidance_steps >= 1
-        ):
-            raise config_error(f"guidance_steps must be an integer >= 1, got {self.guidance_steps!r}")
         if self.sampling_guidance and self.inference_backend == "eager":
             raise config_error(
                 "sampling_guidance > 0 runs in the lean and trace samplers, got inference_backend='eager' "
                 "(pass --policy.inference_backend=trace)"
             )
+        if self.sampling_guidance and self.noise_scheduler_type != "DDIM":
+            raise config_error(
+                "sampling_guidance > 0 guides DDIM's steps, got noise_scheduler_type="
+                f"{self.noise_scheduler_type!r} (pass --policy.noise_scheduler_type=DDIM, or "
+                "--policy.sampling_guidance=0)"
+            )
         if not _is_finite_nonnegative(self.safety_coherence):
             raise config_error(
                 f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
             )
-        resolution = self.safety_progress_resolution
-        if isinstance(resolution, bool) or not (
-            isinstance(resolution, (int, float)) and 0.05 <= resolution <= 1.0
-        ):
-            raise config_error(
-                f"safety_progress_resolution must be a cell size in [0.05, 1.0] [m], got {resolution!r}"
-            )
-        if self.safety_progress_interpolation not in PROGRESS_INTERPOLATIONS:
-            raise config_error(
-                f"safety_progress_interpolation must be one of {PROGRESS_INTERPOLATIONS}, "
-                f"got {self.safety_progress_interpolation!r}"
-            )
-        for name, value in (
-            ("safety_route_proposal=true", self.safety_route_proposal),
-            ("safety_route_lookahead > 0", bool(self.safety_route_lookahead)),
-        ):
-            if value and not get_encoding(self.obstacle_encoding).map:
-                raise config_error(
-                    f"{name} needs a route hint, an obstacle_encoding of {route_encodings()}, "
-                    f"got obstacle_encoding={self.obstacle_encoding!r}"
-                )
         if self.safety_layer and not (
             get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
         ):  # the layer reads body-frame obstacles and scores physical actions
@@ -559,11 +458,32 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"sampling_guidance={self.sampling_guidance}) "
                 f"needs an egocentric obstacle encoding ({' or '.join(map(repr, egocentric_encodings()))}) and "
                 "fixed_action_bounds=true; this policy "
-                f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds}"
+                f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds} "
+                f"(the standard policy, the layer off: {' '.join(f'--policy.{k}={v}' for k, v in LAYER_OFF.items())})"
             )
-        if not all(lo < hi for lo, hi in zip(self.action_low, self.action_high, strict=True)):
-            raise config_error(f"need action_low < action_high, got {self.action_low} and {self.action_high}")
+        route = {
+            "safety_route_proposal": self.safety_route_proposal,
+            "safety_route_lookahead": self.safety_route_lookahead,
+        }
+        # best-of-K's (K > 1) route pursuit; with K = 1 they are not used
+        if any(route.values()) and self.num_candidates > 1 and not get_encoding(self.obstacle_encoding).map:
+            given = ", ".join(f"{k}={str(v).lower()}" for k, v in route.items())
+            raise config_error(
+                f"{given} with num_candidates={self.num_candidates} need a route hint, an obstacle_encoding "
+                f"of {route_encodings()}, got obstacle_encoding={self.obstacle_encoding!r} (or pass "
+                "--policy.safety_route_proposal=false --policy.safety_route_lookahead=0)"
+            )
         super().__post_init__()
+
+    @property
+    def action_low(self) -> tuple[float, float]:
+        """The env's lower action bounds [v, omega] (``ACTION_LOW``), not a setting."""
+        return ACTION_LOW
+
+    @property
+    def action_high(self) -> tuple[float, float]:
+        """The env's upper action bounds [v, omega] (``ACTION_HIGH``), not a setting."""
+        return ACTION_HIGH
 
     def _check_tokens(self) -> None:
         """The checks of ``obstacle_encoder="tokens"``, each a one-line error naming field and value."""
@@ -687,3 +607,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             eps=self.optimizer_eps,
             weight_decay=self.optimizer_weight_decay,
         )
+
+
+# A formation_diffusion config.json written before a field was retired or turned on loads through
+# compat.run_checks (its field dropped where the code runs its value, else a one-line error).
+install_config_upgrade()

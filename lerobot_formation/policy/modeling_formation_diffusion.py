@@ -2,8 +2,9 @@
 batched candidate sampling with a lean inference path and warm starts, and (with the safety layer or
 warm starts on) the per-episode ``Replanner`` (``policy/replanner.py``) behind ``select_action``.
 
-The U-Net, noise scheduler, loss and training forward are LeRobot's; with the default config
-(K = 1, no filter, no warm start) ``select_action`` is LeRobot's, action queue included.
+The U-Net, noise scheduler, loss and training forward are LeRobot's; with K = 1, no filter, no
+guidance, no warm start and no chunk smoothing (not the default: that is the shipped policy's
+safety layer) ``select_action`` is LeRobot's, action queue included.
 
 Both diffusion models (live and EMA) are ``FormationDiffusionModel``: with ``obstacle_encoder="flat"``
 (the default) LeRobot's ``DiffusionModel`` exactly (the same weights, the same initial draws); with
@@ -45,9 +46,8 @@ not executed, shifted to the new time and padded with its last action (``warm_st
 noised to the sampler's j-th timestep t_j, x = sqrt(abar_t_j) guess + sqrt(1 - abar_t_j) noise (the
 forward process, DDPM eq. 4), and denoised from there (SDEdit): the new plan keeps the way round an
 obstacle the last one chose unless the observation says otherwise, and the replan costs j fewer
-denoiser calls. An episode's first replan starts from pure noise. With best-of-K the first candidate
-starts from the guess and the others from pure noise, or with ``warm_start_all_candidates`` every
-candidate starts from the guess with its own noise (the first j calls are then not made at all). The
+denoiser calls. An episode's first replan starts from pure noise. With best-of-K every candidate
+starts from the guess with its own noise (the first j calls are then not made at all). The
 ``Replanner`` builds the guess (``warm_start_guess``); ``select_action`` and the engine's controller
 both run it.
 
@@ -94,6 +94,8 @@ from lerobot_formation.policy.replanner import Replanner, check_observation
 from lerobot_formation.policy.unet_inference import SMALL_BATCH_ROWS, inference_copy
 
 EMA_PREFIX = "ema_diffusion."
+# diffusers' EMAModel defaults, the paper's and the original Diffusion Policy's (only the power is a field)
+EMA_MAX_DECAY, EMA_MIN_DECAY, EMA_INV_GAMMA, EMA_UPDATE_AFTER_STEP = 0.9999, 0.0, 1.0, 0
 
 
 logger = logging.getLogger(__name__)
@@ -113,7 +115,7 @@ class _DDIMSteps:
         gap = cfg.num_train_timesteps // scheduler.num_inference_steps
         alphas = scheduler.alphas_cumprod
         self.clip = float(cfg.clip_sample_range) if cfg.clip_sample else None
-        self.predicts_sample = cfg.prediction_type == "sample"  # a distilled student predicts x0
+        self.predicts_sample = cfg.prediction_type == "sample"  # the network predicts x0, not the noise
         self.coefs = []
         for t in self.timesteps:
             a, a_prev = alphas[t], alphas[t - gap] if t - gap >= 0 else scheduler.final_alpha_cumprod
@@ -329,11 +331,11 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             # shadow parameters are pointed at ema_diffusion's for the duration of each update).
             self._ema = EMAModel(
                 [],
-                decay=config.ema_max_decay,
-                min_decay=config.ema_min_decay,
-                update_after_step=config.ema_update_after_step,
+                decay=EMA_MAX_DECAY,
+                min_decay=EMA_MIN_DECAY,
+                update_after_step=EMA_UPDATE_AFTER_STEP,
                 use_ema_warmup=True,
-                inv_gamma=config.ema_inv_gamma,
+                inv_gamma=EMA_INV_GAMMA,
                 power=config.ema_power,
                 foreach=True,
             )
@@ -400,7 +402,6 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         the configured ``inference_backend`` (see the module docstring); ``warm_start`` as in
         ``sample_action_chunks``, per row of ``cond``."""
         backend = self.config.inference_backend
-        self._sync_timestep_spacing(model)
         if warm_start_step is None:
             warm_start_step = self.config.warm_start_step
         j = warm_start_step if warm_start is not None and bool(warm_start[1].any()) else 0
@@ -461,14 +462,6 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                 else:  # sample is torch.where's own tensor here, never the caller's noise
                     sample[rows] = x
         return sample
-
-    def _sync_timestep_spacing(self, model: DiffusionModel) -> None:
-        """Give ``model``'s scheduler the config's ``timestep_spacing`` (LeRobot builds it with diffusers'
-        default, "leading"); checked at every sampling call, so a changed config takes effect."""
-        scheduler = model.noise_scheduler
-        spacing = self.config.timestep_spacing
-        if getattr(scheduler.config, "timestep_spacing", spacing) != spacing:
-            model.noise_scheduler = type(scheduler).from_config(scheduler.config, timestep_spacing=spacing)
 
     def _action_scale(self) -> tuple[Tensor, Tensor]:
         low = torch.tensor(self.config.action_low, dtype=torch.float32)
@@ -594,12 +587,10 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             start = self.config.n_obs_steps - 1  # as DiffusionModel.generate_actions slices
             return full[:, start : start + self.config.n_action_steps]
         if self.ema_diffusion is None or self.training:
-            self._sync_timestep_spacing(self.diffusion)
             return super().predict_action_chunk(batch, noise=noise)
         # As DiffusionPolicy does: the observation history (B, n_obs_steps, ...) from the queues
         # select_action fills, or an offline batch as given. No image features here.
         batch = queued_history(self, batch)
-        self._sync_timestep_spacing(self.ema_diffusion)
         return self.ema_diffusion.generate_actions(batch, noise=noise)
 
     def _check_observation_sizes(self, batch: dict[str, Tensor]) -> None:

@@ -5,28 +5,30 @@ A ``Replanner`` owns, per episode of a batch, the kept chunk (normalised, the wh
 from the step it was planned at), the position of the next action in it, the actions executed since
 that replan, the last executed action and the stats. ``act(rows, env_now, history)`` returns the next
 action (normalised) of the episodes ``rows``; an episode whose chunk is used up (``n_action_steps``
-actions ran), whose last action the filter changed, or (``safety_recheck``) whose kept chunk no longer
+actions ran), whose last action the filter changed, or (best-of-K) whose kept chunk no longer
 passes best-of-K's check on this step's view replans first:
 
 1. warm start (``warm_start_step`` j > 0): the unexecuted rest of the episode's last chunk, shifted to
-   the new window and padded with its last action (``warm_start_guess``), is the guess the sampler
-   starts from at its j-th timestep (``FormationDiffusionPolicy.sample_action_chunks``); an episode's
-   first replan samples from pure noise;
+   the new window and padded with its last action (``warm_start_guess``), is the guess every
+   candidate starts from at the sampler's j-th timestep, each with its own noise
+   (``FormationDiffusionPolicy.sample_action_chunks``); an episode's first replan samples from pure
+   noise;
 2. K = ``num_candidates`` candidates in one batched denoiser call; with ``sampling_guidance`` every
    denoising step moves them away from the view's obstacles (``core.guidance``, ``_guide``);
 3. blending (``ReplanExperiment.blend_steps``, experiments only): the new chunks' first actions are
    blended from the last executed one (``core.replan_blend``);
 4. choice: with K > 1 the one scorer, ``core.safety.select_chunk`` (no predicted contact of the whole
-   formation's footprint with the observed obstacles, then cost-to-go progress; escape manoeuvres
-   when nothing sampled is safe); with K = 1 the sample. A "nearest+route" policy may add route
+   formation's footprint with the observed obstacles, then cost-to-go progress on a
+   ``PROGRESS_RESOLUTION`` grid read bilinearly; escape manoeuvres of ``ESCAPE_SPEEDS`` when nothing
+   sampled is safe, else the widest of every candidate scored); with K = 1 the sample. A "nearest+route" policy may add route
    pursuit's chunk from its route hint to the candidates (``safety_route_proposal``; with
    ``safety_proposal_blend`` it enters from the last executed action) and have every
    candidate followed by route pursuit in the check (``safety_route_lookahead``); with
    ``safety_coherence`` the scorer prefers the safe candidate closest to the rest of the plan it
    replaces (``warm_start_guess`` of it from the current step), unless the filter cut that plan short;
-5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; with
-   ``replan_on_intervention`` an episode whose action it changed replans at its next step;
-6. recheck (``safety_recheck``, K > 1): at each step before 1-5, the rest of the kept chunk is
+5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; an
+   episode whose action it changed replans at its next step (the plan met a barrier);
+6. recheck (K > 1): at each step before 1-5, the rest of the kept chunk is
    checked again on the new view with best-of-K's own check (``core.safety.plan_is_safe``, with the
    route lookahead); where it fails, the episode replans at once (a mover's estimated velocity and
    the sensed obstacles change under a chunk in n_action_steps). A chunk kept where nothing was safe
@@ -45,7 +47,7 @@ that ran, action noise unknown). With a known sensing noise (``safety_obstacle_n
 ``safety_pose_noise``) the view's obstacles are smoothed over the steps (``core.obstacle_filter``,
 carried along with that executed velocity). All of it starts afresh with each episode (``start``).
 
-K, the filter, its margin and rate, the warm start and ``replan_on_intervention`` come only from the
+K, the filter, its margin and rate and the warm start come only from the
 policy config the replanner is given (the policy's own, or a copy made with ``dataclasses.replace``
 for a bench controller or an ablation row, which runs the config's checks). The settings of the
 ablation study that the shipped policy does not use are a ``ReplanExperiment``.
@@ -68,6 +70,11 @@ from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.replan_blend import blend_replan, smooth_chunks
 from lerobot_formation.core.route_pursuit import pursuit_chunk
+
+# The shipped layer's settings that are no config fields (``FormationDiffusionConfig``'s Args):
+ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6)  # [m/s] best-of-K's escape manoeuvres, each turn rate
+PROGRESS_RESOLUTION = 0.4  # [m] the cell of the cost-to-go grid best-of-K reads (bilinearly) progress on
+GUIDANCE_DISTANCE = 0.3  # [m] the clearance below which the sampling guidance's cost grows
 
 STAT_KEYS = (
     "replans",
@@ -343,7 +350,7 @@ class Replanner:
         if self.plan is None:
             self.start(len(rows), env_now.device)
         view = self.view(env_now, rows) if cfg.safety_layer else None
-        if cfg.safety_recheck and self.best_of:
+        if self.best_of:
             self._recheck(rows, view)
         need = rows[self.plan_pos[rows] >= cfg.n_action_steps]
         if len(need):
@@ -356,8 +363,8 @@ class Replanner:
         if cfg.safety_filter == "cbf":
             action, changed = self.filter(view, action)
             self.stats["filter_interventions"] += int(changed.sum())
-            if cfg.replan_on_intervention:  # the plan met a barrier: replan at the next step
-                self.plan_pos[rows[torch.from_numpy(changed)]] = cfg.n_action_steps
+            # the plan met a barrier: replan at the next step
+            self.plan_pos[rows[torch.from_numpy(changed)]] = cfg.n_action_steps
         self.last_action[rows] = action.to(self.last_action.dtype)
         self.has_last[rows] = True
         if view is not None and (self.knows_actuator or self.knows_noise):
@@ -365,7 +372,7 @@ class Replanner:
         return action
 
     def _recheck(self, rows: Tensor, view: SafetyView) -> None:
-        """``safety_recheck``: episodes ``rows`` whose plan is under way check its rest on this step's
+        """Best-of-K's recheck: episodes ``rows`` whose plan is under way check its rest on this step's
         ``view`` (``core.safety.plan_is_safe``); those where it fails replan now (a chunk kept where
         nothing was safe, the widest fallback, too: such an episode replans at every step while its
         rest still fails)."""
@@ -416,7 +423,7 @@ class Replanner:
     def _clearance_step(self, view: SafetyView) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         """One application of the clearance guidance (``sampling_guidance``) to commands of the
         B = len(view) replanning episodes: (commands (n, T, 2) [m/s, rad/s] from the current step on,
-        the episode of each row (n,)) -> the commands moved by ``guidance_steps`` steps of -eta dJ/da
+        the episode of each row (n,)) -> the commands moved by one step of -eta dJ/da
         (``core.guidance.clearance_cost_gradient``, on the view's obstacles from the actuator's
         predicted start), each clipped to the action bounds."""
         cfg = self.config
@@ -426,20 +433,18 @@ class Replanner:
         low, high = np.asarray(cfg.action_low), np.asarray(cfg.action_high)
 
         def step(moved: np.ndarray, at: np.ndarray) -> np.ndarray:
-            for _ in range(cfg.guidance_steps):
-                _, grad = guidance.clearance_cost_gradient(
-                    pose[at],
-                    moved[:, None],
-                    view.obstacles[at],
-                    template,
-                    dt,
-                    self.agent_radii,
-                    cfg.guidance_distance,
-                    None if velocity is None else velocity[at],
-                    steps,
-                )
-                moved = np.clip(moved - cfg.sampling_guidance * grad[:, 0], low, high)
-            return moved
+            _, grad = guidance.clearance_cost_gradient(
+                pose[at],
+                moved[:, None],
+                view.obstacles[at],
+                template,
+                dt,
+                self.agent_radii,
+                GUIDANCE_DISTANCE,
+                None if velocity is None else velocity[at],
+                steps,
+            )
+            return np.clip(moved - cfg.sampling_guidance * grad[:, 0], low, high)
 
         return step
 
@@ -512,7 +517,7 @@ class Replanner:
                 noise=noise,
                 warm_start=warm,
                 warm_start_step=cfg.warm_start_step,
-                warm_all=cfg.warm_start_all_candidates,
+                warm_all=True,
                 guide=self._guide(view, K) if cfg.sampling_guidance else None,
             ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
@@ -642,13 +647,12 @@ class Replanner:
             start=view.start,
             continuation=self._continuation(view),
             coherence=coherence,
-            progress_resolution=cfg.safety_progress_resolution,
-            progress_bilinear=cfg.safety_progress_interpolation == "bilinear",
-            primitives=_escape_lattice(tuple(cfg.safety_escape_speeds)),
+            progress_resolution=PROGRESS_RESOLUTION,
+            progress_bilinear=True,
+            primitives=_escape_lattice(ESCAPE_SPEEDS),
             mover_uncertainty=cfg.safety_mover_uncertainty,
             halt_lookahead=cfg.safety_halt_lookahead if cfg.safety_moving_obstacles else 0,
-            fallback_lookahead=cfg.safety_fallback_lookahead if cfg.safety_moving_obstacles else 0,
-            fallback_all=cfg.safety_fallback_all,
+            fallback_all=True,
         )
         info["proposal_kept"] = (
             info["choice"] == K if cfg.safety_route_proposal else np.zeros(len(chosen), bool)

@@ -24,6 +24,7 @@ from lerobot_formation.core.safety import (
 from lerobot_formation.core.scene import FAR
 
 P = FormationParams()
+NO_ESCAPES = np.zeros((0, 2))  # an empty escape lattice: the sampled candidates alone
 TEMPLATE = np.asarray(P.graph.template)
 LOW, HIGH = np.array([0.0, -P.omega_max]), np.array([P.v_max, P.omega_max])
 
@@ -93,7 +94,7 @@ def test_select_chunk_prefers_safe_then_progress():
     assert not info2["any_safe"][0]
     if not info2["escaped"][0]:
         assert info2["choice"][0] == np.argmax(info2["clearance"][0])
-    _, info3 = select_chunk(cand, blocked, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False)
+    _, info3 = select_chunk(cand, blocked, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, primitives=NO_ESCAPES)
     assert info3["choice"][0] == np.argmax(info3["clearance"][0])
 
 
@@ -109,7 +110,6 @@ def test_progress_goes_round_an_obstacle_not_through_it(resolution, bilinear):
     straight = np.tile([0.5, 0.0], (T, 1))
     veer = np.tile([0.5, 0.35], (T, 1))
     cand = np.stack([straight, veer])[None]
-    _, eu = select_chunk(cand, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, "euclidean")
     _, ctg = select_chunk(
         cand,
         obstacles,
@@ -121,8 +121,8 @@ def test_progress_goes_round_an_obstacle_not_through_it(resolution, bilinear):
         progress_resolution=resolution,
         progress_bilinear=bilinear,
     )
-    assert eu["safe"][0].all()
-    assert eu["choice"][0] == 0 and ctg["choice"][0] == 1
+    assert ctg["safe"][0].all()
+    assert ctg["choice"][0] == 1
 
 
 def test_progress_resolution_is_the_grid_cell_size():
@@ -210,7 +210,7 @@ def test_blocked_fallback_stop_turns_a_predicted_contact_into_a_stop():
     ahead = np.array([[[x, lead_y + P.agent_radius + 0.3 + 0.4, 0.4] for x in (-0.6, 0.0, 0.6)]])
     slow = np.tile([0.25 / (T * P.dt), 0.0], (1, 3, T, 1))
     kept, info_k = select_chunk(
-        slow, ahead, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False, blocked_fallback="stop"
+        slow, ahead, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, primitives=NO_ESCAPES, blocked_fallback="stop"
     )
     assert not info_k["any_safe"][0] and not info_k["stopped"][0]
     assert 0 <= info_k["clearance"][0].max() < 0.1
@@ -234,15 +234,15 @@ def test_scorer_checks_a_chunk_against_where_a_moving_obstacle_will_be():
     obstacles = np.array([[[2.0, 0.6, 0.2], [FAR, FAR, 0.0]]])
     crossing = np.array([[[-1.5, 0.0], [0.0, 0.0]]])
     args = (_straight(), obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
-    _, standing = select_chunk(*args, escape=False)
-    _, moving = select_chunk(*args, escape=False, obstacle_velocity=crossing)
+    _, standing = select_chunk(*args, primitives=NO_ESCAPES)
+    _, moving = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=crossing)
     assert standing["safe"][0, 0] and not moving["safe"][0, 0]
     assert moving["clearance"][0, 0] < 0 < standing["clearance"][0, 0] - 0.1
     # zero velocities are the static check, bit for bit
-    _, still = select_chunk(*args, escape=False, obstacle_velocity=np.zeros_like(crossing))
+    _, still = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=np.zeros_like(crossing))
     np.testing.assert_array_equal(still["clearance"], standing["clearance"])
     # moving away from the path it is no threat
-    _, away = select_chunk(*args, escape=False, obstacle_velocity=-crossing)
+    _, away = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=-crossing)
     assert away["safe"][0, 0]
 
 
@@ -254,13 +254,15 @@ def test_mover_uncertainty_rejects_a_close_pass_late_in_the_horizon():
     obstacles = np.array([[[1.4, 0.6, 0.2], [FAR, FAR, 0.0]]])
     crossing = np.array([[[-0.3, 0.0], [0.0, 0.0]]])
     args = (_straight(), obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1)
-    _, exact = select_chunk(*args, escape=False, obstacle_velocity=crossing)
-    _, unsure = select_chunk(*args, escape=False, obstacle_velocity=crossing, mover_uncertainty=0.1)
+    _, exact = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=crossing)
+    _, unsure = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=crossing, mover_uncertainty=0.1)
     assert exact["safe"][0, 0] and not unsure["safe"][0, 0]
     assert 0.1 < exact["clearance"][0, 0] - unsure["clearance"][0, 0] <= 0.1 * 1.5 + 1e-9
     standing = np.zeros_like(crossing)
-    _, still = select_chunk(*args, escape=False, obstacle_velocity=standing)
-    _, still_unsure = select_chunk(*args, escape=False, obstacle_velocity=standing, mover_uncertainty=0.1)
+    _, still = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=standing)
+    _, still_unsure = select_chunk(
+        *args, primitives=NO_ESCAPES, obstacle_velocity=standing, mover_uncertainty=0.1
+    )
     np.testing.assert_array_equal(still_unsure["clearance"], still["clearance"])
 
 
@@ -386,8 +388,8 @@ def test_commands_in_flight_shift_the_predicted_start():
     goal = np.array([[0.0, 8.0]])
     stop = np.zeros((1, 1, 15, 2))
     args = (stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.0)
-    _, now = select_chunk(*args, escape=False)
-    _, late = select_chunk(*args, escape=False, start=start[:1])
+    _, now = select_chunk(*args, primitives=NO_ESCAPES)
+    _, late = select_chunk(*args, primitives=NO_ESCAPES, start=start[:1])
     assert now["clearance"][0, 0] > 0.1 and late["clearance"][0, 0] == pytest.approx(
         now["clearance"][0, 0] - 0.1
     )
@@ -422,10 +424,10 @@ def test_rate_limits_in_the_forward_model():
     rolling = ChunkStart(np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.6, 0.0]]))
     limited = ChunkStart(rolling.pose, rolling.velocity, 0, 0.5, None)
     _, free = select_chunk(
-        stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False, start=rolling
+        stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, primitives=NO_ESCAPES, start=rolling
     )
     _, slow = select_chunk(
-        stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, escape=False, start=limited
+        stop, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.1, primitives=NO_ESCAPES, start=limited
     )
     assert free["safe"][0, 0] and not slow["safe"][0, 0] and slow["clearance"][0, 0] < 0
 
@@ -464,10 +466,12 @@ def test_continuation_rejects_a_chunk_that_ends_where_the_team_cannot_turn():
     def turn(end):  # (B, P, 3) -> a quarter turn in place
         return np.broadcast_to([0.0, 1.5], end.shape[:2] + (10, 2)).copy()
 
-    alone, info = select_chunk(chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False)
+    alone, info = select_chunk(
+        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, primitives=NO_ESCAPES
+    )
     assert info["safe"][0].all() and info["choice"][0] == 0  # the farther one: more progress
     kept, info = select_chunk(
-        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False, continuation=turn
+        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, primitives=NO_ESCAPES, continuation=turn
     )
     assert not info["safe"][0, 0] and info["safe"][0, 1] and info["choice"][0] == 1
 
@@ -475,7 +479,7 @@ def test_continuation_rejects_a_chunk_that_ends_where_the_team_cannot_turn():
         return np.broadcast_to([0.6, 0.0], end.shape[:2] + (30, 2)).copy()
 
     kept, info = select_chunk(
-        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, escape=False, continuation=ram
+        chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05, primitives=NO_ESCAPES, continuation=ram
     )
     assert info["safe"][0].all() and info["choice"][0] == 0
 
@@ -493,7 +497,7 @@ def test_a_plan_checked_again_fails_once_a_mover_heads_for_its_path():
     assert not plan_is_safe(plan, FootprintCheck(*args, obstacle_velocity=crossing), 0.1)[0]
     for velocity in (None, crossing):
         _, info = select_chunk(
-            plan[:, None], obstacles, np.array([[0.0, 8.0]]), *args[1:], 0.1, escape=False,
+            plan[:, None], obstacles, np.array([[0.0, 8.0]]), *args[1:], 0.1, primitives=NO_ESCAPES,
             obstacle_velocity=velocity,
         )  # fmt: skip
         check = FootprintCheck(*args, obstacle_velocity=velocity)
@@ -547,28 +551,28 @@ def test_coherence_keeps_the_candidate_closest_to_the_plan_it_replaces():
     arc = np.tile([0.5, 0.3], (1, 1, 15, 1))
     chunks = np.concatenate([straight, arc], axis=1)
     args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
-    _, info = select_chunk(*args, escape=False)
+    _, info = select_chunk(*args, primitives=NO_ESCAPES)
     assert info["choice"][0] == 0
     gap = info["progress"][0, 0] - info["progress"][0, 1]
     assert 0 < gap < 0.5
     ranges = np.array([0.6, 3.0])
     previous = np.tile([0.5, 0.3], (1, 8, 1))
     kept, info = select_chunk(
-        *args, escape=False, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
+        *args, primitives=NO_ESCAPES, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
     )
     assert info["choice"][0] == 1 and np.allclose(kept, arc[:, 0])
     for has, weight in ((False, 10.0), (True, 0.0)):
         _, info = select_chunk(
-            *args, escape=False, coherence=PlanCoherence(previous, np.array([has]), ranges, weight)
+            *args, primitives=NO_ESCAPES, coherence=PlanCoherence(previous, np.array([has]), ranges, weight)
         )
         assert info["choice"][0] == 0
     # coherence never makes an unsafe chunk safe: an obstacle the arc grazes keeps the straight one
     wall = np.array([[[-0.9, 0.6, 0.2], [FAR, FAR, 0.0]]])
     blocked = (chunks, wall, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
-    _, alone = select_chunk(*blocked, escape=False)
+    _, alone = select_chunk(*blocked, primitives=NO_ESCAPES)
     assert alone["safe"][0, 0] and not alone["safe"][0, 1]
     _, info = select_chunk(
-        *blocked, escape=False, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
+        *blocked, primitives=NO_ESCAPES, coherence=PlanCoherence(previous, np.array([True]), ranges, 10.0)
     )
     assert info["choice"][0] == 0
 
@@ -615,17 +619,17 @@ def test_halt_lookahead_keeps_a_chunk_after_which_the_team_may_stop():
     commands = [[0.0, 0.0], [0.3, 0.0], [0.3, -1.0], [0.3, 1.0]]  # stop, straight, right arc, left arc
     chunks = np.array([[np.tile(c, (16, 1)) for c in commands]])
     args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
-    _, alone = select_chunk(*args, escape=False, obstacle_velocity=down)
+    _, alone = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=down)
     assert alone["safe"][0].all() and alone["choice"][0] == 2  # the right arc: the most progress
     halted = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, down).halted(chunks, 20)
     assert halted[0, 0] >= 0.05 and (halted[0, 1:] < 0.05).all()
-    kept, info = select_chunk(*args, escape=False, obstacle_velocity=down, halt_lookahead=20)
+    kept, info = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=down, halt_lookahead=20)
     assert info["choice"][0] == 0 and info["safe"][0].tolist() == [True, False, False, False]
     np.testing.assert_array_equal(kept[0], chunks[0, 0])
     # nothing passes the halt (a faster mover): the chunks alone decide, as without it
     fast = 2 * down
-    _, none = select_chunk(*args, escape=False, obstacle_velocity=fast, halt_lookahead=20)
-    _, plain = select_chunk(*args, escape=False, obstacle_velocity=fast)
+    _, none = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=fast, halt_lookahead=20)
+    _, plain = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=fast)
     assert (FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, fast).halted(chunks, 20) < 0.05).all()
     for key in ("choice", "safe", "clearance", "progress"):
         np.testing.assert_array_equal(none[key], plain[key])
@@ -661,34 +665,3 @@ def test_halt_lookahead_brakes_as_the_actuator_brakes_and_changes_nothing_where_
     assert with_halt["any_safe"].all()
     for key in ("choice", "safe", "clearance", "progress"):
         np.testing.assert_array_equal(with_halt[key], without[key])
-
-
-def test_fallback_lookahead_keeps_the_candidate_that_outlasts_a_mover():
-    """A mover (r 0.3 m) comes from the right at 0.3 m/s beside the followers; an obstacle stands
-    1.4 m ahead. With a 0.3 m margin nothing is safe. Over the chunk alone standing is widest
-    (0.25 m against 0.17 m for running at the obstacle), and the "widest" fallback keeps it; but a
-    team that stands there is struck within 3 s more, while one that runs ahead and brakes keeps its
-    0.17 m (``FootprintCheck.outlasting``, the wider of held on and braked): with
-    ``fallback_lookahead`` 30 the run is kept. Where a candidate is safe, nothing changes."""
-    obstacles = np.array([[[1.6, -0.8, 0.3], [0.0, 1.4, 0.4]]])
-    left = np.array([[[-0.3, 0.0], [0.0, 0.0]]])
-    chunks = np.array([[np.tile(c, (16, 1)) for c in ([0.0, 0.0], [0.6, 0.0])]])  # stand, run
-    goal = np.array([[0.0, 8.0]])
-    check = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, left)
-    np.testing.assert_allclose(check.footprint(chunks)[0], [[0.251, 0.166]], atol=1e-3)
-    outlast = check.outlasting(chunks, 30)
-    assert outlast[0, 0] < -0.1 and abs(outlast[0, 1] - 0.166) < 1e-3
-    held = np.concatenate([chunks, np.repeat(chunks[:, :, -1:], 30, axis=2)], axis=2)
-    np.testing.assert_array_equal(outlast, np.maximum(check.footprint(held)[0], check.halted(chunks, 30)))
-    args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.3)
-    _, plain = select_chunk(*args, escape=False, obstacle_velocity=left)
-    kept, info = select_chunk(*args, escape=False, obstacle_velocity=left, fallback_lookahead=30)
-    assert plain["blocked"][0] and plain["choice"][0] == 0
-    assert info["blocked"][0] and info["choice"][0] == 1
-    np.testing.assert_array_equal(kept[0], chunks[0, 1])
-    # a margin the run keeps: it is safe, the lookahead is never consulted
-    _, open_road = select_chunk(*args[:-1], 0.1, escape=False, obstacle_velocity=left, fallback_lookahead=30)
-    _, before = select_chunk(*args[:-1], 0.1, escape=False, obstacle_velocity=left)
-    assert not open_road["blocked"][0]
-    for key in ("choice", "safe", "clearance", "progress"):
-        np.testing.assert_array_equal(open_road[key], before[key])

@@ -4,6 +4,7 @@ import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
+from lerobot_formation.compat.run_checks import FIELDS_BEFORE
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
 HORIZON, N_OBS, N_ACT = 16, 2, 8
@@ -19,8 +20,12 @@ def formation_features(state_dim=7, env_dim=51, action_dim=2):
 
 
 def tiny_config(**overrides) -> FormationDiffusionConfig:
+    """A tiny "grid" policy with the sampling and safety fields these tests are written for (the
+    standard policy: ``FIELDS_BEFORE``, not the shipped layer's defaults)."""
     inputs, outputs = formation_features()
     kwargs = dict(
+        **FIELDS_BEFORE,
+        obstacle_encoding="grid",
         device="cpu",
         push_to_hub=False,
         input_features=inputs,

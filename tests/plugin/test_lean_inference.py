@@ -250,27 +250,12 @@ def test_untested_lerobot_keeps_the_stock_sampler(monkeypatch, caplog):
     torch.testing.assert_close(lean, _chunks(policy, "eager", batch, 1, noise), rtol=0, atol=0)
 
 
-def test_timestep_spacing_field_is_checked_and_applied(tmp_path):
-    with pytest.raises(ValueError, match="timestep_spacing must be one of"):
-        tiny_config(timestep_spacing="uniform")
-    tiny_config(timestep_spacing="trailing")._save_pretrained(tmp_path)
-    assert FormationDiffusionConfig.from_pretrained(tmp_path).timestep_spacing == "trailing"
-    policy = _policy(timestep_spacing="trailing", num_inference_steps=1)
-    policy.sample_action_chunks(history_batch(1), 1, noise=sampling_noise(1))
-    scheduler = policy.ema_diffusion.noise_scheduler
-    assert scheduler.config.timestep_spacing == "trailing"
-    assert list(scheduler.timesteps) == [scheduler.config.num_train_timesteps - 1]  # leading: [0]
-    policy.reconfigure(timestep_spacing="leading")  # a changed config takes effect at the next call
-    policy.sample_action_chunks(history_batch(1), 1, noise=sampling_noise(1))
-    assert list(policy.ema_diffusion.noise_scheduler.timesteps) == [0]
-
-
 @pytest.mark.parametrize("backend", ["lean", "trace"])
-@pytest.mark.parametrize(("spacing", "steps"), [("trailing", 1), ("trailing", 3), ("leading", 4)])
-def test_sample_prediction_student_same_chunks_as_eager(backend, spacing, steps):
-    """A distilled student predicts x_0 (prediction_type "sample"): the precomputed DDIM steps handle
-    it (not diffusers' fallback) and give LeRobot's eager chunks."""
-    policy = _policy(prediction_type="sample", timestep_spacing=spacing, num_inference_steps=steps)
+@pytest.mark.parametrize("steps", [1, 4])
+def test_sample_prediction_same_chunks_as_eager(backend, steps):
+    """A policy that predicts x_0 (prediction_type "sample"): the precomputed DDIM steps handle it
+    (not diffusers' fallback) and give LeRobot's eager chunks."""
+    policy = _policy(prediction_type="sample", num_inference_steps=steps)
     batch, noise = history_batch(2), sampling_noise(2 * 3)
     eager = _chunks(policy, "eager", batch, 3, noise)
     torch.testing.assert_close(_chunks(policy, backend, batch, 3, noise), eager, **TOL)

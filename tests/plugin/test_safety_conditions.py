@@ -32,8 +32,9 @@ def _policy(**overrides):
 
 
 def test_with_the_new_settings_off_the_replanner_acts_as_before():
-    """Bit for bit the actions and counts of the code before these settings (the fixture's commit),
-    in a closed loop with best-of-4, escapes and the filter at work."""
+    """Bit for bit the actions and counts of the fixture (``make_safety_off_reference.py``: the layer
+    with the conditions' settings off), in a closed loop with best-of-4, escapes and the filter at
+    work."""
     ref = _reference_module()
     want = np.load(FIXTURES / "safety_off_reference.npz")
     got = ref.closed_loop(_policy())
@@ -76,21 +77,6 @@ def test_safety_settings_are_checked_with_their_value():
             dict(safety_mover_uncertainty=-0.05),
             r"safety_mover_uncertainty must be a number >= 0 \[m/s\], got -0.05",
         ),
-        (
-            dict(safety_escape_speeds=[0.0, 0.9]),
-            r"safety_escape_speeds must be a non-empty list of speeds in \[0, action_high\[0\] = 0.6\] "
-            r"\[m/s\], got \[0.0, 0.9\]",
-        ),
-        (
-            dict(safety_escape_speeds=[]),
-            r"safety_escape_speeds must be a non-empty list .*, got \[\]",
-        ),
-        (
-            dict(safety_escape_speeds=[0.1, -0.1]),
-            r"safety_escape_speeds must be .*, got \[0.1, -0.1\]",
-        ),
-        (dict(safety_recheck="yes"), r"safety_recheck must be true or false, got 'yes'"),
-        (dict(safety_fallback_all=1), r"safety_fallback_all must be true or false, got 1"),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
@@ -210,12 +196,12 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
 
 
 def test_mover_settings_reach_best_of_k(monkeypatch):
-    """``safety_mover_uncertainty``, ``safety_escape_speeds``, ``safety_fallback_all`` and (with
-    ``safety_moving_obstacles`` only) ``safety_halt_lookahead`` and ``safety_fallback_lookahead`` are
-    what ``select_chunk`` gets (the lattice built from the speeds); the defaults are the scorer of
-    before: the default lattice, an exact prediction, the widest sampled chunk as the fallback, no
-    halt, the fallback's width over the chunk alone."""
+    """``safety_mover_uncertainty`` and (with ``safety_moving_obstacles`` only)
+    ``safety_halt_lookahead`` are what ``select_chunk`` gets, beside the shipped layer's wired
+    settings: the escape lattice of ``ESCAPE_SPEEDS`` and the widest of every candidate scored as the
+    fallback."""
     from lerobot_formation.core import safety
+    from lerobot_formation.policy.replanner import ESCAPE_SPEEDS
 
     seen = {}
     real = safety.select_chunk
@@ -230,36 +216,31 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     env = environment_state(obstacles, np.ones((1, 1), bool), goal, "nearest", pose=pose)
     chunks = np.zeros((1, 4, 16, 2))
     _policy().replanner.choose_raw(env, chunks)
-    np.testing.assert_array_equal(seen["primitives"], safety.ESCAPE_PRIMITIVES)
+    np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives(ESCAPE_SPEEDS))
     assert seen["mover_uncertainty"] == 0.0
-    assert seen["fallback_all"] is False
-    tuned = _policy(
-        safety_mover_uncertainty=0.05,
-        safety_escape_speeds=[0.0, 0.3],
-        safety_fallback_all=True,
-    ).replanner
-    tuned.choose_raw(env, chunks)
-    np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives((0.0, 0.3)))
-    assert seen["mover_uncertainty"] == 0.05 and seen["fallback_all"] is True
-    assert seen["halt_lookahead"] == 0 and seen["fallback_lookahead"] == 0
-    # the halt and fallback lookaheads reach the scorer only where the layer predicts movers
-    lookaheads = dict(safety_halt_lookahead=20, safety_fallback_lookahead=30)
-    _policy(**lookaheads).replanner.choose_raw(env, chunks)
-    assert seen["halt_lookahead"] == 0 and seen["fallback_lookahead"] == 0
-    _policy(**lookaheads, safety_moving_obstacles=True).replanner.choose_raw(env, chunks)
-    assert seen["halt_lookahead"] == 20 and seen["fallback_lookahead"] == 30
+    assert seen["fallback_all"] is True
+    _policy(safety_mover_uncertainty=0.05).replanner.choose_raw(env, chunks)
+    assert seen["mover_uncertainty"] == 0.05 and seen["halt_lookahead"] == 0
+    # the halt lookahead reaches the scorer only where the layer predicts movers
+    _policy(safety_halt_lookahead=20).replanner.choose_raw(env, chunks)
+    assert seen["halt_lookahead"] == 0
+    _policy(safety_halt_lookahead=20, safety_moving_obstacles=True).replanner.choose_raw(env, chunks)
+    assert seen["halt_lookahead"] == 20
 
 
-@pytest.mark.parametrize("recheck", [False, True])
-def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(recheck):
+def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(monkeypatch):
     """Best-of-4 keeps a straight chunk on an open road. At the next step an obstacle is seen 0.3 m
-    ahead of the right leader, across the chunk's rest: with ``safety_recheck`` the episode replans
-    at that step (before the filter sees the action); without, it runs the chunk on. Where the road
-    stays open the check passes and the chunk runs on either way. Before a wall 0.6 m ahead nothing
-    is safe (the samples drive on, the only manoeuvres are 0.6 m/s arcs) and the widest sample is
-    kept: it fails the check too, so with it the episode replans at every step."""
-    torch.manual_seed(0)  # no filter: it would replan where it intervenes, recheck or not
-    config = nearest_config(num_candidates=4, safety_recheck=recheck, safety_escape_speeds=[0.6])
+    ahead of the right leader, across the chunk's rest: best-of-K's recheck replans the episode at
+    that step (before the filter sees the action); nothing is safe there, and the widest of every
+    candidate scored is kept, here an arc (counted as an escape). Where the road stays open the check
+    passes and the chunk runs on. Before a wall 0.6 m ahead nothing is safe (the samples drive on, the
+    only manoeuvres here are 0.6 m/s arcs) and the widest, a sample, is kept: it fails the check too,
+    so the episode replans at every step."""
+    from lerobot_formation.policy import replanner as replanner_module
+
+    monkeypatch.setattr(replanner_module, "ESCAPE_SPEEDS", (0.6,))
+    torch.manual_seed(0)  # no filter: it would replan where it intervenes
+    config = nearest_config(num_candidates=4)
     policy = FormationDiffusionPolicy(config).eval()
     forward = policy.normalize_action(torch.tensor([0.4, 0.0]))
     T = policy.replanner.chunk_length
@@ -272,10 +253,10 @@ def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(r
 
     far, ahead = seen([[4.0, 4.0, 0.3]]), seen([[0.5, 0.7, 0.3]])
     wall = seen([[x, 0.9, 0.3] for x in np.linspace(-1.5, 1.5, 7)])
-    for first, second, replans, none_safe in (
-        (far, far, 1, 0),
-        (far, ahead, 1 + recheck, recheck),
-        (wall, wall, 1 + recheck, 1 + recheck),
+    for first, second, replans, none_safe, escapes in (
+        (far, far, 1, 0, 0),
+        (far, ahead, 2, 1, 1),
+        (wall, wall, 2, 2, 0),
     ):
         replanner = Replanner(policy)
         replanner.start(1)
@@ -285,7 +266,7 @@ def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(r
         assert replanner.stats["replans"] == replans
         assert replanner.stats["rechecks_failed"] == replans - 1
         assert replanner.stats["replans_none_safe"] == none_safe
-        assert replanner.stats["escapes"] == 0
+        assert replanner.stats["escapes"] == escapes
 
 
 def test_bench_safety_controllers_know_the_level_conditions(tmp_path):

@@ -97,12 +97,6 @@ def test_select_action_with_candidates_and_filter_counts_its_interventions():
         v, w = picky.unnormalize_action(picky.select_action(_batch(env)))[0].tolist()
         assert v + 0.5 * w <= 0.3 + 1e-5 and v - 0.5 * w <= 0.4 + 1e-5
     assert picky.safety_stats["replans_none_safe"] >= 1 and picky.safety_stats["escapes"] >= 1
-    calm = FormationDiffusionPolicy(
-        nearest_config(num_candidates=4, safety_filter="cbf", replan_on_intervention=False)
-    ).eval()
-    for _ in range(10):
-        calm.select_action(_batch(env))
-    assert calm.safety_stats["replans"] == 2  # 10 steps, chunks of 8
 
 
 def test_action_normalisation_round_trips_the_fixed_bounds():
@@ -255,8 +249,11 @@ def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
         assert not info["safe"][0, :3].any()
         assert info["proposal_kept"][0] == proposal
     assert kept[True][0, 0, 1] > 0  # it turns left, down the route
-    with pytest.raises(ValueError, match="safety_route_proposal=true needs a route hint"):
-        nearest_config(safety_route_proposal=True)
+    with pytest.raises(
+        ValueError, match="safety_route_proposal=true, .* with num_candidates=2 need a route hint"
+    ):
+        nearest_config(num_candidates=2, safety_route_proposal=True)
+    assert not nearest_config(safety_route_proposal=True).safety_layer  # K = 1: not used, not refused
 
 
 def _route_proposal_config(**fields) -> dict:
@@ -347,12 +344,11 @@ def test_route_lookahead_is_checked_with_its_value():
     kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
     with pytest.raises(ValueError, match="safety_route_lookahead must be an integer >= 0.*-3"):
         nearest_config(safety_route_lookahead=-3, **kw)
-    with pytest.raises(ValueError, match="safety_route_lookahead > 0 needs a route hint"):
-        nearest_config(safety_route_lookahead=20)
+    with pytest.raises(ValueError, match="safety_route_lookahead=20 with num_candidates=2 need a route hint"):
+        nearest_config(num_candidates=2, safety_route_lookahead=20)
     for bad in (-1, 2.5, True):
-        for name in ("safety_halt_lookahead", "safety_fallback_lookahead"):
-            with pytest.raises(ValueError, match=f"{name} must be an integer >= 0.*{bad!r}"):
-                nearest_config(**{name: bad})
+        with pytest.raises(ValueError, match=f"safety_halt_lookahead must be an integer >= 0.*{bad!r}"):
+            nearest_config(safety_halt_lookahead=bad)
     assert nearest_config(safety_route_lookahead=20, **kw).safety_route_lookahead == 20
 
 
@@ -364,23 +360,12 @@ def test_coherence_is_checked_with_its_value():
     assert nearest_config(safety_coherence=1.0).safety_coherence == 1.0
 
 
-def test_progress_grid_is_checked_and_reaches_the_scorer(monkeypatch):
-    """``safety_progress_resolution`` is a cell size in [0.05, 1.0] m (a bool, zero, a negative or a
-    huge one is refused with its value), ``safety_progress_interpolation`` "nearest" or "bilinear",
-    and ``choose_raw`` scores on that grid, read that way."""
+def test_progress_grid_reaches_the_scorer(monkeypatch):
+    """``choose_raw`` scores progress on the shipped layer's grid: ``PROGRESS_RESOLUTION`` cells, read
+    bilinearly."""
     from lerobot_formation.core import safety
+    from lerobot_formation.policy.replanner import PROGRESS_RESOLUTION
 
-    for bad in (0.0, -0.2, 0.01, 2.0, True):
-        with pytest.raises(
-            ValueError, match=r"safety_progress_resolution must be a cell size in \[0.05, 1.0\]"
-        ):
-            nearest_config(safety_progress_resolution=bad)
-    with pytest.raises(ValueError, match="finite.*safety_progress_resolution=nan"):
-        nearest_config(safety_progress_resolution=float("nan"))
-    with pytest.raises(ValueError, match=r"safety_progress_interpolation must be one of .*'cubic'"):
-        nearest_config(safety_progress_interpolation="cubic")
-    default = nearest_config()
-    assert (default.safety_progress_resolution, default.safety_progress_interpolation) == (0.2, "nearest")
     seen = []
     real = safety.cost_to_go_progress
 
@@ -391,12 +376,8 @@ def test_progress_grid_is_checked_and_reaches_the_scorer(monkeypatch):
     monkeypatch.setattr(safety, "cost_to_go_progress", spy)
     env = _env_state([])
     chunks = np.tile([0.5, 0.0], (1, 2, HORIZON - N_OBS + 1, 1))
-    for interpolation in ("nearest", "bilinear"):
-        config = nearest_config(
-            num_candidates=2, safety_progress_resolution=0.3, safety_progress_interpolation=interpolation
-        )
-        FormationDiffusionPolicy(config).eval().replanner.choose_raw(env, chunks)
-    assert seen == [(0.3, False), (0.3, True)]
+    FormationDiffusionPolicy(nearest_config(num_candidates=2)).eval().replanner.choose_raw(env, chunks)
+    assert seen == [(PROGRESS_RESOLUTION, True)] and PROGRESS_RESOLUTION == 0.4
 
 
 def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypatch):
@@ -438,7 +419,7 @@ def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypat
 
 
 def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
-    """A replan after a plan the filter cut short (``replan_on_intervention`` marks it used up, as
+    """A replan after a plan the filter cut short (an intervention marks it used up, as
     here by hand after 3 of its 8 actions) gets no coherence preference: that plan met a barrier. The
     replan after a plan that ran its ``n_action_steps`` does."""
     from lerobot_formation.core import safety
@@ -462,16 +443,11 @@ def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
     assert kept_to == [False, False, True]  # the first replan, the cut one, the full one
 
 
-@pytest.mark.parametrize("all_warm", [False, True])
-def test_warm_start_all_candidates_skips_the_first_denoiser_calls(all_warm):
-    """``warm_start_all_candidates`` through ``select_action``: after the first replan (nothing to
-    continue yet: K cold rows, every step), a replan with warm start j warm-starts the first candidate
-    only (its first j denoiser calls run the K - 1 cold rows) or, with the field, all K (the first j
-    calls are not made)."""
+def test_a_warm_start_skips_the_first_denoiser_calls_of_every_candidate():
+    """Through ``select_action``: after the first replan (nothing to continue yet: K cold rows, every
+    step), a replan with warm start j warm-starts all K candidates (the first j calls are not made)."""
     K, j = 4, 1
-    config = nearest_config(
-        num_candidates=K, warm_start_step=j, warm_start_all_candidates=all_warm, inference_backend="lean"
-    )
+    config = nearest_config(num_candidates=K, warm_start_step=j, inference_backend="lean")
     policy = FormationDiffusionPolicy(config).eval()
     rows = []
     policy.inference_model.unet.register_forward_hook(lambda module, args, out: rows.append(len(args[0])))
@@ -484,7 +460,7 @@ def test_warm_start_all_candidates_skips_the_first_denoiser_calls(all_warm):
     for _ in range(config.n_action_steps):  # runs its chunk, then replans from its rest
         policy.select_action(_batch(env))
     later = config.num_inference_steps - j
-    assert rows == ([K] * later if all_warm else [K - 1] * j + [K] * later)
+    assert rows == [K] * later
 
 
 @pytest.mark.parametrize("K", [1, 3])
@@ -663,9 +639,6 @@ def test_sampling_guidance_is_checked_with_its_value():
             nearest_config(sampling_guidance=bad, inference_backend="lean")
     with pytest.raises(ValueError, match="must be finite numbers, got sampling_guidance=nan"):
         nearest_config(sampling_guidance=float("nan"), inference_backend="lean")
-    for bad in (0.0, -0.2):
-        with pytest.raises(ValueError, match=f"guidance_distance must be a finite distance > 0.*{bad!r}"):
-            nearest_config(guidance_distance=bad)
     with pytest.raises(ValueError, match="sampling_guidance > 0 runs in the lean and trace samplers"):
         nearest_config(sampling_guidance=1.0)  # the eager backend is LeRobot's own sampler
     with pytest.raises(ValueError, match="needs an egocentric obstacle encoding"):
@@ -673,22 +646,22 @@ def test_sampling_guidance_is_checked_with_its_value():
     assert nearest_config(sampling_guidance=1.0, inference_backend="lean").safety_layer
 
 
-def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_noise_unguided():
+def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_noise_unguided(monkeypatch):
     """K = 1, no filter: with ``sampling_guidance`` the sample itself is moved away from the observed
     obstacle (the footprint's predicted clearance grows) against the same network's sample from the
     same noise without it."""
     from lerobot_formation.core.footprint import sequence_clearance
+    from lerobot_formation.policy import replanner
     from lerobot_formation.policy.replanner import safety_geometry
 
+    monkeypatch.setattr(replanner, "GUIDANCE_DISTANCE", 0.5)
     template, dt, radius = safety_geometry()
     obstacle = [0.0, 1.0, 0.4]  # straight ahead of the midpoint
     env = _env_state([obstacle])
     noise = torch.randn(1, HORIZON, 2, generator=torch.Generator().manual_seed(5))
     torch.manual_seed(0)
     plain = FormationDiffusionPolicy(nearest_config(inference_backend="lean")).eval()
-    guided = FormationDiffusionPolicy(
-        nearest_config(inference_backend="lean", sampling_guidance=5.0, guidance_distance=0.5)
-    ).eval()
+    guided = FormationDiffusionPolicy(nearest_config(inference_backend="lean", sampling_guidance=5.0)).eval()
     guided.load_state_dict(plain.state_dict())
     stacked = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in _batch(env).items()}
     unguided = plain.sample_action_chunks(stacked, 1, noise=noise.clone())[:, 0]
@@ -712,9 +685,11 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
     guidance distance."""
     from lerobot_formation.core.footprint import sequence_clearance
     from lerobot_formation.core.route_pursuit import pursuit_chunk
+    from lerobot_formation.policy import replanner as replanner_module
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, safety_geometry
 
-    kw = _route_proposal_config(inference_backend="lean", sampling_guidance=2.0, guidance_distance=0.5)
+    monkeypatch.setattr(replanner_module, "GUIDANCE_DISTANCE", 0.5)
+    kw = _route_proposal_config(inference_backend="lean", sampling_guidance=2.0)
     policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
 
     def no_sampling(*args, **kwargs):

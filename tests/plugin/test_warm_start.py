@@ -133,19 +133,3 @@ def test_warm_start_step_is_checked_with_its_value(caplog):
         policy.sample_action_chunks(
             history_batch(1), 1, warm_start=(_guess(1), torch.ones(1, dtype=torch.bool)), warm_start_step=5
         )
-
-
-def test_a_distilled_student_of_a_warm_starting_teacher_samples_from_noise(tmp_path):
-    from lerobot_formation.policy import distill
-    from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
-
-    teacher = tiny_config(warm_start_step=2)
-    student = distill.student_config(teacher, 1)
-    assert (student.warm_start_step, student.num_inference_steps, student.timestep_spacing) == (
-        0,
-        1,
-        "trailing",
-    )
-    student._save_pretrained(tmp_path)  # and it loads back: a warm start past its 1 step would be refused
-    assert FormationDiffusionConfig.from_pretrained(tmp_path).warm_start_step == 0
-    assert teacher.warm_start_step == 2  # the teacher's own config is untouched
