@@ -10,11 +10,17 @@ filter are an override made with ``dataclasses.replace`` (the config's checks ru
 It sees only what the teams perceive (``core.conditions.Perception``): the observation is encoded from
 the observed pose and obstacles at every step (a world-frame encoding too, since under conditions the
 observed obstacles change), and the safety layer scores chunks against those observed obstacles.
+
+The sampler's initial noise comes from one torch generator per episode (``EpisodeNoise``), seeded from
+the run's seed, the controller's name and the episode's scene (``episode_noise_seeds``): an episode's
+k-th replan draws the same noise whatever other episodes share its batch, in any order, so a sharded
+or differently batched run draws what the whole run draws.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 from pathlib import Path
 
@@ -31,6 +37,37 @@ from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, chec
 
 logger = logging.getLogger(__name__)
 
+_U64 = 0xFFFF_FFFF_FFFF_FFFF
+
+
+def episode_noise_seeds(seed: int, name: str, scene_seeds, goals) -> list[int]:
+    """The seed (an int < 2**64) of each episode's noise stream, from the run's ``seed``, the
+    controller's ``name`` and the episode's scene: its seed (B,) and goal (B, 2). The goal's exact bits
+    tell apart scenes that share a seed (scenes given by hand all have -1, and ``hard:N`` draws each
+    preset from the same seeds); mixed by ``numpy.random.SeedSequence``."""
+    # a stable hash: Python's own hash of a str changes from process to process
+    tag = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
+    goal_words = np.ascontiguousarray(goals, dtype=np.float64).reshape(len(goals), -1).view(np.uint32)
+    out = []
+    for scene_seed, words in zip(np.asarray(scene_seeds).tolist(), goal_words.tolist(), strict=True):
+        entropy = [int(seed) & _U64, tag, int(scene_seed) & _U64, *words]
+        out.append(int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0]))
+    return out
+
+
+class EpisodeNoise:
+    """Initial noise of the sampler from one torch generator per episode: ``noise(rows, K)`` is
+    (len(rows) * K, *shape), K draws of ``shape`` from each episode of ``rows`` (indices into the
+    seeds) in turn, as the ``Replanner`` asks for it."""
+
+    def __init__(self, seeds: list[int], shape: tuple[int, ...]):
+        self.generators = [torch.Generator().manual_seed(s) for s in seeds]
+        self.shape = tuple(shape)
+
+    def __call__(self, rows: torch.Tensor, per_row: int) -> torch.Tensor:
+        draws = [torch.randn((per_row, *self.shape), generator=self.generators[i]) for i in rows.tolist()]
+        return torch.cat(draws) if draws else torch.zeros((0, *self.shape))
+
 
 class DiffusionController:
     """Batched closed-loop control with a diffusion checkpoint.
@@ -38,7 +75,8 @@ class DiffusionController:
     Args:
         path: checkpoint folder.
         num_inference_steps: DDIM steps (None: the checkpoint's own sampler and step count).
-        seed: seeds the torch generator of the initial noise, so runs are repeatable.
+        seed: the run's seed of the initial noise: with the name and the scene it seeds each
+            episode's own generator (``episode_noise_seeds``), so runs are repeatable.
         params: the formation's parameters (the observation the policy sees).
         device: torch device of the policy.
         policy_bundle: (policy, preprocessor, postprocessor) already loaded from ``path``.
@@ -85,11 +123,13 @@ class DiffusionController:
         self.env_history = np.zeros((B, self.n_obs, dim), np.float32)
         self.history = np.zeros((B, self.n_obs, STATE_DIM), np.float32)
         self.started = np.zeros(B, dtype=bool)
-        self.generator = torch.Generator().manual_seed(self.seed)
+        scene_seeds = np.full(B, -1) if view.scene_seed is None else view.scene_seed
+        seeds = episode_noise_seeds(self.seed, self.name, scene_seeds, view.goal)
+        self.noise = EpisodeNoise(seeds, (self.horizon, 2))
         self.replanner.reset(B)
 
-    def _noise(self, n: int) -> torch.Tensor:
-        return torch.randn((n, self.horizon, 2), generator=self.generator)
+    def _noise(self, rows: torch.Tensor, per_row: int) -> torch.Tensor:
+        return self.noise(rows, per_row)
 
     def _history(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
         """Normalised observation histories (len(rows), n_obs_steps, ...) of episodes ``rows``."""

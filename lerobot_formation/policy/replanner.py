@@ -334,15 +334,21 @@ class Replanner:
         env_now: Tensor,
         history: Callable[[Tensor], dict[str, Tensor]],
         rows: Tensor | None = None,
-        noise: Tensor | Callable[[int], Tensor] | None = None,
+        noise: Tensor | Callable[[Tensor, int], Tensor] | None = None,
     ) -> Tensor:
         """The next action (len(rows), A), normalised, of episodes ``rows`` (default: all of the batch).
 
         ``env_now`` (len(rows), D): their current raw ``observation.environment_state`` (what the
         safety layer reads); ``history(sub)`` the normalised observation histories (len(sub),
         n_obs_steps, ...) of the episodes ``sub`` (indices into the batch) that replan; ``noise`` the
-        initial noise (n * K, horizon, A) of the n replanning episodes, or a function n * K -> noise,
-        or None (fresh ``torch.randn``).
+        initial noise (n * K, horizon, A) of the n replanning episodes, or a function (their indices
+        into the batch (n,), K) -> that noise, K rows per episode in its order, or None (fresh
+        ``torch.randn``). With a function (the engine's: one stream per episode) each replanning
+        episode's K candidates also run in a sampler call of their own, so that an episode's chunks
+        do not depend on which episodes replan with it: the U-Net's float rounding depends on the
+        call's row count (a matrix-vector product for one observation, matrix-product convolutions up
+        to ``SMALL_BATCH_ROWS`` rows, oneDNN's above), and ~1e-6 apart is enough to flip a later
+        choice of the safety layer. The calls cost about twice the sampler's time of a large batch.
         """
         cfg = self.config
         if rows is None:
@@ -497,6 +503,19 @@ class Replanner:
             self.executed_velocity[rows], runs, cfg.safety_max_linear_accel, cfg.safety_max_angular_accel, dt
         )
 
+    def _sample(self, stacked: dict[str, Tensor], noise, warm, view: SafetyView | None) -> Tensor:
+        """K candidate chunks (B, K, chunk, A) of the B episodes of ``stacked`` in one sampler call."""
+        cfg = self.config
+        return self.policy.sample_action_chunks(
+            stacked,
+            cfg.num_candidates,
+            noise=noise,
+            warm_start=warm,
+            warm_start_step=cfg.warm_start_step,
+            warm_all=True,
+            guide=self._guide(view, cfg.num_candidates) if cfg.sampling_guidance else None,
+        ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
+
     def _replan(self, need: Tensor, view: SafetyView | None, stacked: dict[str, Tensor], noise) -> None:
         cfg, ex = self.config, self.experiment
         K = cfg.num_candidates
@@ -509,17 +528,22 @@ class Replanner:
             if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
                 guess = warm_start_guess(self.plan[need], self.executed[need], cfg.n_obs_steps, cfg.horizon)
                 warm = (guess, self.has_last[need])
-            if callable(noise):
-                noise = noise(len(need) * K)
-            chunks = self.policy.sample_action_chunks(
-                stacked,
-                K,
-                noise=noise,
-                warm_start=warm,
-                warm_start_step=cfg.warm_start_step,
-                warm_all=True,
-                guide=self._guide(view, K) if cfg.sampling_guidance else None,
-            ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
+            if callable(noise):  # each episode its own stream, and its own sampler call (``act``)
+                noise = noise(need, K)
+                parts = []
+                for b in range(len(need)):
+                    one = slice(b, b + 1)
+                    parts.append(
+                        self._sample(
+                            {k: v[one] if isinstance(v, Tensor) else v for k, v in stacked.items()},
+                            noise[b * K : (b + 1) * K],
+                            None if warm is None else (warm[0][one], warm[1][one]),
+                            None if view is None else view[np.array([b])],
+                        )
+                    )
+                chunks = torch.cat(parts)
+            else:
+                chunks = self._sample(stacked, noise, warm, view)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
         chunks = smooth_chunks(chunks, last, has_last, cfg.chunk_smoothing)  # before best-of-K scores them
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
