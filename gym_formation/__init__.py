@@ -9,8 +9,9 @@ Importing it registers ``gym_formation/FormationNav-v0``, as ``import gym_pusht`
     env = gym.make("gym_formation/FormationNav-v0")  # or, without the import above:
     env = gym.make("gym_formation:gym_formation/FormationNav-v0")
 
-``import lerobot_formation`` registers it too (``lerobot_formation.gym_registration``). The env
-itself is ``lerobot_formation.envs.env.FormationEnv``.
+So does ``import lerobot_formation.envs`` (``import lerobot_formation`` alone imports nothing, so
+that the NumPy core loads without gymnasium or torch). The env itself is
+``lerobot_formation.envs.env.FormationEnv``.
 """
 
 from lerobot_formation.envs import ENV_ID

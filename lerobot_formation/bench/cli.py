@@ -64,10 +64,9 @@ from lerobot_formation.bench.controllers import (
 )
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import draw_bench_figures
-from lerobot_formation.bench.merge import SETTINGS as MERGE_SETTINGS
 from lerobot_formation.bench.results import collisions_text, controller_results, safety_rates, write_results
 from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
-from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
+from lerobot_formation.bench.settings import RUN_SETTINGS, BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
@@ -147,7 +146,7 @@ CHECKPOINT is a formation_diffusion checkpoint folder (the repository's pretrain
 # the bench's own files in an output folder: one of them there means the folder holds a run
 RUN_FILES = ("results.json", "tables.md")
 # the settings a resumed run must share with the run in the folder (meta entries of results.json)
-RESUME_SETTINGS = (*MERGE_SETTINGS, "shard", "seed_policy")
+RESUME_SETTINGS = (*RUN_SETTINGS, "shard", "seed_policy")
 
 
 def _controller_lines() -> str:

@@ -27,22 +27,11 @@ import numpy as np
 
 from lerobot_formation.bench.controllers import controller_names, needs_policy
 from lerobot_formation.bench.results import collisions_text, safety_rates, write_results
+from lerobot_formation.bench.settings import RUN_SETTINGS as SETTINGS
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS, STRUCK_KEY, summarize
 from lerobot_formation.core.scene import SamplingReport
-
-# meta entries every shard must share (the run's settings)
-SETTINGS = (
-    "scenes",
-    "unseen",
-    "seed",
-    "policy_path",
-    "candidates",
-    "num_inference_steps",
-    "conditions",
-    "unseen_conditions",
-)
 
 
 def read_shard(folder: Path) -> dict:

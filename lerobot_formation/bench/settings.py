@@ -62,3 +62,16 @@ class BenchSettings:
     order: tuple[str, ...] = ()
     policy_controllers: tuple[str, ...] = ()
     shard: str | None = None
+
+
+# the meta entries of results.json that shards of one run share (merge) and a resumed run keeps
+RUN_SETTINGS = (
+    "scenes",
+    "unseen",
+    "seed",
+    "policy_path",
+    "candidates",
+    "num_inference_steps",
+    "conditions",
+    "unseen_conditions",
+)
