@@ -36,7 +36,7 @@ its conditions, the engine as the bench's ``--scenes levelK:N`` and the stock ru
 the level's actuator and moving obstacles (``bench.controllers.safety_settings``; the stock run as
 ``--policy.safety_*`` flags)::
 
-    python benchmarks/bench_eval_speed.py --policy.path pretrained/formation_diffusion_safe \
+    python benchmarks/bench_eval_speed.py --policy.path pretrained/formation_diffusion_route_v1 \
         --level level5 --episodes 200 --stock 50:sync --threads 1
 
 ``--quick`` is a smoke run (10 episodes of 60 steps, three stock settings). The last line is the

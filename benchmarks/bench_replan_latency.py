@@ -11,7 +11,7 @@
 (b) The default model's latency (``--policy.path``, its own sampler): one engine replan (the first
     ``DiffusionController.act`` after ``reset``) for one episode, per episode for ``--batch`` episodes, and the stock ``select_action`` for one.
 (c) The lean inference path (policy config ``inference_backend``) on the default model
-    (``--policy.path``, else pretrained/formation_diffusion_safe): one replan for one observation (B=1),
+    (``--policy.path``, else pretrained/formation_diffusion_route_v1): one replan for one observation (B=1),
     i.e. one ``sample_action_chunks`` call (conditioning + the K candidates' batched denoising, what
     ``select_action``, the safety layer and the engine run), for K in ``--lean-candidates`` and DDIM
     steps in ``--lean-steps``, each change added in turn: the eager baseline (LeRobot's
@@ -630,7 +630,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"    stock select_action, 1 episode: {1e3 * stock:.1f} ms per replan")
 
-    path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_safe")  # parts c-f
+    path = args.policy_path or str(REPO / "pretrained" / "formation_diffusion_route_v1")  # parts c-f
     if "a" in args.parts:
         paper_part(args)
     if "c" in args.parts:

@@ -1,6 +1,6 @@
 """Success rate against DDIM inference steps, on several scene sets in one run.
 
-One checkpoint (``--policy.path``, default pretrained/formation_diffusion_safe) is loaded once; for each
+One checkpoint (``--policy.path``, default pretrained/formation_diffusion_route_v1) is loaded once; for each
 step count of ``--steps`` (default 1,2,3,5,10) a controller (``--controller``, default the standard
 "diffusion"; any diffusion controller of ``lerobot-formation-bench``, e.g. "diffusion-bestof") is
 made with ``controllers.make_controller`` (``num_inference_steps`` = that count: DDIM on the training betas,
@@ -36,7 +36,7 @@ Options: ``--n-action-steps N`` executes N actions per replan instead of the che
 Run (full size; about 10 evaluations of 100 episodes: tens of minutes on 2 cores)::
 
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_sampling_steps.py \\
-        --policy.path pretrained/formation_diffusion_safe --threads 1 --out outputs/results/sampling_steps.json
+        --policy.path pretrained/formation_diffusion_route_v1 --threads 1 --out outputs/results/sampling_steps.json
 
 ``--quick`` is a smoke run: ``--scenes dataset:3,random:3 --steps 1,10``. The last line is the headline:
 ``fastest sampler within noise of DDIM 10 leading: <sampler> (success a % vs b % on <set>, ...; time per
@@ -57,7 +57,7 @@ os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 from lerobot_formation.threads import add_threads_argument, apply_threads  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_POLICY = REPO / "pretrained" / "formation_diffusion_safe"
+DEFAULT_POLICY = REPO / "pretrained" / "formation_diffusion_route_v1"
 BACKENDS = ("eager", "lean", "trace")  # configuration_formation_diffusion.INFERENCE_BACKENDS
 SPACINGS = ("leading", "trailing", "linspace")  # diffusers' DDIMScheduler timestep_spacing
 
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         "--policy.path",
         dest="policy_path",
         default=None,
-        help="checkpoint folder (default: pretrained/formation_diffusion_safe of this repository)",
+        help="checkpoint folder (default: pretrained/formation_diffusion_route_v1 of this repository)",
     )
     ap.add_argument(
         "--steps",

@@ -5,7 +5,7 @@ alone takes about four U-Net calls at batch 10).
 
 For each batch size in ``--batch`` (default 1, 10 and 100: one sample, best-of-10's candidates, a
 batched engine), one U-Net call of the checkpoint's inference model (``--policy.path``, default the
-shipped ``pretrained/formation_diffusion_safe``) on random inputs, median over ``--repeats`` calls
+shipped ``pretrained/formation_diffusion_route_v1``) on random inputs, median over ``--repeats`` calls
 after a warm-up, with ``--threads`` torch threads:
 
 - ``trace fp32``: ``torch.jit.trace`` + ``freeze`` of LeRobot's U-Net as it is (the policy's trace
@@ -124,7 +124,7 @@ def variants(unet: torch.nn.Module, inputs: tuple) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
-        "--policy.path", dest="policy_path", default=str(REPO / "pretrained" / "formation_diffusion_safe")
+        "--policy.path", dest="policy_path", default=str(REPO / "pretrained" / "formation_diffusion_route_v1")
     )
     ap.add_argument("--batch", type=int, nargs="+", default=[1, 10, 100], help="U-Net batch sizes")
     ap.add_argument("--repeats", type=int, default=100)

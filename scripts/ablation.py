@@ -6,7 +6,7 @@ control smoothness, jerk, path length, time (means over successful episodes) and
 layer, how often it intervened. Rows whose policy cannot observe a scene set (the old "grid+list"
 default holds at most 5 obstacles) say so instead of a number.
 
-    python scripts/ablation.py --new pretrained/formation_diffusion_safe --old pretrained/formation_diffusion_cpu \\
+    python scripts/ablation.py --new pretrained/formation_diffusion_route_v1 --old pretrained/formation_diffusion_cpu \\
         --sets random:100,hard:100 --out outputs/ablation
 
 Conditions: a graded level's set (``--sets level5:500``) runs under that level's conditions; the other

@@ -1,7 +1,7 @@
 """Where a diffusion controller collides on a level: which agent, against which obstacle, how fast,
 and how long the team had already been that close.
 
-    python scripts/collision_report.py --policy.path pretrained/formation_diffusion_safe \
+    python scripts/collision_report.py --policy.path pretrained/formation_diffusion_route_v1 \
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
         [--safety-margin 0.11] [--follower-margin 0.03] [--layer-ignores-noise] [--layer-ignores-motion] \
         [--route-proposal on|off] [--route-lookahead N] [--coherence W] [--proposal-blend M] \

@@ -1,6 +1,6 @@
 """Where a diffusion controller's jerk comes from: the steps next to each kind of replan or filter event.
 
-    python scripts/jerk_sources.py --policy.path pretrained/formation_diffusion_safe --level level3 \
+    python scripts/jerk_sources.py --policy.path pretrained/formation_diffusion_route_v1 --level level3 \
         --scenes 100 [--seed 5000000] [--proposal-blend M] [--coherence W] [other safety overrides]
 
 The jerk (``core.metrics``, SPEC) at step t is the third difference of the midpoint position over

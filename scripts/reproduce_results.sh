@@ -56,9 +56,9 @@ $PY benchmarks/bench_replan_latency.py --policy.path $MODEL --threads 1 | tee $O
 # About 2.5 hours on 2 cores (generation 17 min, training 65 min, DAgger 15 min, ablations 45 min).
 $BIN/lerobot-formation-generate --episodes 5000 --scene-preset wide --obstacle-encoding nearest \
   --root data/formation_wide --repo-id local/formation_wide --overwrite --no-progress | tee $OUT/generate_wide.log
-$BIN/lerobot-train --config_path=configs/formation_diffusion_safe.json --dataset.root=data/formation_wide \
+$BIN/lerobot-train --config_path=configs/formation_diffusion_nearest.json --dataset.root=data/formation_wide \
   --output_dir=outputs/train_safe 2>&1 | tee $OUT/train_safe.log
-SAFE=pretrained/formation_diffusion_safe
+SAFE=pretrained/formation_diffusion_route_v1
 $PY -m datasets_scripts.dagger_scenes --policy.path outputs/train_safe/checkpoints/032000/pretrained_model \
   --scene-preset wide --rollouts 300 --out data/dagger_scenes.json | tee $OUT/dagger_scenes.log
 N_DAGGER=$($PY -c "import json; print(len(json.load(open('data/dagger_scenes.json'))['scenes']))")

@@ -156,7 +156,7 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     guided = []
     bench.episode_replans_ms = spy
     torch.set_num_threads(1)
-    headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
+    headline = bench.safety_part(str(REPO / "pretrained" / "formation_diffusion_route_v1"), 2, 1, "level5")
     assert "K=2 with the safety layer" in headline and "plain trace" in headline
     assert "its cost-to-go" in headline and "the whole field" in headline
     assert "1 scenes of level5 under its conditions" in capsys.readouterr().out
@@ -218,7 +218,7 @@ def test_replan_stages_time_every_stage_and_restore_the_replanner(capsys):
         modeling._LeanCache.unet,
     )
     torch.set_num_threads(1)
-    headline = bench.stage_part(str(REPO / "pretrained" / "formation_diffusion_safe"), 2, 1, "level5")
+    headline = bench.stage_part(str(REPO / "pretrained" / "formation_diffusion_route_v1"), 2, 1, "level5")
     after = (Replanner.view, Replanner._recheck, Replanner.choose, Replanner._guide, modeling._LeanCache.unet)
     assert after == before
     out = capsys.readouterr().out

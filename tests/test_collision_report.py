@@ -153,7 +153,7 @@ def test_a_trace_of_an_episode_not_in_the_run_is_refused(capsys):
 
 
 def test_the_trace_of_the_safety_layer_says_what_each_replan_kept(capsys):
-    policy = str(ROOT / "pretrained" / "formation_diffusion_safe")
+    policy = str(ROOT / "pretrained" / "formation_diffusion_route_v1")
     args = [
         "--policy.path",
         policy,

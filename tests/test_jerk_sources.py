@@ -52,7 +52,7 @@ def test_a_speed_step_is_put_in_the_class_of_the_replan_that_made_it():
 
 def test_the_report_prints_one_line_per_class_and_the_summary(capsys):
     module = _script()
-    policy = str(ROOT / "pretrained" / "formation_diffusion_safe")
+    policy = str(ROOT / "pretrained" / "formation_diffusion_route_v1")
     args = ["--policy.path", policy, "--level", "level0", "--scenes", "2", "--max-steps", "40"]
     assert module.main([*args, "--candidates", "3", "--proposal-blend", "0", "--threads", "1"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()[-7:]  # after the loader's own line

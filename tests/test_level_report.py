@@ -99,7 +99,7 @@ def test_the_recording_replanner_records_what_the_controller_did():
     root = Path(__file__).resolve().parents[1]
     params = FormationParams()
     options = ControllerOptions(
-        policy_path=str(root / "pretrained" / "formation_diffusion_safe"), candidates=3
+        policy_path=str(root / "pretrained" / "formation_diffusion_route_v1"), candidates=3
     )
     controller = make_controller("diffusion-safe", params, options)
     controller.replanner = level_report.recording_replanner(controller.replanner, 20)

@@ -15,7 +15,7 @@ from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.core.scene import UNSEEN_SEED_START
 
 # the repository root's pretrained/ (this file is lerobot_formation/bench/demo.py)
-PRETRAINED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_safe"
+PRETRAINED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"
 
 
 def default_arguments() -> list[str]:

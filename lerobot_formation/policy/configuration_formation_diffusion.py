@@ -72,7 +72,7 @@ TUNED_SAMPLING_GUIDANCE = 1.0
 class FormationDiffusionConfig(DiffusionConfig):
     """LeRobot's ``DiffusionConfig`` with an EMA of the weights. The network and training defaults are
     the paper's hyperparameters; the observation, sampling and safety defaults are the shipped
-    policy's (``pretrained/formation_diffusion_safe``: best-of-10 with the CBF filter and the rest of
+    policy's (``pretrained/formation_diffusion_route_v1``: best-of-10 with the CBF filter and the rest of
     its safety layer, below).
 
     Every ``DiffusionConfig`` field keeps its meaning (see its docstring). The defaults differ where

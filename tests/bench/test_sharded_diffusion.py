@@ -20,7 +20,7 @@ from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.bench.merge import main as merge_main
 from lerobot_formation.core.levels import TUNING_SEED_START
 
-CHECKPOINT = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_safe"
+CHECKPOINT = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"
 CONTROLLER, SCENES, SHARDS = "diffusion-safe", "level5:30", 3
 RTOL = 1e-9
 

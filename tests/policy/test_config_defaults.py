@@ -20,7 +20,7 @@ from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.policy.configuration_formation_diffusion import LAYER_OFF, FormationDiffusionConfig
 
 REPO = Path(__file__).resolve().parents[2]
-SHIPPED = REPO / "pretrained" / "formation_diffusion_safe"
+SHIPPED = REPO / "pretrained" / "formation_diffusion_route_v1"
 # Own fields that are the network's or the training's (they may stay the paper's), not sampling or safety
 ARCHITECTURE_AND_TRAINING = {
     "egocentric_obstacles",
