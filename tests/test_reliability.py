@@ -345,6 +345,10 @@ def _broken_checkpoint(tmp_path: Path, kind: str) -> Path:
         cfg = json.loads((path / "config.json").read_text())
         cfg["horizon"] = "sixteen"
         (path / "config.json").write_text(json.dumps(cfg))
+    elif kind == "inconsistent":  # each field valid, the config's own check refuses the pair
+        cfg = json.loads((path / "config.json").read_text())
+        cfg["drop_n_last_frames"] = 3
+        (path / "config.json").write_text(json.dumps(cfg))
     return path
 
 
@@ -355,6 +359,11 @@ def _broken_checkpoint(tmp_path: Path, kind: str) -> Path:
         ("truncated", "error: --policy.path: {p}/model.safetensors cannot be loaded (truncated?)"),
         ("broken_config", "error: --policy.path: {p}/config.json is not valid JSON"),
         ("bad_field", "error: --policy.path: {p}/config.json is not a valid formation_diffusion config"),
+        (
+            "inconsistent",
+            "error: --policy.path: {p}/config.json is not a valid formation_diffusion config: "
+            "drop_n_last_frames=3 does not match",
+        ),
         ("stock", "error: --policy.path: {p} holds a policy of type 'diffusion', not 'formation_diffusion'"),
     ],
 )

@@ -63,7 +63,12 @@ def load_policy(path: str | Path, device: str = "cpu"):
     try:
         cfg = dataclasses.replace(PreTrainedConfig.from_pretrained(path), device=device)
     except Exception as e:  # draccus raises many types for a bad field; the message names it
-        raise CheckpointError(f"{path / 'config.json'} is not a valid formation_diffusion config: {e}") from e
+        from lerobot_formation.compat.run_checks import config_error_in_chain
+
+        why = config_error_in_chain(e) or e  # draccus wraps our checks' one-line errors
+        raise CheckpointError(
+            f"{path / 'config.json'} is not a valid formation_diffusion config: {why}"
+        ) from e
     try:
         check_processor_configs(path)  # before anything names a class to import
     except ValueError as e:
