@@ -64,7 +64,13 @@ from lerobot_formation.bench.controllers import (
 )
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.figures import draw_bench_figures
-from lerobot_formation.bench.results import collisions_text, controller_results, safety_rates, write_results
+from lerobot_formation.bench.results import (
+    collisions_text,
+    controller_results,
+    existing_run,
+    safety_rates,
+    write_results,
+)
 from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
 from lerobot_formation.bench.settings import RUN_SETTINGS, BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
@@ -143,8 +149,6 @@ examples:
 
 CHECKPOINT is a formation_diffusion checkpoint folder (the repository's pretrained/ holds the default).
 """
-# the bench's own files in an output folder: one of them there means the folder holds a run
-RUN_FILES = ("results.json", "tables.md")
 # the settings a resumed run must share with the run in the folder (meta entries of results.json)
 RESUME_SETTINGS = (*RUN_SETTINGS, "shard", "seed_policy")
 
@@ -317,11 +321,6 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
     if not 0 <= i < n:
         raise ValueError(f"--shard must be I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
     return i, n
-
-
-def existing_run(out: Path) -> str | None:
-    """The first of the bench's own files (``RUN_FILES``) in folder ``out``: it holds a run; else None."""
-    return next((name for name in RUN_FILES if (out / name).exists()), None)
 
 
 def _normalized(value):

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.bench.controllers import controller_names, needs_policy
-from lerobot_formation.bench.results import collisions_text, safety_rates, write_results
+from lerobot_formation.bench.results import collisions_text, existing_run, safety_rates, write_results
 from lerobot_formation.bench.settings import RUN_SETTINGS as SETTINGS
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
 from lerobot_formation.core.conditions import Conditions
@@ -134,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="lerobot-formation-bench-merge", description=__doc__.split("\n")[0])
     ap.add_argument("shards", nargs="+", help="the output folders of the shards (each with results.json)")
     ap.add_argument("--out", required=True, help="folder of the merged results.json and tables.md")
+    ap.add_argument("--overwrite", action="store_true", help="replace a run --out already holds")
     return ap
 
 
@@ -146,6 +147,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        print(f"error: --out {out} is a file, not a folder", file=sys.stderr)
+        return 2
+    held = existing_run(out)
+    if held and not args.overwrite:
+        print(
+            f"error: --out {out} already holds a run ({held}); add --overwrite to replace it, or choose "
+            "another folder",
+            file=sys.stderr,
+        )
+        return 2
     out.mkdir(parents=True, exist_ok=True)
     run = BenchSettings(
         scenes=meta["scenes"],

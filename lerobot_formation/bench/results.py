@@ -18,6 +18,14 @@ from lerobot_formation.core.metrics import FLAG_KEYS, STRUCK_KEY, episode_metric
 from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
 from lerobot_formation.core.scene import SamplingReport, Scenes
 
+# the bench's own files in an output folder: one of them there means the folder holds a run
+RUN_FILES = ("results.json", "tables.md")
+
+
+def existing_run(out: Path) -> str | None:
+    """The first of the bench's own files (``RUN_FILES``) in folder ``out``: it holds a run; else None."""
+    return next((name for name in RUN_FILES if (Path(out) / name).exists()), None)
+
 
 def _clean(x):
     if isinstance(x, float | np.floating):

@@ -9,8 +9,9 @@ import json
 import pytest
 from helpers import last_error_line
 
-from lerobot_formation.bench import cli, controllers
+from lerobot_formation.bench import controllers, results
 from lerobot_formation.bench.cli import main
+from lerobot_formation.bench.merge import main as merge_main
 
 BASE = ["--scenes", "random:2", "--no-figures", "--no-progress"]
 
@@ -169,4 +170,21 @@ def test_help_is_grouped_with_examples_and_a_line_per_controller(capsys, monkeyp
 
 def test_every_shipped_controller_has_a_summary():
     assert set(controllers.CONTROLLER_SUMMARIES) >= set(controllers.CONTROLLER_FACTORIES)
-    assert cli.RUN_FILES == ("results.json", "tables.md")
+    assert results.RUN_FILES == ("results.json", "tables.md")
+
+
+def test_merge_out_holding_a_run_is_refused_unless_overwrite(tmp_path, capsys):
+    shards = [tmp_path / f"s{i}" for i in range(2)]
+    for i, shard in enumerate(shards):
+        assert _run(shard, "--controllers", "pac", "--shard", f"{i}/2") == 0
+    out = tmp_path / "merged"
+    assert merge_main([*map(str, shards), "--out", str(out)]) == 0
+    before = (out / "results.json").read_bytes()
+    capsys.readouterr()
+    assert merge_main([*map(str, shards), "--out", str(out)]) == 2
+    assert last_error_line(capsys.readouterr().err) == (
+        f"error: --out {out} already holds a run (results.json); add --overwrite to replace it, or choose "
+        "another folder"
+    )
+    assert (out / "results.json").read_bytes() == before
+    assert merge_main([*map(str, shards), "--out", str(out), "--overwrite"]) == 0
