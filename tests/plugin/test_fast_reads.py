@@ -55,7 +55,7 @@ def test_fast_reads_equal_lerobot_reads(root, episodes, windows):
                 assert a[k].dtype == b[k].dtype and torch.equal(a[k], b[k]), k
             else:
                 assert a[k] == b[k], k
-    assert t_fast < t_slow / 3, (t_fast, t_slow)
+    # their speed is benchmarks/bench_train_throughput.py --fast-reads's figure, not a timed test
 
 
 def _collate_reporting_reader(items):

@@ -124,7 +124,11 @@ def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
             pose=np.array([[0.0, 0.0, np.pi / 2]]),
         )
     )
-    noise = lambda n: torch.randn(n, policy.config.horizon, 2, generator=torch.Generator().manual_seed(n))  # noqa: E731
+
+    def noise(rows, K):  # the engine's contract: K candidates for each episode of ``rows``
+        n = len(rows) * K
+        return torch.randn(n, policy.config.horizon, 2, generator=torch.Generator().manual_seed(n))
+
     policy.sample_action_chunks = _reference_module().stand_in_sampler(policy)
     sent = []
     for _ in range(5):
