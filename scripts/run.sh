@@ -153,7 +153,8 @@ case "$cmd" in
     setup
     .venv/bin/ruff check .
     .venv/bin/ruff format --check .
-    .venv/bin/python -m pytest "$@"
+    # the 25 slowest tests after the summary (-rfE: failures and errors in it even under -q)
+    .venv/bin/python -m pytest --durations=25 -rfE "$@"
     ;;
   *) echo "usage: scripts/run.sh {demo|test|setup} [args]" >&2; exit 2 ;;
 esac
