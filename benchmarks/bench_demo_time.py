@@ -1,38 +1,39 @@
-"""Wall time of the main job (``scripts/run.sh demo``), quiet and beside a CPU-bound neighbour.
+"""Wall time of the main job (``scripts/run.sh demo``) beside the previous demo, in one run.
 
-The demo (``lerobot_formation.bench.demo``: PAC, MPPI, the pretrained diffusion policy and its best-of-10
-safety layer on 50 unseen scenes, the diffusion controllers on 20 hard scenes, tables and figures)
-is run as a subprocess twice in one run:
+The demo (``lerobot_formation.bench.demo``: PAC, MPPI, the pretrained default with standard sampling and
+with its safety layer on the first 7 unseen scenes of level5, three figures; goal <= 30 s on an idle
+2-core machine) and the previous demo (the same module with ``demo.PREVIOUS_ARGUMENTS``: PAC, MPPI,
+standard sampling and best-of-10 on 50 unseen paper-layout scenes, the diffusion controllers on 20
+unseen hard scenes, every figure; about 70 s) are run as subprocesses, alternating (previous, new,
+new, previous, ... so a drift of the host's load falls on both), ``--repeats`` times each; the median
+of each is reported. ``--load-procs N`` starts N CPU-bound neighbours before the timed runs (each spins
+on one core: ``--load matmul``, a 256x256 numpy matmul loop with one BLAS thread, or ``--load busy``,
+a pure-Python loop) and kills them after.
 
-- **quiet**: nothing else started by this script;
-- **loaded**: with ``--load-procs`` CPU-bound neighbour processes started before it (each spins on one
-  core: ``--load matmul``, a 256x256 numpy matmul loop with one BLAS thread, or ``--load busy``, a
-  pure-Python loop) and killed after it.
-
-By default the demo is run as ``<this python> -m lerobot_formation.bench.demo ARGS``, which is exactly what
+By default a demo is run as ``<this python> -m lerobot_formation.bench.demo ARGS``, which is exactly what
 ``scripts/run.sh demo ARGS`` runs after its environment check (same variables: HF_HUB_OFFLINE=1,
 HF_DATASETS_OFFLINE=1, TOKENIZERS_PARALLELISM=false, OMP_NUM_THREADS / MKL_NUM_THREADS /
 LEROBOT_FORMATION_THREADS = ``--threads``). ``--via-run-sh`` runs ``scripts/run.sh demo ARGS`` itself
 (the bash start-up and the check that .venv is installed are timed too); it is refused when .venv's
 install stamp is stale, because run.sh would then reinstall the project inside the timed run.
 
-ARGS: ``--out <work dir>/demo_<run> --no-progress`` (the demo's outputs go to the work dir, not to
-outputs/demo), then whatever follows ``--`` on this command line (later flags win, e.g.
-``-- --scenes random:100 --unseen hard:100`` for the full protocol). The demo's stdout and stderr go
-to ``<work dir>/demo_<run>.log`` (the work dir is a new temp dir unless ``--work-dir``; it is kept and
-its path printed). Each run's wall time is the subprocess's, start to exit (Python start-up and imports
-included); the demo's CPU time (user + sys of its process tree) is printed beside it. The load average
-before each run is printed too: on a machine that is already busy, "quiet" means "without our load".
+ARGS: ``--out <work dir>/<demo>_<i> --no-progress`` (the outputs go to the work dir, not to
+outputs/demo), the previous demo's arguments for it, then whatever follows ``--`` on this command line
+for the new demo only (later flags win, e.g. ``-- --scenes level5:6``). Each run's output goes to
+``<work dir>/<demo>_<i>.log`` (the work dir is a new temp dir unless ``--work-dir``; it is kept and its
+path printed). A run's wall time is the subprocess's, start to exit (Python start-up and imports
+included); its CPU time (user + sys of its process tree) is printed beside it, and the load average
+before it: on a machine that is already busy both demos run slower, and the ratio is the figure to read.
 
-Run (full size: the demo's time twice, the loaded run longer; ``--warmup`` adds one more)::
+Run (about 2 minutes on an idle 2-core machine; ``--warmup`` adds one untimed run of the new demo)::
 
     HF_HUB_OFFLINE=1 OMP_NUM_THREADS=1 python benchmarks/bench_demo_time.py --threads 1
 
-``--quick`` is a smoke run (about half a minute on an idle 2-core machine): the demo made tiny by its own
-flags, ``--controllers pac,diffusion --scenes random:1 --unseen hard:1 --no-figures`` (before the args
-after ``--``), no warm-up. The goal (<= 120 s quiet) is judged only for the default demo (no demo args
-changed). The last line is the headline: ``demo wall time: quiet X s, loaded Y s (ratio Z)``,
-Z = loaded / quiet.
+``--quick`` is a smoke run (under a minute on an idle 2-core machine): both demos made tiny by their own
+flags, ``--controllers pac,diffusion --scenes random:1 --unseen hard:1 --no-figures`` (after each
+demo's arguments, before the args after ``--``), one run each. The goal (<= 30 s) is judged only for
+the default demo (no demo args changed). The last line is the headline:
+``demo wall time: new X s, previous Y s (ratio Z)``, Z = new / previous.
 """
 
 from __future__ import annotations
@@ -47,10 +48,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from lerobot_formation.bench.demo import PREVIOUS_ARGUMENTS
 from lerobot_formation.threads import ENV_VAR, add_threads_argument, apply_threads
 
 REPO = Path(__file__).resolve().parents[1]
-GOAL_S = 120.0
+GOAL_S = 30.0
+# the previous demo on an idle 2-core machine, once set up: 67-69 s, measured twice (issue 62)
+PREVIOUS_IDLE_S = (67.0, 69.0)
 QUICK_ARGS = ["--controllers", "pac,diffusion", "--scenes", "random:1", "--unseen", "hard:1", "--no-figures"]
 
 # One neighbour: one core, one thread; prints "ready" once its imports are done.
@@ -132,6 +136,17 @@ def run_demo(cmd: list[str], log: Path, env: dict[str, str]) -> tuple[float, flo
     return wall, cpu
 
 
+def median(values: list[float]) -> float:
+    v = sorted(values)
+    return v[len(v) // 2] if len(v) % 2 else (v[len(v) // 2 - 1] + v[len(v) // 2]) / 2
+
+
+def run_order(repeats: int) -> list[str]:
+    """previous, new, new, previous, previous, new, ...: each demo runs first as often as second."""
+    pairs = [("previous", "new") if i % 2 == 0 else ("new", "previous") for i in range(repeats)]
+    return [demo for pair in pairs for demo in pair]
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
@@ -141,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__.split("\n")[0],
         usage="%(prog)s [options] [-- DEMO ARGS...]",
-        epilog="Arguments after -- are passed on to the demo (lerobot-formation-bench flags; later ones win).",
+        epilog="Arguments after -- are passed on to the new demo only (lerobot-formation-bench flags; later "
+        "ones win).",
     )
     ap.add_argument(
         "--via-run-sh",
@@ -149,15 +165,19 @@ def main(argv: list[str] | None = None) -> int:
         help="run scripts/run.sh demo (default: <this python> -m lerobot_formation.bench.demo, what run.sh runs "
         "after its setup check); refused if .venv's install stamp is stale",
     )
+    ap.add_argument("--repeats", type=int, default=1, help="timed runs of each demo (the median is reported)")
     ap.add_argument(
         "--load",
         choices=sorted(LOAD_CODE),
         default="matmul",
-        help="the neighbour of the loaded run: a one-thread numpy matmul loop (matmul, default) or a "
+        help="the neighbours of --load-procs: a one-thread numpy matmul loop (matmul, default) or a "
         "pure-Python loop (busy)",
     )
     ap.add_argument(
-        "--load-procs", type=int, default=1, help="neighbour processes of the loaded run, one core each"
+        "--load-procs",
+        type=int,
+        default=0,
+        help="CPU-bound neighbour processes, one core each, running beside every timed run (default 0)",
     )
     ap.add_argument(
         "--work-dir",
@@ -167,17 +187,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--warmup",
         action="store_true",
-        help="one untimed demo run first (file cache, .pyc), so the quiet run is not the cold one",
+        help="one untimed run of the new demo first (file cache, .pyc), so no timed run is the cold one",
     )
-    add_threads_argument(ap, "torch threads of the demo (its --threads, OMP_NUM_THREADS)")
+    add_threads_argument(ap, "torch threads of the demos (their --threads, OMP_NUM_THREADS)")
     ap.add_argument(
         "--quick",
         action="store_true",
-        help=f"smoke run: the demo with {' '.join(QUICK_ARGS)} (before the args after --)",
+        help=f"smoke run: both demos with {' '.join(QUICK_ARGS)} (after their own args, before the args after --)",
     )
     args = ap.parse_args(argv)
-    if args.load_procs < 1:
-        ap.error(f"--load-procs must be >= 1, got {args.load_procs}")
+    if args.repeats < 1 or args.load_procs < 0:
+        ap.error(f"--repeats must be >= 1 and --load-procs >= 0, got {args.repeats}, {args.load_procs}")
     if args.via_run_sh and not run_sh_stamp_current():
         ap.error(
             ".venv/.installed does not match pyproject.toml: scripts/run.sh would reinstall the project "
@@ -192,55 +212,68 @@ def main(argv: list[str] | None = None) -> int:
         else [sys.executable, "-m", "lerobot_formation.bench.demo"]
     )
     size = QUICK_ARGS if args.quick else []
+    own = {"previous": PREVIOUS_ARGUMENTS + size, "new": size + extra}
     env = child_env(threads)
 
-    def command(run: str) -> list[str]:
-        return base + ["--out", str(work / f"demo_{run}"), "--no-progress"] + size + extra
+    def command(demo: str, run: str) -> list[str]:
+        return base + ["--out", str(work / f"{demo}_{run}"), "--no-progress"] + own[demo]
 
-    shown = " ".join(command("<run>")).replace(str(work), "<work>").replace(str(REPO) + "/", "")
     print(
-        f"demo command: {shown}\nwork dir {work}; threads {threads}, {os.cpu_count()} CPUs; loaded run beside "
-        f"{args.load_procs} {args.load} process(es)",
+        f"work dir {work}; threads {threads}, {os.cpu_count()} CPUs; {args.repeats} timed run(s) of each demo"
+        + (f", beside {args.load_procs} {args.load} process(es)" if args.load_procs else ""),
         flush=True,
     )
+    for demo in ("new", "previous"):
+        shown = " ".join(command(demo, "<i>")).replace(str(work), "<work>").replace(str(REPO) + "/", "")
+        print(f"{demo} demo: {shown}", flush=True)
     if args.warmup:
-        wall, _ = run_demo(command("warmup"), work / "demo_warmup.log", env)
-        print(f"warm-up (untimed): {wall:.1f} s", flush=True)
+        wall, _ = run_demo(command("new", "warmup"), work / "new_warmup.log", env)
+        print(f"warm-up (new demo, untimed): {wall:.1f} s", flush=True)
 
-    load1 = os.getloadavg()[0]
-    quiet, quiet_cpu = run_demo(command("quiet"), work / "demo_quiet.log", env)
-    print(
-        f"quiet:  {quiet:6.1f} s wall, {quiet_cpu:6.1f} s CPU (load average before {load1:.2f}) "
-        f"log {work / 'demo_quiet.log'}",
-        flush=True,
-    )
-
+    walls: dict[str, list[float]] = {"previous": [], "new": []}
+    loads_before: list[float] = []
     loads = []
     try:
         for _ in range(args.load_procs):
             loads.append(start_load(args.load))
-        load2 = os.getloadavg()[0]
-        loaded, loaded_cpu = run_demo(command("loaded"), work / "demo_loaded.log", env)
+        for demo in run_order(args.repeats):
+            run = str(len(walls[demo]))
+            load = os.getloadavg()[0]
+            loads_before.append(load)
+            log = work / f"{demo}_{run}.log"
+            wall, cpu = run_demo(command(demo, run), log, env)
+            walls[demo].append(wall)
+            print(
+                f"{demo + ':':9} {wall:6.1f} s wall, {cpu:6.1f} s CPU (load average before {load:.2f}) log {log}",
+                flush=True,
+            )
     finally:
         for p in loads:
             stop_load(p)
-    print(
-        f"loaded: {loaded:6.1f} s wall, {loaded_cpu:6.1f} s CPU (load average with the neighbours running "
-        f"{load2:.2f}) log {work / 'demo_loaded.log'}",
-        flush=True,
-    )
-    busy = load1 >= 0.5 * (os.cpu_count() or 1)
+    new, previous = median(walls["new"]), median(walls["previous"])
+    ratio = new / previous
+    busy = max(loads_before) >= 0.5 * (os.cpu_count() or 1)
     if busy:
-        print(
-            f"note: the load average was {load1:.2f} on {os.cpu_count()} CPUs before the quiet run: the machine "
-            "was busy with other jobs, so 'quiet' is only 'without our neighbour'"
+        lo, hi = PREVIOUS_IDLE_S
+        idle = (
+            ""
+            if args.quick or extra
+            else f" (the previous demo took {lo:.0f}-{hi:.0f} s on an idle 2-core machine, so the new one "
+            f"would take about {ratio * lo:.1f}-{ratio * hi:.1f} s there)"
         )
-    if args.quick or size or extra:
-        print(f"goal: quiet <= {GOAL_S:.0f} s for the default demo (not judged: demo args changed)")
+        print(
+            f"note: load averages of {min(loads_before):.2f}-{max(loads_before):.2f} on {os.cpu_count()} CPUs "
+            "before the runs: the machine was busy with other jobs, so both times are inflated; the ratio "
+            f"is the figure to read{idle}"
+        )
+    if args.quick or extra:
+        print(f"goal: new demo <= {GOAL_S:.0f} s once set up (not judged: demo args changed)")
+    elif busy:
+        print(f"goal: new demo <= {GOAL_S:.0f} s once set up (not judged on a busy machine; see the note)")
     else:
-        verdict = "met" if quiet <= GOAL_S else "NOT met"
-        print(f"goal: quiet <= {GOAL_S:.0f} s for the default demo: {verdict} ({quiet:.1f} s)")
-    print(f"demo wall time: quiet {quiet:.1f} s, loaded {loaded:.1f} s (ratio {loaded / quiet:.2f})")
+        verdict = "met" if new <= GOAL_S else "NOT met"
+        print(f"goal: new demo <= {GOAL_S:.0f} s once set up: {verdict} ({new:.1f} s)")
+    print(f"demo wall time: new {new:.1f} s, previous {previous:.1f} s (ratio {ratio:.2f})")
     return 0
 
 

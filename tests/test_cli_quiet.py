@@ -134,9 +134,37 @@ def test_the_demo_runs_the_shipped_default_against_the_baselines():
     from lerobot_formation.bench import demo
 
     defaults = demo.default_arguments()
-    assert defaults[defaults.index("--controllers") + 1] == "pac,mppi,diffusion,diffusion-bestof"
+    assert defaults[defaults.index("--controllers") + 1] == "pac,mppi,diffusion,diffusion-safe"
+    assert defaults[defaults.index("--scenes") + 1] == "level5:7"  # the hardest level's first unseen scenes
+    assert "--unseen" not in defaults
     path = Path(defaults[defaults.index("--policy.path") + 1])
     assert (path / "config.json").is_file() and (path / "model.safetensors").is_file()
+    # the demo before the 30-second one, as benchmarks/bench_demo_time.py reruns it
+    previous = demo.PREVIOUS_ARGUMENTS
+    assert previous[previous.index("--controllers") + 1] == "pac,mppi,diffusion,diffusion-bestof"
+    assert previous[previous.index("--scenes") + 1] == "random:50" and "--all-figures" in previous
+
+
+def test_the_demo_draws_the_focus_figures_and_states_its_numbers(tmp_path, capsys, monkeypatch):
+    """Without --all-figures the demo draws three figures: the trajectories of one controller (the
+    default with its layer; here PAC stands in, so no checkpoint is loaded), the controllers side by
+    side and the success chart; then it prints each controller's successes of n with its Wilson interval."""
+    from lerobot_formation.bench import cli as bench_cli
+    from lerobot_formation.bench import demo
+
+    monkeypatch.setattr(demo, "FOCUS", "pac")
+    out = tmp_path / "demo"
+    argv = ["--controllers", "pac,route-pursuit", "--scenes", "random:2", "--out", str(out), "--no-progress"]
+    assert demo.main(argv) == 0
+    assert bench_cli.draw_bench_figures is not demo.draw_demo_figures  # put back after the run
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("demo: pac,route-pursuit on random:2;") and "(unseen scenes)" in lines[0]
+    drawn = {p.name for p in out.glob("*.png")}
+    assert drawn == {"pac_random_trajectories.png", "controllers_random.png", "success_rates.png"}
+    summary = [line for line in lines if line.startswith("demo:   ")]
+    assert len(summary) == 2 and all(" of 2 " in line and "%]" in line for line in summary)
+    assert "PAC (the paper's potential field)" in summary[0] and "(route-pursuit)" in summary[1]
+    assert any(line.startswith("demo: 2 scenes are a first look") for line in lines)
 
 
 def test_the_demo_lists_its_figures_once_and_names_its_sets(tmp_path, capsys):
