@@ -170,7 +170,8 @@ def render(
     parts = [f"{date} on {host}: {', '.join(files)}" for (date, host), files in sorted(measured.items())]
     line = "Measured on " + "; ".join(parts) + " (each file holds its command)."
     if missing:
-        line += " Pending: " + ", ".join(f"`{results_dir}/{m}.json`" for m in missing) + "."
+        # named, not linked: the artifact does not exist yet
+        line += " Pending (no artifact yet): " + ", ".join(missing) + "."
     return lines + ["", line], missing
 
 

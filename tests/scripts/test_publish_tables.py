@@ -112,7 +112,7 @@ def test_the_script_writes_a_table_and_check_passes(bench_run, tmp_path, capsys)
     assert f"{pac['collisions']} / {pac['timeouts']} | {pac['jerk']['mean']:.3g} | 3 |" in readme
     assert f"Measured on {payload['meta']['date']} on " in readme and "`results/tiny.json`" in readme
     page = (root / "docs" / "page.md").read_text()  # one artifact of two: the other's cells are pending
-    assert "| PAC | " in page and " | - |" in page and "Pending: `results/later.json`" in page
+    assert "| PAC | " in page and " | - |" in page and "Pending (no artifact yet): later." in page
     code, out, err = _run(root, "--check", capsys=capsys)
     assert code == 0, err
     assert "table two: pending, no results/later.json" in out
