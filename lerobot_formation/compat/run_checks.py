@@ -346,6 +346,8 @@ RETIRED_FIELDS = {
     # experiments that were not kept
     "safety_fallback_lookahead": 0,
     "timestep_spacing": "leading",
+    # one attention layer is all the token encoder was ever trained with (ObstacleTokenEncoder's default)
+    "token_layers": 1,
     # diffusers' EMA defaults (modeling_formation_diffusion.EMA_*), and the env's action bounds
     "ema_inv_gamma": 1.0,
     "ema_min_decay": 0.0,

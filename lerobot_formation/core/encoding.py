@@ -99,3 +99,20 @@ class ObstacleEncoding:
     def dim(self, max_obstacles: int | None = None) -> int:
         slots = self.slots(max_obstacles)
         return self.fixed + (self.per_slot + self.trailing_per_slot) * slots + self.trailing
+
+    def route_hint(
+        self, env_state: np.ndarray, max_obstacles: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(route (..., 4), goal (..., 2)) of an encoding with a route hint (``map``), in the body frame
+        of the midpoint: the near and far carrots (after the rows and their per-slot values) and the goal
+        (the last two values before the rows), as route pursuit reads them (``pursuit_chunk``)."""
+        if not self.map:
+            raise ValueError(f"the {self.name!r} encoding carries no route hint")
+        env_state = np.asarray(env_state, dtype=np.float64)
+        if env_state.shape[-1] != self.dim(max_obstacles):
+            raise ValueError(
+                f"the {self.name!r} encoding with max_obstacles={max_obstacles} has {self.dim(max_obstacles)} "
+                f"values, got shape {env_state.shape}"
+            )
+        at = self.fixed + (self.per_slot + self.trailing_per_slot) * self.slots(max_obstacles)
+        return env_state[..., at : at + 4], env_state[..., self.fixed - 2 : self.fixed]

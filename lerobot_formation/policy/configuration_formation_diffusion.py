@@ -26,6 +26,7 @@ ACTION_DIM = 2  # [v, omega]
 SAFETY_FILTERS = ("none", "cbf")
 INFERENCE_BACKENDS = ("eager", "lean", "trace")
 OBSTACLE_ENCODERS = ("flat", "tokens")  # how the network reads environment_state
+ACTION_SPACES = ("velocity", "route-residual")  # what the network's chunk is
 _BOUNDS = FormationParams()
 # The env's action bounds [v, omega] (``FormationParams``): what ``fixed_action_bounds`` normalises with.
 ACTION_LOW = (0.0, -_BOUNDS.omega_max)
@@ -118,7 +119,14 @@ class FormationDiffusionConfig(DiffusionConfig):
             to the obstacle count); needs an encoding of the "nearest" family and ENV IDENTITY.
         token_dim: width d of the tokens (a multiple of ``TOKEN_HEADS`` = 4); the U-Net sees 2 d
             values per observation step instead of the environment state. Only with "tokens".
-        token_layers: ego-to-obstacle attention layers (>= 1). Only with "tokens".
+        action_space: what the network's chunk is. "velocity" (default): the commands [v, omega]
+            themselves, normalised to [-1, 1]. "route-residual": a correction to route pursuit's
+            chunk (``core.route_pursuit.pursuit_chunk`` from the route hint of the current
+            observation): the network denoises r = (a - a_rp) / 2 in normalised units and the chunk
+            is clip(a_rp + 2 r, -1, 1) (``FormationDiffusionModel.route_prior``). A residual over a
+            hand-written rule, reported as such beside the rule alone; needs an encoding with a route
+            hint ("nearest+route", "nearest+route+velocity", "nearest+maproute") and
+            ``fixed_action_bounds``.
         fixed_action_bounds: normalise actions with the env's fixed bounds ``action_low`` /
             ``action_high`` (``ACTION_LOW`` / ``ACTION_HIGH``: v in [0, 0.6], omega in [-1.5, 1.5]), so
             the policy itself knows the action in physical units (the safety layer needs it). True
@@ -263,7 +271,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     max_obstacles: int | None = None
     obstacle_encoder: str = "flat"
     token_dim: int = 64
-    token_layers: int = 1
+    action_space: str = "velocity"
     fixed_action_bounds: bool = True
 
     # Sampling and safety layer (inference only; see the Args above): the shipped policy's settings.
@@ -372,6 +380,22 @@ class FormationDiffusionConfig(DiffusionConfig):
             )
         if self.obstacle_encoder == "tokens":
             self._check_tokens()
+        if self.action_space not in ACTION_SPACES:
+            raise config_error(
+                f"action_space must be one of {ACTION_SPACES}, got action_space={self.action_space!r}"
+            )
+        if self.action_space == "route-residual":
+            if not get_encoding(self.obstacle_encoding).map:
+                raise config_error(
+                    "action_space='route-residual' corrects route pursuit's chunk, which reads the route hint: "
+                    f"it needs an encoding with one ({route_encodings()}), got obstacle_encoding="
+                    f"{self.obstacle_encoding!r}"
+                )
+            if not self.fixed_action_bounds:
+                raise config_error(
+                    "action_space='route-residual' adds route pursuit's chunk in physical units: it needs "
+                    "fixed_action_bounds=true, got fixed_action_bounds=false"
+                )
         if self.inference_backend not in INFERENCE_BACKENDS:
             raise config_error(
                 f"inference_backend must be one of {INFERENCE_BACKENDS}, got {self.inference_backend!r}"
@@ -503,9 +527,6 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(
                 f"token_dim must be a positive multiple of {TOKEN_HEADS} (the attention heads), got token_dim={dim!r}"
             )
-        layers = self.token_layers
-        if isinstance(layers, bool) or not (isinstance(layers, int) and layers >= 1):
-            raise config_error(f"token_layers must be an integer >= 1, got token_layers={layers!r}")
 
     @property
     def safety_layer(self) -> bool:

@@ -68,6 +68,7 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import torch
 from diffusers.schedulers.scheduling_ddim import DDIMScheduler
 from diffusers.training_utils import EMAModel
@@ -87,7 +88,9 @@ from lerobot_formation.compat.lerobot_compat import (
     stock_global_conditioning,
     use_conditioning_method,
 )
+from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.obstacle_grid import get_encoding
+from lerobot_formation.core.route_pursuit import pursuit_chunk
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.obstacle_tokens import ObstacleTokenEncoder, token_layout
 from lerobot_formation.policy.replanner import Replanner, check_observation
@@ -278,9 +281,7 @@ class FormationDiffusionModel(DiffusionModel):
         if config.obstacle_encoder == "tokens":
             layout = token_layout(get_encoding(config.obstacle_encoding), config.max_obstacles)
             state_dim = config.robot_state_feature.shape[0]
-            self.obstacle_tokens = ObstacleTokenEncoder(
-                state_dim, layout, config.token_dim, config.token_layers
-            )
+            self.obstacle_tokens = ObstacleTokenEncoder(state_dim, layout, config.token_dim)
             per_step = state_dim + self.obstacle_tokens.out_dim
             self.unet = diffusion_unet(config, per_step * config.n_obs_steps)
 
@@ -292,8 +293,62 @@ class FormationDiffusionModel(DiffusionModel):
         features = self.obstacle_tokens(state, batch[OBS_ENV_STATE])
         return torch.cat([state, features], dim=-1).flatten(start_dim=1)
 
+    # -- action_space "route-residual": the chunk is a correction to route pursuit's ---------------------
+    def route_prior(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """(B, horizon, 2) route pursuit's chunk in normalised units (``core.route_pursuit.pursuit_chunk``
+        from the route hint of the last observation step; the steps before it, never executed, hold its
+        first command), or None with ``action_space="velocity"``. Deterministic: a function of the
+        observation, so training and every sampler see the same prior."""
+        cfg = self.config
+        if cfg.action_space != "route-residual":
+            return None
+        env = batch[OBS_ENV_STATE][:, -1]
+        route, goal = get_encoding(cfg.obstacle_encoding).route_hint(
+            env.detach().float().cpu().numpy(), cfg.max_obstacles
+        )
+        ahead = cfg.horizon - cfg.n_obs_steps + 1
+        chunk = pursuit_chunk(route, goal, ahead, FormationParams().dt, cfg.action_high[1])
+        chunk = np.concatenate([np.repeat(chunk[:, :1], cfg.n_obs_steps - 1, axis=1), chunk], axis=1)
+        low, high = np.asarray(cfg.action_low), np.asarray(cfg.action_high)
+        return torch.as_tensor(2.0 * (chunk - low) / (high - low) - 1.0, dtype=env.dtype, device=env.device)
+
+    @staticmethod
+    def from_residual(prior: Tensor | None, sample: Tensor) -> Tensor:
+        """The chunk (normalised actions) of a denoised sample: the sample itself, or with a route prior
+        clip(prior + 2 r, -1, 1)."""
+        return sample if prior is None else (prior + 2.0 * sample).clamp(-1.0, 1.0)
+
+    def compute_loss(self, batch: dict[str, Tensor]) -> Tensor:
+        """LeRobot's loss; with a route prior on the residual r = (a - a_rp) / 2 (in [-1, 1])."""
+        prior = self.route_prior(batch)
+        if prior is not None:
+            batch = {**batch, ACTION: (batch[ACTION] - prior) / 2.0}
+        return super().compute_loss(batch)
+
+    def generate_actions(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
+        """LeRobot's ``generate_actions`` (the eager sampler), the residual added back."""
+        prior = self.route_prior(batch)
+        if prior is None:
+            return super().generate_actions(batch, noise=noise)
+        cond = global_conditioning(self, batch)
+        full = self.from_residual(prior, self.conditional_sample(len(cond), global_cond=cond, noise=noise))
+        start = self.config.n_obs_steps - 1
+        return full[:, start : start + self.config.n_action_steps]
+
 
 use_conditioning_method(FormationDiffusionModel, "conditioning")
+
+
+def _residual_guide(
+    guide: Callable[[Tensor, Tensor | None], Tensor], prior: Tensor
+) -> Callable[[Tensor, Tensor | None], Tensor]:
+    """A guide of chunks (normalised actions) as a guide of residuals r = (a - prior) / 2."""
+
+    def moved(x0: Tensor, rows: Tensor | None = None) -> Tensor:
+        p = prior if rows is None else prior[rows]
+        return (guide(p + 2.0 * x0, rows) - p) / 2.0
+
+    return moved
 
 
 class FormationDiffusionPolicy(DiffusionPolicy):
@@ -378,14 +433,23 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             noise = noise.to(cond.device, cond.dtype)
         if warm_start is not None:
             warm_start = tuple(x.to(cond.device) for x in warm_start)
+        prior = model.route_prior(batch)
         if K > 1:
             cond = cond.repeat_interleave(K, dim=0)
+            prior = None if prior is None else prior.repeat_interleave(K, dim=0)
         if warm_start is not None and K > 1:  # the first candidate of each row continues its last plan
             guess, use = (x.repeat_interleave(K, dim=0) for x in warm_start)
             if not warm_all:
                 use = use & ((torch.arange(B * K, device=use.device) % K) == 0)
             warm_start = (guess, use)
-        full = self._sample(model, cond, noise, warm_start, warm_start_step, guide)
+        if prior is not None:  # the sampler works on residuals: the guess and the guide in its units
+            if warm_start is not None:
+                warm_start = ((warm_start[0].to(prior.dtype) - prior) / 2.0, warm_start[1])
+            if guide is not None:
+                guide = _residual_guide(guide, prior)
+        full = model.from_residual(
+            prior, self._sample(model, cond, noise, warm_start, warm_start_step, guide)
+        )
         return full[:, self.config.n_obs_steps - 1 :].reshape(B, K, -1, full.shape[-1])
 
     def _sample(
@@ -584,6 +648,7 @@ class FormationDiffusionPolicy(DiffusionPolicy):
             batch = queued_history(self, batch)
             model = self.inference_model
             full = self._sample(model, global_conditioning(model, batch), noise)
+            full = model.from_residual(model.route_prior(batch), full)
             start = self.config.n_obs_steps - 1  # as DiffusionModel.generate_actions slices
             return full[:, start : start + self.config.n_action_steps]
         if self.ema_diffusion is None or self.training:

@@ -27,7 +27,7 @@ ARCHITECTURE_AND_TRAINING = {
     "max_obstacles",
     "obstacle_encoder",
     "token_dim",
-    "token_layers",
+    "action_space",
     "use_ema",
     "ema_power",
 }
