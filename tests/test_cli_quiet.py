@@ -9,8 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import draccus.argparsing
 import pytest
-from draccus.wrappers.docstring import get_attribute_docstring, get_preferred_help_text
 
 import datasets_scripts.generate_pac_dataset as gen
 from lerobot_formation.bench import cli as bench
@@ -60,9 +60,11 @@ def test_every_generator_and_bench_option_has_help(monkeypatch):
 
 
 def test_every_env_config_field_has_draccus_help():
-    """draccus (lerobot-eval --help) shows a field's comment line above it."""
+    """draccus (lerobot-eval --help) shows a help for every field: its comment line above it, or for a
+    condition field the help declared with it in ``core.conditions.Conditions``."""
+    helps = {a.dest: a.help for a in draccus.argparsing.ArgumentParser(FormationEnvConfig).parser._actions}
     for f in dataclasses.fields(FormationEnvConfig):
-        text = get_preferred_help_text(get_attribute_docstring(FormationEnvConfig, f.name))
+        text = helps.get(f.name)
         assert text and text.strip(), f"--env.{f.name} has no help text"
 
 

@@ -3,15 +3,20 @@ bench and the generator: the same episode path as the engine (``core.rollout.Tea
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import dataclasses
+import io
 import json
 
 import draccus
 import numpy as np
 import pytest
 
-from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.conditions import CONDITION_FIELDS, CONDITION_TYPES, Conditions, condition_help
 from lerobot_formation.core.rollout import PACController, rollout
 from lerobot_formation.core.scene import sample_scenes, scenes_from_list
+from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.envs.vector_env import FormationVectorEnv
@@ -43,6 +48,34 @@ def test_env_config_fields_from_the_command_line():
     assert "conditions" not in FormationEnvConfig().gym_kwargs  # off: the env kwargs of before
     with pytest.raises(ValueError, match="env.action_delay must be an integer >= 0, got -1"):
         FormationEnvConfig(action_delay=-1)
+
+
+def test_every_condition_is_an_env_field_and_a_flag():
+    """Each field of ``Conditions`` (declared once, with its help) is a field of the env config with
+    its type, default and help (draccus's ``--env.<field>``) and a flag of the bench and the generator
+    (``add_condition_arguments``) with its help; ALL_ON goes through both to the same conditions."""
+    env_fields = {f.name: f for f in dataclasses.fields(FormationEnvConfig)}
+    off = Conditions()
+    ap = argparse.ArgumentParser()
+    add_condition_arguments(ap)
+    flags = {a.option_strings[0]: a for a in ap._actions if a.option_strings[0].startswith("--env.")}
+    assert set(flags) == {f"--env.{name}" for name in CONDITION_FIELDS}
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), pytest.raises(SystemExit):
+        draccus.parse(FormationEnvConfig, args=["--help"])
+    draccus_help = " ".join(buf.getvalue().split())
+    for name in CONDITION_FIELDS:
+        assert name in env_fields, f"the env config lacks the condition field {name}"
+        assert env_fields[name].default == getattr(off, name)
+        assert env_fields[name].type == CONDITION_TYPES[name]
+        assert f"--{name} " in draccus_help and " ".join(condition_help(name).split()) in draccus_help
+        assert flags[f"--env.{name}"].help == condition_help(name) and flags[f"--env.{name}"].default is None
+    on = {name: getattr(ALL_ON, name) for name in CONDITION_FIELDS}
+    assert FormationEnvConfig(**on).conditions() == ALL_ON
+    argv = [item for name, value in on.items() for item in (f"--env.{name}", str(value))]
+    assert conditions_from_flags(ap.parse_args(argv)) == ALL_ON
+    cfg = draccus.parse(FormationEnvConfig, args=[f"--{name}={value}" for name, value in on.items()])
+    assert cfg.conditions() == ALL_ON
 
 
 @pytest.mark.parametrize("encoding", ["nearest", "nearest+route"])

@@ -42,7 +42,8 @@ other teams of its batch, nor on which noises are on. Motion directions come fro
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+import typing
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -63,59 +64,78 @@ BOUNDS_MARGIN = 1.0  # [m] the scene's bounds: its obstacles, start and goal, pl
 MIN_OBSERVED_RADIUS = 0.05  # [m] a noisy radius never drops below this (the slot stays an obstacle)
 
 
+def condition(
+    default,
+    help: str,
+    *,
+    unit: str = "",
+    gt: float | None = None,
+    ge: float | None = None,
+    le: float | None = None,
+):
+    """One field of ``Conditions``, declared once: its default (off), its help and unit (the env
+    config's ``--env.<field>`` and the CLI flags show ``[unit] help``: ``condition_help``) and its
+    bounds (``gt`` / ``ge``: the value must be > / >= this, ``le``: <= this; checked by
+    ``Conditions.__post_init__``, whose error names the field and the value). The field's kind comes
+    from its annotation: ``bool``, ``int``, ``float`` or ``float | None`` (None: off)."""
+    return field(default=default, metadata={"help": help, "unit": unit, "gt": gt, "ge": ge, "le": le})
+
+
 @dataclass(frozen=True)
 class Conditions:
-    """Realistic conditions of an episode; every field's default is 'off' (module docstring).
+    """Realistic conditions of an episode; every field's default is 'off' (module docstring). Each
+    field is declared here once, with its help, unit and bounds (``condition``); the env config's
+    fields (``envs.env_config.ConditionFields``) and the CLI flags (``envs.condition_flags``) are
+    built from these declarations."""
 
-    Attributes:
-        sensing_range: [m] an obstacle is observed once some agent came within this range of its
-            surface; None: every obstacle is observed from the start.
-        obstacle_memory: keep obstacles once seen (False: only while within range).
-        obstacle_noise: [m] std of the Gaussian noise on each observed obstacle's centre and radius, per step.
-        pose_noise: [m] std of the noise on the observed midpoint position (heading: the same in rad).
-        action_noise: std of the multiplicative Gaussian noise on each command component (a fraction).
-        action_delay: [control steps] commands take effect this many steps late.
-        max_linear_accel: [m/s^2] rate limit on the executed v; None: none.
-        max_angular_accel: [rad/s^2] rate limit on the executed omega; None: none.
-        moving_obstacles: how many of a scene's obstacles move at constant velocity.
-        obstacle_speed: [m/s] their speed.
-    """
-
-    sensing_range: float | None = None
-    obstacle_memory: bool = True
-    obstacle_noise: float = 0.0
-    pose_noise: float = 0.0
-    action_noise: float = 0.0
-    action_delay: int = 0
-    max_linear_accel: float | None = None
-    max_angular_accel: float | None = None
-    moving_obstacles: int = 0
-    obstacle_speed: float = 0.0
+    sensing_range: float | None = condition(
+        None,
+        "an obstacle is observed once some agent came within this range of its surface "
+        "(unset: every obstacle is observed from the start)",
+        unit="m",
+        gt=0,
+    )
+    obstacle_memory: bool = condition(
+        True, "keep obstacles once seen (true/false; false: only while within range)"
+    )
+    obstacle_noise: float = condition(
+        0.0,
+        "std of the per-step Gaussian noise on each observed obstacle's centre and radius",
+        unit="m",
+        ge=0,
+    )
+    pose_noise: float = condition(
+        0.0,
+        "std of the per-step noise on the observed midpoint position (heading: the same in rad)",
+        unit="m",
+        ge=0,
+    )
+    action_noise: float = condition(
+        0.0, "std of the multiplicative noise on each executed command component (a fraction)", ge=0
+    )
+    action_delay: int = condition(
+        0,
+        "commands take effect this many steps late (the team holds still until then)",
+        unit="control steps",
+        ge=0,
+        le=1000,
+    )
+    max_linear_accel: float | None = condition(
+        None, "rate limit on the executed v (unset: none)", unit="m/s^2", gt=0
+    )
+    max_angular_accel: float | None = condition(
+        None, "rate limit on the executed omega (unset: none)", unit="rad/s^2", gt=0
+    )
+    moving_obstacles: int = condition(
+        0, "how many of a scene's obstacles move at constant velocity, bouncing in the scene's bounds", ge=0
+    )
+    obstacle_speed: float = condition(
+        0.0, "speed of the moving obstacles (> 0 when moving_obstacles > 0)", unit="m/s", ge=0
+    )
 
     def __post_init__(self) -> None:
-        def number(name: str, value, positive: bool) -> None:
-            ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
-            if not ok or not math.isfinite(value) or (value <= 0 if positive else value < 0):
-                need = "a finite number > 0" if positive else "a finite number >= 0"
-                raise ValueError(f"conditions: {name} must be {need}, got {value!r}")
-
-        for name in ("sensing_range", "max_linear_accel", "max_angular_accel"):
-            if getattr(self, name) is not None:
-                number(name, getattr(self, name), positive=True)
-        for name in ("obstacle_noise", "pose_noise", "action_noise", "obstacle_speed"):
-            number(name, getattr(self, name), positive=False)
-        if not isinstance(self.obstacle_memory, bool | np.bool_):
-            raise ValueError(
-                f"conditions: obstacle_memory must be true or false, got {self.obstacle_memory!r}"
-            )
-        for name in ("action_delay", "moving_obstacles"):
-            value = getattr(self, name)
-            if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"conditions: {name} must be an integer >= 0, got {value!r}")
-        if self.action_delay > 1000:
-            raise ValueError(
-                f"conditions: action_delay must be <= 1000 control steps, got {self.action_delay}"
-            )
+        for name in CONDITION_FIELDS:
+            _check_condition(name, getattr(self, name))
         if self.moving_obstacles > 0 and self.obstacle_speed == 0:
             raise ValueError(
                 f"conditions: moving_obstacles={self.moving_obstacles} needs obstacle_speed > 0 [m/s], got 0"
@@ -137,6 +157,62 @@ class Conditions:
 
 
 CONDITION_FIELDS = tuple(f.name for f in fields(Conditions))
+# Each field's annotation, resolved: bool, int, float or float | None (what the env config's field and
+# the CLI flag parse).
+CONDITION_TYPES: dict[str, object] = typing.get_type_hints(Conditions)
+
+
+def _kind(name: str) -> tuple[type, bool]:
+    """(value type, None allowed) of condition ``name``, from its annotation."""
+    annotation = CONDITION_TYPES[name]
+    args = typing.get_args(annotation) or (annotation,)
+    kinds = [t for t in args if t is not type(None)]
+    if len(kinds) != 1 or kinds[0] not in (bool, int, float):
+        raise TypeError(f"conditions: {name} must be declared bool, int, float or float | None")
+    return kinds[0], type(None) in args
+
+
+_FIELDS = {f.name: f for f in fields(Conditions)}
+_KINDS = {name: _kind(name) for name in CONDITION_FIELDS}  # checked at import: a bad declaration fails
+
+
+def condition_kind(name: str) -> type:
+    """The value type of condition ``name``: ``bool``, ``int`` or ``float`` (None aside)."""
+    return _KINDS[name][0]
+
+
+def condition_help(name: str) -> str:
+    """The help of condition ``name`` as the env config and the CLI flags show it: ``[unit] help``."""
+    meta = _FIELDS[name].metadata
+    return f"[{meta['unit']}] {meta['help']}" if meta["unit"] else meta["help"]
+
+
+def _check_condition(name: str, value) -> None:
+    """``ValueError`` naming the field and the value where ``value`` is not of condition ``name``'s
+    kind or is outside its bounds (``condition``); None passes where the field allows it."""
+    kind, optional = _KINDS[name]
+    meta = _FIELDS[name].metadata
+    if value is None and optional:
+        return
+    if kind is bool:
+        if not isinstance(value, bool | np.bool_):
+            raise ValueError(f"conditions: {name} must be true or false, got {value!r}")
+        return
+    gt, ge, le = meta["gt"], meta["ge"], meta["le"]
+    low = f" > {gt}" if gt is not None else f" >= {ge}" if ge is not None else ""
+    if kind is int:
+        ok = isinstance(value, int | np.integer) and not isinstance(value, bool)
+        what = "an integer"
+    else:
+        ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+        ok = ok and math.isfinite(value)
+        what = "a finite number"
+    if not ok or (gt is not None and value <= gt) or (ge is not None and value < ge):
+        raise ValueError(f"conditions: {name} must be {what}{low}, got {value!r}")
+    if le is not None and value > le:
+        unit = f" {meta['unit']}" if meta["unit"] else ""
+        raise ValueError(f"conditions: {name} must be <= {le}{unit}, got {value}")
+
 
 RANDOMIZE_TAG = 0x72616E64  # "rand": the draw of randomized conditions (``randomized_conditions``)
 RANDOMIZE_ON = 0.6  # probability that each condition is on in a randomized draw

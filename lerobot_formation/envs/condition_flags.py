@@ -1,26 +1,13 @@
 """``--env.<field> VALUE`` command-line flags of the realistic conditions (``core.conditions``) for
 ``lerobot-formation-bench`` and ``lerobot-formation-generate``: the same names as the env config's
-fields (``lerobot-eval --env.sensing_range=3``), so one spelling works everywhere."""
+fields (``lerobot-eval --env.sensing_range=3``), so one spelling works everywhere. Each flag's type and
+help come from the field's declaration in ``core.conditions.Conditions``."""
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import fields
 
-from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
-
-_HELP = {
-    "sensing_range": "[m] obstacles are observed once some agent came within this range of their surface",
-    "obstacle_memory": "keep obstacles once seen (true/false)",
-    "obstacle_noise": "[m] std of the per-step noise on observed obstacle centres and radii",
-    "pose_noise": "[m] std of the per-step noise on the observed midpoint pose (heading: rad)",
-    "action_noise": "std of the multiplicative noise on each command component",
-    "action_delay": "[control steps] commands take effect this many steps late",
-    "max_linear_accel": "[m/s^2] rate limit on v",
-    "max_angular_accel": "[rad/s^2] rate limit on omega",
-    "moving_obstacles": "how many of a scene's obstacles move",
-    "obstacle_speed": "[m/s] speed of the moving obstacles",
-}
+from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions, condition_help, condition_kind
 
 
 def _bool(text: str) -> bool:
@@ -33,12 +20,8 @@ def _bool(text: str) -> bool:
 
 
 def _kind(name: str):
-    default = getattr(Conditions(), name)
-    if isinstance(default, bool):
-        return _bool
-    if isinstance(default, int):
-        return int
-    return float
+    kind = condition_kind(name)
+    return _bool if kind is bool else kind
 
 
 def add_condition_arguments(
@@ -47,16 +30,16 @@ def add_condition_arguments(
     """Add ``--env.<field> VALUE`` for every field of ``Conditions`` (all off by default), in an
     argument group titled ``title``."""
     group = ap.add_argument_group(title)
-    for f in fields(Conditions):
-        kind = _kind(f.name)
+    for name in CONDITION_FIELDS:
+        kind = _kind(name)
         metavar = {_bool: "BOOL", int: "N"}.get(kind, "X")
         group.add_argument(
-            f"--env.{f.name}",
-            dest=f"env_{f.name}",
+            f"--env.{name}",
+            dest=f"env_{name}",
             type=kind,
             default=None,
             metavar=metavar,
-            help=_HELP[f.name],
+            help=condition_help(name),
         )
 
 

@@ -17,7 +17,7 @@ formation metrics (see ``lerobot_formation.envs.episode_metrics``: ``info["final
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -30,7 +30,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame
 from lerobot_formation.compat.run_checks import config_error, install_run_hooks
-from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
+from lerobot_formation.core.conditions import CONDITION_FIELDS, CONDITION_TYPES, Conditions, condition_help
 from lerobot_formation.core.levels import get_level, level_env_fields
 from lerobot_formation.core.observation import STATE_DIM
 from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
@@ -124,9 +124,28 @@ class FormationEnvFactory:
         return FreezeAfterEpisodeEnd(EpisodeOverlay(env))
 
 
+# The env config's condition fields, built from ``core.conditions.Conditions`` (where each is declared
+# once, with its help and bounds): the same names, types and defaults (all off), and the help that
+# draccus shows for ``--env.<field>`` (draccus takes a field's ``metadata["custom_args"]`` as the
+# options of its argument). ``FormationEnvConfig`` checks them by building ``Conditions``.
+ConditionFields = make_dataclass(
+    "ConditionFields",
+    [
+        (
+            f.name,
+            CONDITION_TYPES[f.name],
+            field(default=f.default, metadata={"custom_args": {"help": condition_help(f.name)}}),
+        )
+        for f in fields(Conditions)
+    ],
+    module=__name__,
+)
+ConditionFields.__doc__ = "The condition fields of ``FormationEnvConfig`` (``core.conditions.Conditions``)."
+
+
 @EnvConfig.register_subclass("formation")
 @dataclass
-class FormationEnvConfig(EnvConfig):
+class FormationEnvConfig(ConditionFields, EnvConfig):
     """The formation-navigation env for ``lerobot-eval`` / ``lerobot-train`` (``--env.type=formation``).
 
     Args:
@@ -161,10 +180,10 @@ class FormationEnvConfig(EnvConfig):
         render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
         episode_metrics_path: if set, every finished episode appends its formation metrics (one
             JSON line) to this file; see ``lerobot_formation.envs.episode_metrics``.
-        sensing_range, obstacle_memory, obstacle_noise, pose_noise, action_noise, action_delay,
-            max_linear_accel, max_angular_accel, moving_obstacles, obstacle_speed: realistic
-            conditions (``core.conditions.Conditions``, docs/conditions.md), all off by default, e.g.
-            ``--env.sensing_range=3 --env.action_delay=2``; the in-training evaluation uses them too.
+        the condition fields (``ConditionFields``: every field of ``core.conditions.Conditions``,
+            with its type, default and help, docs/conditions.md): realistic conditions, all off by
+            default, e.g. ``--env.sensing_range=3 --env.action_delay=2``; the in-training evaluation
+            uses them too.
         episode_metrics_exists: what to do when ``episode_metrics_path`` already holds an earlier
             run's lines: ``"error"`` (refuse at start-up, naming the file), ``"append"`` or
             ``"overwrite"``.
@@ -186,7 +205,7 @@ class FormationEnvConfig(EnvConfig):
     # obstacle_encoding (without a policy: grid, DEFAULT_OBSTACLE_ENCODING); another given one is an error.
     obstacle_encoding: str | None = None
     # A graded level (core/levels.py: 0..5): its scene preset and conditions, fixed; the condition fields
-    # and scene_preset below must then stay at their defaults. lerobot-eval --seed=1000000 plays its scenes.
+    # and scene_preset must then stay at their defaults. lerobot-eval --seed=1000000 plays its scenes.
     level: str | None = None
     # Scene distribution of seeded resets: paper, a wider preset (core/scene.py SCENE_PRESETS) or a
     # mixture of presets (SCENE_MIXES: structures, mixed-hard).
@@ -198,27 +217,6 @@ class FormationEnvConfig(EnvConfig):
     render_mode: str = "rgb_array"
     # If set, each finished episode appends its formation metrics as a JSON line to this file.
     episode_metrics_path: str | None = None
-    # Realistic conditions (core/conditions.py, docs/conditions.md); every default is off.
-    # [m] an obstacle is observed once some agent came within this range of its surface (None: all known).
-    sensing_range: float | None = None
-    # Keep obstacles once seen (false: only while within range).
-    obstacle_memory: bool = True
-    # [m] std of the per-step Gaussian noise on each observed obstacle's centre and radius.
-    obstacle_noise: float = 0.0
-    # [m] std of the per-step noise on the observed midpoint position (heading: the same in rad).
-    pose_noise: float = 0.0
-    # Std of the multiplicative noise on each executed command component (a fraction).
-    action_noise: float = 0.0
-    # [control steps] commands take effect this many steps late (the team holds still until then).
-    action_delay: int = 0
-    # [m/s^2] rate limit on the executed v (None: none).
-    max_linear_accel: float | None = None
-    # [rad/s^2] rate limit on the executed omega (None: none).
-    max_angular_accel: float | None = None
-    # How many of a scene's obstacles move at constant velocity, bouncing in the scene's bounds.
-    moving_obstacles: int = 0
-    # [m/s] their speed.
-    obstacle_speed: float = 0.0
     # If episode_metrics_path already holds an earlier run's lines: error (refuse), append or overwrite.
     episode_metrics_exists: str = "error"
     # Parallel tasks of a multi-task benchmark (LeRobot's EnvConfig field; one task here).

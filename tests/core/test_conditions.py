@@ -8,9 +8,12 @@ from helpers import Spy
 
 from lerobot_formation.core.conditions import (
     CONDITION_FIELDS,
+    CONDITION_TYPES,
     ZONE_RADIUS,
     Conditions,
     Perception,
+    condition_help,
+    condition_kind,
     obstacle_velocities,
     scene_bounds,
 )
@@ -43,7 +46,7 @@ class Straight:
 
 
 def test_validation_names_field_and_value():
-    assert CONDITION_FIELDS[0] == "sensing_range" and len(CONDITION_FIELDS) == 10
+    assert CONDITION_FIELDS[0] == "sensing_range" and "obstacle_speed" in CONDITION_FIELDS
     assert not Conditions().enabled and Conditions(action_delay=1).enabled
     assert Conditions(pose_noise=0.1).changed() == {"pose_noise": 0.1}
     for kwargs, words in (
@@ -55,9 +58,39 @@ def test_validation_names_field_and_value():
         (dict(moving_obstacles=2), "needs obstacle_speed > 0"),
         (dict(max_linear_accel=-1.0), "max_linear_accel"),
         (dict(obstacle_memory="yes"), "obstacle_memory must be true or false"),
+        (dict(action_delay=1001), "action_delay must be <= 1000 control steps, got 1001"),
+        (dict(obstacle_speed=None), "obstacle_speed must be a finite number >= 0, got None"),
     ):
         with pytest.raises(ValueError, match=words.replace("(", r"\(")):
             Conditions(**kwargs)
+
+
+def test_each_condition_is_declared_once_with_its_help_and_bounds():
+    """Every field of ``Conditions`` carries its help, unit and bounds (``condition``), which the env
+    config and the CLI flags show and ``__post_init__`` checks; its kind is its annotation."""
+    off = Conditions()
+    for name in CONDITION_FIELDS:
+        meta = Conditions.__dataclass_fields__[name].metadata
+        assert meta["help"].strip() and meta["help"] in condition_help(name)
+        if meta["unit"]:
+            assert condition_help(name).startswith(f"[{meta['unit']}] ")
+        kind = condition_kind(name)
+        assert kind in (bool, int, float)
+        default = getattr(off, name)
+        assert default is None or type(default) is kind, name
+        if default is None:
+            assert type(None) in getattr(CONDITION_TYPES[name], "__args__", ())
+        for bound, bad in (("gt", 0), ("ge", -1)):  # at a strict bound, or one below an inclusive one
+            if meta[bound] is not None:
+                value = kind(meta[bound] + bad)
+                with pytest.raises(ValueError, match=f"conditions: {name} must be .* got {value!r}"):
+                    Conditions(**{name: value})
+        if meta["le"] is not None:
+            with pytest.raises(ValueError, match=f"conditions: {name} must be <= {meta['le']}"):
+                Conditions(**{name: kind(meta["le"] + 1)})
+        if kind is not bool:
+            with pytest.raises(ValueError, match=f"conditions: {name} must be .*, got 'x'"):
+                Conditions(**{name: "x"})
 
 
 @pytest.mark.parametrize("memory", [True, False])
