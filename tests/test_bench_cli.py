@@ -33,6 +33,24 @@ def test_bench_pac_and_mppi_write_results_tables_and_figures(tmp_path):
     assert "midpoint to the nearest obstacle surface" in tables and "does not define" in tables
 
 
+def test_jobs_run_controllers_side_by_side_with_the_numbers_of_one_by_one(tmp_path, capsys):
+    """--jobs 2: each controller whole in a forked process; the same episodes, in the order asked for,
+    and the records come back for the figures."""
+    common = ["--controllers", "route-pursuit,pac,mppi", "--scenes", "level5:3", "--no-progress"]
+    assert main([*common, "--out", str(tmp_path / "one"), "--no-figures"]) == 0
+    assert main([*common, "--out", str(tmp_path / "two"), "--jobs", "2"]) == 0
+    one, two = (
+        json.loads((tmp_path / d / "results.json").read_text())["by_scenes"]["level5"] for d in ("one", "two")
+    )
+    assert list(two) == ["route-pursuit", "pac", "mppi"]
+    for name in one:
+        assert one[name]["episodes"] == two[name]["episodes"]
+    assert (tmp_path / "two" / "mppi_level5_trajectories.png").is_file()
+    with pytest.raises(SystemExit):
+        main([*common, "--out", str(tmp_path / "bad"), "--jobs", "0"])
+    assert "--jobs must be >= 1, got 0" in capsys.readouterr().err
+
+
 def test_scenes_file_and_dataset_spec(tmp_path):
     save_scenes(sample_scenes([7, 8]), tmp_path / "s.json")
     assert len(parse_scenes(str(tmp_path / "s.json"), 0)) == 2

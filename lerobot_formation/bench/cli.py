@@ -96,42 +96,98 @@ def run_set(
     records: dict | None = None,
     conditions: Conditions | None = None,
     indices=None,
+    jobs: int = 1,
 ) -> dict:
     """Run the controllers ``names`` on ``scenes`` under ``conditions``; each finished controller's
     entry is put into ``into`` (default: a new dict, returned) at once, so a later failure keeps it.
     ``records``: a dict that also receives each controller's ``EpisodeRecords`` (for the figures, drawn
     after the results are written: ``bench_figures.draw_bench_figures``). ``indices``: each scene's
-    index in its whole scene set (a shard's), default 0..len-1."""
+    index in its whole scene set (a shard's), default 0..len-1. ``jobs`` > 1: controllers run at the
+    same time in that many forked processes (the same numbers as one after another)."""
     results = into if into is not None else {}
     spec = (settings.unseen if label == "unseen" else settings.scenes) or ""
     # the controllers know this set's conditions (the unseen set has its own) and whether its obstacles move
     moving = scenes.velocities is not None and bool(np.any(scenes.velocities))
     options = dataclasses.replace(settings.options, conditions=conditions, scenes_move=moving)
-    for name in names:
-        t0 = time.perf_counter()
-        try:
-            ctrl = make_controller(name, params, options, bundle)
-        except ValueError as e:
-            raise BenchInputError(f"controller {name}: {e}") from e
-        rec = evaluate(
-            ctrl, scenes, params, progress=settings.progress, desc=f"{name} ({label})", conditions=conditions
-        )
-        entry = controller_results(rec, scenes, indices)
-        entry["wall_time_s"] = time.perf_counter() - t0
-        if getattr(ctrl, "stats", None):  # the safety layer's interventions
-            entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
-        entry["scenes"] = label
-        entry["figures"] = []
+    work = (
+        scenes,
+        params,
+        options,
+        bundle,
+        settings.progress,
+        label,
+        spec,
+        conditions,
+        indices,
+        records is not None,
+    )
+    if jobs > 1 and len(names) > 1:
+        finished = _run_in_processes(names, work, jobs)
+    else:
+        finished = (_run_controller(name, work) for name in names)
+    for name, entry, rec in finished:
         if records is not None:
             records[name] = rec
         results[name] = entry
-        lo, hi = entry["success_ci95"]
-        print(  # the set by its spec (random:50, hard:20, dataset:100): "unseen" is not what it is
-            f"[{spec or label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
-            f"({collisions_text(entry)}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
-            flush=True,
-        )
+    for name in [n for n in names if n in results]:  # the order asked for, whatever finished first
+        results[name] = results.pop(name)
     return results
+
+
+def _run_controller(name: str, work: tuple) -> tuple[str, dict, object]:
+    """(name, results entry, episode records or None) of one controller on one scene set; prints its line."""
+    scenes, params, options, bundle, progress, label, spec, conditions, indices, keep = work
+    t0 = time.perf_counter()
+    try:
+        ctrl = make_controller(name, params, options, bundle)
+    except ValueError as e:
+        raise BenchInputError(f"controller {name}: {e}") from e
+    rec = evaluate(ctrl, scenes, params, progress=progress, desc=f"{name} ({label})", conditions=conditions)
+    entry = controller_results(rec, scenes, indices)
+    entry["wall_time_s"] = time.perf_counter() - t0
+    if getattr(ctrl, "stats", None):  # the safety layer's interventions
+        entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
+    entry["scenes"] = label
+    entry["figures"] = []
+    lo, hi = entry["success_ci95"]
+    print(  # the set by its spec (random:50, hard:20, dataset:100): "unseen" is not what it is
+        f"[{spec or label}] {name}: success {entry['success_rate']:.1%} [{lo:.0%}, {hi:.0%}] of {entry['n_episodes']} "
+        f"({collisions_text(entry)}, timeouts {entry['timeouts']}) in {entry['wall_time_s']:.1f} s",
+        flush=True,
+    )
+    return name, entry, rec if keep else None
+
+
+def cost_rank(name: str) -> int:
+    """A rough order of a controller's CPU time per scene, to start the longest first with --jobs:
+    K samples per replan (best-of-K, the safety layer) above one sample or MPPI above the rest."""
+    if name.endswith(("-safe", "-bestof")):
+        return 2
+    return 1 if name == "mppi" or needs_policy(name) else 0
+
+
+_WORK: tuple | None = None  # what the forked workers of _run_in_processes run on (inherited, not pickled)
+
+
+def _run_in_work(name: str) -> tuple[str, dict, object]:
+    return _run_controller(name, _WORK)
+
+
+def _run_in_processes(names, work: tuple, jobs: int):
+    """Yield each controller's (name, entry, records) as it finishes, from ``jobs`` forked processes
+    (each controller whole in one process, the costliest started first), so every number is what a
+    run with --jobs 1 gives: a controller's episodes, noise streams and batches do not depend on it."""
+    import multiprocessing
+
+    global _WORK
+    _WORK = work
+    order = sorted(names, key=cost_rank, reverse=True)
+    context = multiprocessing.get_context("fork")  # the loaded policy and scenes are inherited
+    try:
+        with context.Pool(min(jobs, len(order))) as pool:
+            yield from pool.imap_unordered(_run_in_work, order, chunksize=1)
+    finally:
+        _WORK = None
 
 
 DESCRIPTION = """\
@@ -277,6 +333,14 @@ def build_parser() -> argparse.ArgumentParser:
         "seed gives the same initial noise on any device (default: %(default)s)",
     )
     add_threads_argument(speed, "torch threads of the diffusion controllers")
+    speed.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="run up to N controllers at the same time, each in its own process with --threads threads "
+        "(the same numbers as --jobs 1; N x --threads should not exceed the cores) (default: %(default)s)",
+    )
     return ap
 
 
@@ -368,6 +432,8 @@ def _write_or_fail(out: Path, results: dict, label: str, settings: BenchSettings
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        _fail(f"--jobs must be >= 1, got {args.jobs}")
     try:
         shard = parse_shard(args.shard)
         level = scene_set_level(args.scenes)
@@ -504,7 +570,19 @@ def main(argv: list[str] | None = None) -> int:
     recorded["resumed"] = resumed
     try:
         into = None if records is None else records[label]
-        run_set(todo, scenes, params, settings, label, bundle, results[label], into, conditions, indices)
+        run_set(
+            todo,
+            scenes,
+            params,
+            settings,
+            label,
+            bundle,
+            results[label],
+            into,
+            conditions,
+            indices,
+            args.jobs,
+        )
         if unseen is not None and diffusion:
             results.setdefault("unseen", {})
             into = None if records is None else records["unseen"]
@@ -519,6 +597,7 @@ def main(argv: list[str] | None = None) -> int:
                 into,
                 unseen_conditions,
                 unseen_indices,
+                args.jobs,
             )
     except BaseException as e:  # keep what finished, then report: one line for bad input, else the traceback
         done = [f"{k}/{c}" for k, v in results.items() for c in v]

@@ -17,6 +17,7 @@ times the two beside each other)."""
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -29,6 +30,8 @@ from lerobot_formation.core.scene import UNSEEN_SEED_START
 PRETRAINED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"
 CONTROLLERS = "pac,mppi,diffusion,diffusion-safe"
 SCENES = "level5:7"
+# the controllers run two at a time on a machine with two cores or more (the same numbers as one by one)
+JOBS = min(2, os.cpu_count() or 1)
 FOCUS = "diffusion-safe"  # the controller whose own figures the demo draws (the default with its layer)
 ALL_FIGURES = "--all-figures"
 # the demo's arguments before it was cut to 30 s (about 70 s): the default (standard sampling and
@@ -60,6 +63,7 @@ def default_arguments() -> list[str]:
             "--policy.path", str(PRETRAINED),
             "--scenes", SCENES,
             "--out", "outputs/demo",
+            "--jobs", str(JOBS),
         ]  # fmt: skip
     print(f"demo: no pretrained default at {PRETRAINED}; running PAC and MPPI only")
     return ["--controllers", "pac,mppi", "--scenes", SCENES, "--out", "outputs/demo"]
