@@ -1,7 +1,8 @@
 """Dataset generation: the full PAC dataset (default 1878 episodes), and the episode-buffer writer
 against LeRobot's plain per-frame ``add_frame`` loop on the same episodes.
 
-Run: ``python benchmarks/bench_dataset.py [--episodes 1878] [--write-episodes 200]``.
+Run: ``python benchmarks/bench_dataset.py [--episodes 1878] [--write-episodes 200]``
+(``--episodes 2 --write-episodes 2`` is a smoke run).
 The last line is the figure: the whole dataset's time, and the writer speed-up ratio.
 """
 
@@ -46,11 +47,11 @@ def write_only(episodes, root: Path, fast: bool) -> float:
     return time.perf_counter() - t0
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--episodes", type=int, default=PAPER_EPISODES)
     ap.add_argument("--write-episodes", type=int, default=200, help="episodes for the writer comparison")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="bench_dataset_"))
     try:
         # 1. The whole dataset, as the CLI makes it.

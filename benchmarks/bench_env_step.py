@@ -5,8 +5,8 @@ Both include the followers' 1 ms sub-stepping (100 inner steps per 0.1 s control
 observation and the collision/success checks. "Every condition on" is sensing range, obstacle and
 pose noise, action noise and delay, both rate limits and moving obstacles (``ALL_ON``), with the same
 actions and the same obstacle encoding as "off". Run: ``python benchmarks/bench_env_step.py``
-(``--skip-loop``: only the conditions comparison). The last line is the conditions figure: step cost
-with every condition on / off (target <= 1.5x).
+(``--skip-loop``: only the conditions comparison; ``--batch 4 --steps 2 --repeats 1`` is a smoke run).
+The last line is the conditions figure: step cost with every condition on / off (target <= 1.5x).
 """
 
 from __future__ import annotations
@@ -50,14 +50,14 @@ def vector_steps_per_s(
     return B * len(actions) / best
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of the conditions comparison (best)")
     ap.add_argument("--encoding", default="grid", help="obstacle encoding of the conditions comparison")
     ap.add_argument("--skip-loop", action="store_true", help="skip the per-scene FormationEnv loop")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     B, T = args.batch, args.steps
     rng = np.random.default_rng(0)
     actions = rng.uniform([0.2, -0.5], [0.6, 0.5], size=(T, B, 2)).astype(np.float32)

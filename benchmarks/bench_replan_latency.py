@@ -143,13 +143,12 @@ def engine_replan_s(ctrl, n: int, repeats: int) -> float:
     scenes = sample_scenes(UNSEEN_SEED_START + np.arange(n))
     from lerobot_formation.core.conditions import Perception
 
-    ctrl.reset(Perception.exact(scenes, initial_state(scenes.start)))
+    view = Perception.exact(scenes, initial_state(scenes.start, ctrl.params))  # what the engine passes
     idx = np.arange(n)
-    state = initial_state(scenes.start, ctrl.params)
 
     def replan():
-        ctrl.reset(scenes)
-        ctrl.act(state, idx)
+        ctrl.reset(view)
+        ctrl.act(view, idx)
 
     return median_seconds(replan, repeats)
 
@@ -236,11 +235,14 @@ def unet_call_ms(policy, repeats: int) -> tuple[float, float, float]:
 def lean_part(path: str, candidates: list[int], steps: list[int], repeats: int) -> str:
     """Print part (c); return its headline (K=1 at steps[0], trace against eager)."""
     from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
+    from lerobot_formation.policy.configuration_formation_diffusion import LAYER_OFF
 
     policy = load_policy(path)[0]
+    # the sampler alone, unguided like the stock conditional_sample (guidance runs only in lean / trace)
+    policy.reconfigure(**LAYER_OFF)
     cfg = policy.config
     print(
-        f"(c) lean inference, {path} (down_dims {list(cfg.down_dims)}, horizon {cfg.horizon}), one replan "
+        f"(c) lean inference, {path} (down_dims {list(cfg.down_dims)}, horizon {cfg.horizon}, unguided), one replan "
         f"at B=1, median of {repeats} rounds; ms (speed-up over eager):"
     )
     eager_unet, traced_unet, build = unet_call_ms(policy, 10 * repeats)

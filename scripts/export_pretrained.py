@@ -17,11 +17,11 @@ import os
 import shutil
 from pathlib import Path
 
-from safetensors.torch import load_file, save_file
 
-
-def main() -> None:
-    ap = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("checkpoint", type=Path)
     ap.add_argument("dest", type=Path)
     ap.add_argument("--dataset.root", dest="dataset_root", required=True)
@@ -29,7 +29,7 @@ def main() -> None:
         "--card", type=Path, default=None, help="markdown with measured results for the model card"
     )
     ap.add_argument("--scenes", type=int, default=100)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     ckpt = args.checkpoint
     if not (ckpt / "model.safetensors").is_file():
         raise SystemExit(f"error: {ckpt} has no model.safetensors")
@@ -43,6 +43,8 @@ def main() -> None:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
+        from safetensors.torch import load_file, save_file  # torch: after the arguments (--help stays quick)
+
         state = load_file(ckpt / "model.safetensors")
         ema = {k.removeprefix("ema_"): v for k, v in state.items() if k.startswith("ema_diffusion.")}
         if not ema:

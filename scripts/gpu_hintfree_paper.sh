@@ -22,6 +22,16 @@
 # 90 s, that the packages import and the device exists, and stops there if not.
 set -uo pipefail
 cd "$(dirname "$0")/.."
+case "${1:-}" in
+  -h|--help)
+    echo "usage: scripts/gpu_hintfree_paper.sh OUT_DIR [BUDGET_S]"
+    echo
+    # the comment at the top of this file, up to the first line of code
+    awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' scripts/gpu_hintfree_paper.sh
+    exit 0
+    ;;
+  -*) echo "usage: scripts/gpu_hintfree_paper.sh OUT_DIR [BUDGET_S] (--help: what it does)" >&2; exit 2 ;;
+esac
 OUT=${1:?usage: scripts/gpu_hintfree_paper.sh OUT_DIR [BUDGET_S]}
 BUDGET=${2:-540}
 T0=$(date +%s)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One entry point for a fresh machine: creates .venv (Python >= 3.12, found by itself), installs the
-# project, then runs a job.
+# project, then runs a job (scripts/run.sh --help: this text).
 #   scripts/run.sh demo   - the main job on the built-in default (no dataset, GPU or network)
 #   scripts/run.sh test   - lint + the fast test tier (slow tests skipped)
 #   scripts/run.sh test -m slow - lint + only the slow tier (benchmark-like tests); other args go to pytest
@@ -156,5 +156,11 @@ case "$cmd" in
     # the 25 slowest tests after the summary (-rfE: failures and errors in it even under -q)
     .venv/bin/python -m pytest --durations=25 -rfE "$@"
     ;;
-  *) echo "usage: scripts/run.sh {demo|test|setup} [args]" >&2; exit 2 ;;
+  -h|--help)
+    echo "usage: scripts/run.sh {demo|test|setup} [args]"
+    echo
+    # the comment at the top of this file, up to the first line of code
+    awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' scripts/run.sh
+    ;;
+  *) echo "usage: scripts/run.sh {demo|test|setup} [args] (--help: what each does)" >&2; exit 2 ;;
 esac
