@@ -176,7 +176,7 @@ def layer_note(recorder, b: int, t: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench import level_report
-    from lerobot_formation.bench.controllers import needs_policy
+    from lerobot_formation.bench.controllers import runs_replanner
     from lerobot_formation.core.levels import get_level
     from lerobot_formation.core.rollout import COLLISION, SUCCESS
 
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--trace takes episodes 0 .. {args.scenes - 1} of this run, got {bad}")
         if args.trace_steps < 1:
             raise ValueError(f"--trace-steps must be >= 1, got {args.trace_steps}")
-        layer = bool(args.trace) and needs_policy(args.controller)  # a replanner to record
+        layer = bool(args.trace) and runs_replanner(args.controller)  # a replanner to record
         wrap = level_report.recording_replanner if layer else None
         run = level_report.run_flags(args.controller, wrap, **settings)
     except ValueError as e:  # a bad level name, a missing checkpoint path, a bad trace

@@ -178,3 +178,18 @@ def test_the_checker_sees_imports():
     assert "core.dynamics" in imports("core.rollout")
     assert "policy.replanner" in imports("policy.modeling_formation_diffusion")
     assert "core.route_encoding" in imports("core.obstacle_grid")  # the registry string
+
+
+def test_the_safety_layer_is_one_unit_of_the_core():
+    """The replanner calls the safety layer (``core.safety_layer``), none of its insides; the layer is
+    NumPy only and imports nothing above the core; the layer's baselines around route pursuit
+    (``bench.layer_controller``) read no checkpoint."""
+    assert "core.safety_layer" in imports("policy.replanner")
+    insides = {"core.guidance", "core.obstacle_filter", "core.obstacle_tracker", "core.route_pursuit"}
+    assert not insides & imports("policy.replanner")
+    deps = imports("core.safety_layer")
+    assert all(layer(d) == "core" for d in deps if not d.startswith("!"))
+    assert not {d[1:] for d in deps if d.startswith("!")} & FOREIGN["core"]
+    assert not {"policy.checkpoint", "policy.modeling_formation_diffusion"} & imports(
+        "bench.layer_controller"
+    )

@@ -13,10 +13,11 @@ the policy's ``Replanner`` with the checkpoint's config and, for K and the filte
 The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
 limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
-never its noise draws. "route-pursuit-safe" runs a checkpoint's safety layer without its network: the
-candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows);
-"route-pursuit-guided" runs route pursuit's chunk moved by the checkpoint's clearance guidance, one
-chunk per replan as "diffusion-guided" samples (the baseline of the guided rows).
+never its noise draws. "route-pursuit-safe" runs the safety layer with no network and no checkpoint
+(``bench.layer_controller``; the shipped default's settings, ``core.safety_layer.SafetySettings()``):
+the candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows);
+"route-pursuit-guided" runs route pursuit's chunk moved by the same settings' clearance guidance,
+one chunk per replan as "diffusion-guided" samples (the baseline of the guided rows).
 """
 
 from __future__ import annotations
@@ -29,46 +30,26 @@ from lerobot_formation.bench.settings import ControllerOptions
 from lerobot_formation.core.conditions import Conditions
 from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.rollout import PACController
+from lerobot_formation.core.safety_layer import SafetySettings, known_world
 
 
 def safety_settings(conditions: Conditions | None, scenes_move: bool = False) -> dict:
-    """The policy config fields of the safety layer's knowledge of a run under ``conditions``: the
-    actuator's delay and acceleration limits, the sensors' noise stds, and whether obstacles move (then it predicts the
-    observed ones at their velocities): ``moving_obstacles`` of the conditions, or ``scenes_move``
-    (the scenes give their obstacles' ``velocities``, as a scenes file may). Empty when neither
-    conditions nor moving scenes."""
-    settings = {}
-    if conditions is not None and conditions.enabled:
-        settings = {
-            "safety_action_delay": conditions.action_delay,
-            "safety_max_linear_accel": conditions.max_linear_accel,
-            "safety_max_angular_accel": conditions.max_angular_accel,
-            "safety_obstacle_noise": conditions.obstacle_noise,
-            "safety_pose_noise": conditions.pose_noise,
-            "safety_moving_obstacles": conditions.moving_obstacles > 0,
-        }
-    if scenes_move:
-        settings["safety_moving_obstacles"] = True
-    return settings
+    """The policy config fields of the safety layer's knowledge of a run under ``conditions``
+    (``core.safety_layer.known_world``): the actuator's delay and acceleration limits, the sensors'
+    noise stds, and whether obstacles move (then it predicts the observed ones at their velocities):
+    ``moving_obstacles`` of the conditions, or ``scenes_move`` (the scenes give their obstacles'
+    ``velocities``, as a scenes file may). Empty when neither conditions nor moving scenes."""
+    return SafetySettings.config_fields(**known_world(conditions, scenes_move))
 
 
-def _diffusion(
-    safety_filter: str | None, best_of_k: bool | None, sampled: bool = True, guided: bool | None = None
-):
+def _diffusion(safety_filter: str | None, best_of_k: bool | None, guided: bool | None = None):
     """A factory of a diffusion controller with the filter ``safety_filter`` and K = --candidates
-    (``best_of_k``) or 1; None for both: the checkpoint's own settings. ``sampled=False``: the
-    checkpoint's safety layer around route pursuit, its network never called
-    (``ReplanExperiment.sampled``). ``guided``: False samples without clearance guidance, True with
+    (``best_of_k``) or 1; None for both: the checkpoint's own settings. ``guided``: False samples without clearance guidance, True with
     the checkpoint's ``sampling_guidance``, or where it has none ``TUNED_SAMPLING_GUIDANCE`` (chosen on
     tuning seeds), None as the checkpoint says."""
 
     def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
         from lerobot_formation.bench.diffusion_controller import DiffusionController
-        from lerobot_formation.policy.replanner import ReplanExperiment
-
-        experiment = options.experiment
-        if not sampled:
-            experiment = dataclasses.replace(experiment or ReplanExperiment(), sampled=False)
 
         overrides = {}
         if safety_filter is not None:
@@ -94,9 +75,41 @@ def _diffusion(
             device=options.device,
             policy_bundle=bundle,
             overrides={**overrides, **options.overrides},
-            experiment=experiment,
+            experiment=options.experiment,
             name=name,
         )
+
+    return factory
+
+
+def _layer_alone(safety_filter: str, best_of_k: bool):
+    """A factory of the safety layer around route pursuit's chunk, no network and no checkpoint
+    (``bench.layer_controller.SafetyLayerController``): the shipped default's settings
+    (``SafetySettings()``, ``PlanSettings()``) with the filter ``safety_filter``, K = --candidates
+    (``best_of_k``) or 1 (then the proposal moved by the clearance guidance), told the run's world
+    (``known_world``); ``options.overrides`` (policy config fields) of the layer's settings and of the
+    plan's apply, the others (a network's) have nothing to act on."""
+
+    def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
+        from lerobot_formation.bench.layer_controller import SafetyLayerController
+        from lerobot_formation.policy.replanner import PlanSettings
+
+        overrides = options.overrides
+        safety = SafetySettings(
+            **{
+                "filter": safety_filter,
+                **known_world(options.conditions, options.scenes_move),
+                **SafetySettings.from_config_fields(overrides),
+            }
+        )
+        plan_fields = {f.name for f in dataclasses.fields(PlanSettings)}
+        plan = PlanSettings(
+            **{
+                "num_candidates": options.candidates if best_of_k else 1,
+                **{k: v for k, v in overrides.items() if k in plan_fields},
+            }
+        )
+        return SafetyLayerController(safety, plan, options.experiment, params, name)
 
     return factory
 
@@ -132,11 +145,11 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "diffusion-cbf": _diffusion("cbf", best_of_k=False),  # one sample, CBF filter on every action
     "diffusion-safe": _diffusion("cbf", best_of_k=True),  # best-of-K and the CBF filter
     "diffusion-policy": _diffusion(None, None),  # the checkpoint's config as stored
-    # the baseline of "diffusion-safe": its whole safety layer (the checkpoint's settings, K's check,
-    # escapes, filter, recheck) around route pursuit's proposal, the network never sampled
-    "route-pursuit-safe": _diffusion("cbf", best_of_k=True, sampled=False),
+    # the baseline of "diffusion-safe": its whole safety layer (the shipped default's settings, K's
+    # check, escapes, filter, recheck) around route pursuit's proposal, no network, no checkpoint
+    "route-pursuit-safe": _layer_alone("cbf", best_of_k=True),
     # the baseline of "diffusion-guided": route pursuit's chunk moved by the same clearance guidance
-    "route-pursuit-guided": _diffusion("none", best_of_k=False, sampled=False, guided=True),
+    "route-pursuit-guided": _layer_alone("none", best_of_k=False),
 }
 # One line per controller for the command lines' --help (``controller_summary``); a controller
 # registered without one is listed by its factory.
@@ -154,8 +167,8 @@ CONTROLLER_SUMMARIES: dict[str, str] = {
     "route-pursuit-safe": "diffusion-safe's safety layer around route pursuit, no network",
     "route-pursuit-guided": "route pursuit moved by diffusion-guided's clearance guidance",
 }
-# Controllers that read a checkpoint (--policy.path) without a "diffusion" name: its safety settings
-SAFETY_LAYER_BASELINES = ("route-pursuit-safe", "route-pursuit-guided")
+# The safety layer's baselines: a Replanner around route pursuit, no checkpoint (``_layer_alone``)
+LAYER_BASELINES = ("route-pursuit-safe", "route-pursuit-guided")
 CONTROLLERS = tuple(CONTROLLER_FACTORIES)
 
 
@@ -176,9 +189,15 @@ def controller_summary(name: str) -> str:
 
 
 def needs_policy(name: str) -> bool:
-    """Whether controller ``name`` runs a diffusion checkpoint (``--policy.path``): its network, or
-    only its safety layer's settings (``SAFETY_LAYER_BASELINES``)."""
-    return name.startswith("diffusion") or name in SAFETY_LAYER_BASELINES
+    """Whether controller ``name`` runs a diffusion checkpoint (``--policy.path``): the ``diffusion``
+    ones; the safety layer's baselines (``LAYER_BASELINES``) need none."""
+    return name.startswith("diffusion")
+
+
+def runs_replanner(name: str) -> bool:
+    """Whether controller ``name`` runs a ``Replanner`` (a safety layer whose events a report may
+    record): the diffusion ones and the layer's baselines (``LAYER_BASELINES``)."""
+    return needs_policy(name) or name in LAYER_BASELINES
 
 
 def make_controller(name: str, params: FormationParams, options: ControllerOptions, bundle=None):

@@ -33,7 +33,7 @@ from lerobot_formation.core.dynamics import FormationParams
 from lerobot_formation.core.observation import STATE_DIM, observe_perception
 from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
-from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, check_observation
+from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, check_observation, policy_sampler
 
 logger = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ class DiffusionController:
         self.policy, self.pre, self.post = policy_bundle or load_policy(path, device)
         set_inference_steps(self.policy, num_inference_steps)
         self.config = dataclasses.replace(self.policy.config, **(overrides or {}))
-        self.replanner = Replanner(self.policy, self.config, experiment)
+        self.replanner = Replanner.from_config(self.config, policy_sampler(self.policy), experiment)
         self.name = name
         self.seed = seed
         self.params = params or FormationParams()

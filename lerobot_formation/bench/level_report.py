@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_formation.core.levels import TUNING_SEED_START
+from lerobot_formation.core.safety_layer import SafetySettings
 
 
 @dataclass
@@ -126,7 +127,7 @@ def recording_replanner(base, max_steps: int):
 
         def _replan(self, need, view, stacked, noise):
             idx = need.cpu().numpy()
-            cut = (self.has_last[need] & (self.executed[need] < self.config.n_action_steps)).cpu().numpy()
+            cut = (self.has_last[need] & (self.executed[need] < self.settings.n_action_steps)).cpu().numpy()
             self._need = idx
             self.events["replan"][idx, self.step] = ~cut
             self.events["replan_cut"][idx, self.step] = cut
@@ -146,7 +147,8 @@ def recording_replanner(base, max_steps: int):
             self.events["filter"][self._rows, self.step] = changed
             return filtered, changed
 
-    out = RecordingReplanner(base.policy, base.config, base.experiment)
+    out = RecordingReplanner(base.settings, base.layer.settings, base.sampler, base.experiment)
+    out.config = base.config
     out.step, out.events = -1, None
     return out
 
@@ -179,39 +181,33 @@ def safety_overrides(
     mover_uncertainty: float | None = None,
     halt_lookahead: int | None = None,
 ) -> dict:
-    """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's):
-    ``safety_margin``; ``safety_follower_margin`` (0: no follower allowance); ``layer_ignores_noise``:
-    the layer is not told the sensing noise (no smoothing); ``layer_ignores_motion``: not told that
-    obstacles move; ``safety_route_proposal``, ``safety_route_lookahead`` (off and 0: neither route
-    pursuit's proposal nor its lookahead), ``safety_coherence`` (0: progress alone),
-    ``safety_proposal_blend`` (0: the proposal as computed), ``chunk_smoothing`` (0: the samples as
-    drawn; it acts with K = 1 too), ``safety_mover_uncertainty`` (0: a mover's prediction as exact),
-    ``safety_halt_lookahead`` (0: no braking check). The fields' docs are
-    ``FormationDiffusionConfig``'s."""
-    out = {}
-    if safety_margin is not None:
-        out["safety_margin"] = safety_margin
-    if follower_margin is not None:
-        out["safety_follower_margin"] = follower_margin
+    """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's),
+    through the one mapping of the layer's settings to config fields
+    (``core.safety_layer.SafetySettings.config_fields``): ``safety_margin`` (the settings' ``margin``);
+    ``follower_margin`` (0: no follower allowance); ``layer_ignores_noise``: the layer is not told
+    the sensing noise (no smoothing); ``layer_ignores_motion``: not told that obstacles move;
+    ``route_proposal``, ``route_lookahead`` (off and 0: neither route pursuit's proposal nor its
+    lookahead), ``coherence`` (0: progress alone), ``proposal_blend`` (0: the proposal as computed),
+    ``chunk_smoothing`` (0: the samples as drawn; it acts with K = 1 too), ``mover_uncertainty`` (0:
+    a mover's prediction as exact), ``halt_lookahead`` (0: no braking check). The settings' docs are
+    ``SafetySettings``'."""
+    given = {
+        "margin": safety_margin,
+        "follower_margin": follower_margin,
+        "route_proposal": route_proposal,
+        "route_lookahead": route_lookahead,
+        "coherence": coherence,
+        "proposal_blend": proposal_blend,
+        "chunk_smoothing": chunk_smoothing,
+        "mover_uncertainty": mover_uncertainty,
+        "halt_lookahead": halt_lookahead,
+    }
+    settings = {name: value for name, value in given.items() if value is not None}
     if layer_ignores_noise:
-        out.update(safety_obstacle_noise=0.0, safety_pose_noise=0.0)
+        settings.update(obstacle_noise=0.0, pose_noise=0.0)
     if layer_ignores_motion:
-        out["safety_moving_obstacles"] = False
-    if route_proposal is not None:
-        out["safety_route_proposal"] = route_proposal
-    if route_lookahead is not None:
-        out["safety_route_lookahead"] = route_lookahead
-    if coherence is not None:
-        out["safety_coherence"] = coherence
-    if proposal_blend is not None:
-        out["safety_proposal_blend"] = proposal_blend
-    if chunk_smoothing is not None:
-        out["chunk_smoothing"] = chunk_smoothing
-    if mover_uncertainty is not None:
-        out["safety_mover_uncertainty"] = mover_uncertainty
-    if halt_lookahead is not None:
-        out["safety_halt_lookahead"] = halt_lookahead
-    return out
+        settings["moving_obstacles"] = False
+    return SafetySettings.config_fields(**settings)
 
 
 RUN_FLAGS = ("level", "scenes", "seed", "policy_path", "candidates", "max_steps", *SAFETY_FLAGS)

@@ -63,7 +63,7 @@ def _describe(features: dict[str, PolicyFeature] | None) -> str:
 
 
 # The clearance guidance of the bench's ``diffusion-guided`` where a checkpoint sets none: eta = 1 (with
-# the replanner's GUIDANCE_DISTANCE 0.3 m and one gradient step per denoising step), chosen on level3's
+# the safety layer's GUIDANCE_DISTANCE 0.3 m and one gradient step per denoising step), chosen on level3's
 # and level5's tuning scenes (docs/benchmark.md, "Clearance guidance").
 TUNED_SAMPLING_GUIDANCE = 1.0
 
@@ -134,7 +134,7 @@ class FormationDiffusionConfig(DiffusionConfig):
         num_candidates: K action chunks drawn per replan in one batched call; with K > 1 the safety
             layer keeps the best (``core.safety.select_chunk``: no predicted collision of the whole
             formation's footprint, then cost-to-go progress toward the goal on a 0.4 m grid read
-            bilinearly; the escape manoeuvres of ``policy.replanner.ESCAPE_SPEEDS`` where no sample is
+            bilinearly; the escape manoeuvres of ``core.safety_layer.ESCAPE_SPEEDS`` where no sample is
             safe, else the widest of every candidate scored), and at every step checks the rest of
             the kept chunk again on the newest view (``core.safety.plan_is_safe``), replanning at
             once where it fails. 10 (default, the shipped policy's); 1: the standard policy.
@@ -153,7 +153,7 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_moving_obstacles: the safety layer predicts every observed obstacle at constant
             velocity (best-of-K checks a chunk against where the obstacles will be, the filter's
             barrier counts their approach): the velocities the "nearest+velocity" encoding observes,
-            else those the replanner's tracker estimates from the observation history
+            else those the safety layer's tracker estimates from the observation history
             (``core.obstacle_tracker``). Off by default (obstacles stand still).
         safety_mover_uncertainty: u >= 0 [m/s]. With ``safety_moving_obstacles``, best-of-K grows a
             moving obstacle's predicted radius by u t at t seconds ahead (over the chunk and its route
@@ -224,7 +224,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             footprint against the observed obstacles (movers at their velocities; from the actuator's
             predicted start where the layer knows it): the commands change by -eta dJ/da, J the sum
             of 0.5 max(0, delta - clearance)^2 over steps, agents and obstacles, delta =
-            ``policy.replanner.GUIDANCE_DISTANCE`` (0.3 m), one gradient step per denoising step
+            ``core.safety_layer.GUIDANCE_DISTANCE`` (0.3 m), one gradient step per denoising step
             (``core.guidance``; cost guidance of diffusion planners). With K = 1 too: it shapes the
             sample itself, before best-of-K or the filter. Needs the lean or trace backend and DDIM.
             Default 1; 0: unguided sampling.

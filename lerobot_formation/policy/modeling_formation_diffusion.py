@@ -93,7 +93,13 @@ from lerobot_formation.core.obstacle_grid import get_encoding
 from lerobot_formation.core.route_pursuit import pursuit_chunk
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.obstacle_tokens import ObstacleTokenEncoder, token_layout
-from lerobot_formation.policy.replanner import Replanner, check_observation
+from lerobot_formation.policy.replanner import (
+    Replanner,
+    check_observation,
+    normalize_action,
+    policy_sampler,
+    unnormalize_action,
+)
 from lerobot_formation.policy.unet_inference import SMALL_BATCH_ROWS, inference_copy
 
 EMA_PREFIX = "ema_diffusion."
@@ -527,19 +533,12 @@ class FormationDiffusionPolicy(DiffusionPolicy):
                     sample[rows] = x
         return sample
 
-    def _action_scale(self) -> tuple[Tensor, Tensor]:
-        low = torch.tensor(self.config.action_low, dtype=torch.float32)
-        high = torch.tensor(self.config.action_high, dtype=torch.float32)
-        return low, high
-
     def unnormalize_action(self, action: Tensor) -> Tensor:
         """Normalised actions (..., 2) in [-1, 1] -> [v, omega] with the fixed bounds (MIN_MAX)."""
-        low, high = self._action_scale()
-        return (action.float().cpu() + 1) / 2 * (high - low) + low
+        return unnormalize_action(action)
 
     def normalize_action(self, action: Tensor) -> Tensor:
-        low, high = self._action_scale()
-        return (action.float() - low) / (high - low) * 2 - 1
+        return normalize_action(action)
 
     def reset(self):
         """LeRobot's reset (observation queues), and a fresh start of ``self.replanner`` (a new one, with
@@ -547,7 +546,8 @@ class FormationDiffusionPolicy(DiffusionPolicy):
         super().reset()
         replanner = getattr(self, "replanner", None)
         if replanner is None or replanner.config is not self.config:
-            self.replanner = Replanner(self, experiment=replanner.experiment if replanner else None)
+            experiment = replanner.experiment if replanner else None
+            self.replanner = Replanner.from_config(self.config, policy_sampler(self), experiment)
         else:
             replanner.reset()
 

@@ -1,56 +1,46 @@
 """The replan loop of a ``formation_diffusion`` policy: the one implementation that ``select_action``
 (so ``lerobot-eval``) and the engine's diffusion controller (``bench``) both run.
 
-A ``Replanner`` owns, per episode of a batch, the kept chunk (normalised, the whole predicted horizon
-from the step it was planned at), the position of the next action in it, the actions executed since
-that replan, the last executed action and the stats. ``act(rows, env_now, history)`` returns the next
-action (normalised) of the episodes ``rows``; an episode whose chunk is used up (``n_action_steps``
-actions ran), whose last action the filter changed, or (best-of-K) whose kept chunk no longer
-passes best-of-K's check on this step's view replans first:
+A ``Replanner`` keeps the plan bookkeeping and the sampling; the safety layer is a unit of its own in
+the numpy core (``core.safety_layer.SafetyLayer``), which the replanner calls with numpy arrays in
+physical units. It is given a sampler (a callable with the signature of
+``FormationDiffusionPolicy.sample_action_chunks``: the policy passes ``policy_sampler(policy)``), never
+the policy itself.
+
+Per episode of a batch it owns the kept chunk (normalised, the whole predicted horizon from the step
+it was planned at), the position of the next action in it, the actions executed since that replan and
+the last executed action; the layer owns its own per-episode state (commands in flight, trackers).
+``act(rows, env_now, history)`` returns the next action (normalised) of the episodes ``rows``; an
+episode whose chunk is used up (``n_action_steps`` actions ran), whose last action the filter changed,
+or (best-of-K) whose kept chunk no longer passes the layer's recheck on this step's view replans
+first:
 
 1. warm start (``warm_start_step`` j > 0): the unexecuted rest of the episode's last chunk, shifted to
    the new window and padded with its last action (``warm_start_guess``), is the guess every
-   candidate starts from at the sampler's j-th timestep, each with its own noise
-   (``FormationDiffusionPolicy.sample_action_chunks``); an episode's first replan samples from pure
-   noise;
-2. K = ``num_candidates`` candidates in one batched denoiser call; with ``sampling_guidance`` every
-   denoising step moves them away from the view's obstacles (``core.guidance``, ``_guide``);
+   candidate starts from at the sampler's j-th timestep, each with its own noise; an episode's first
+   replan samples from pure noise;
+2. K = ``num_candidates`` candidates in one batched sampler call; with the layer's ``guidance`` every
+   denoising step moves them away from the view's obstacles (``SafetyLayer.clearance_step``,
+   ``_guide``); ``chunk_smoothing`` smooths them;
 3. blending (``ReplanExperiment.blend_steps``, experiments only): the new chunks' first actions are
    blended from the last executed one (``core.replan_blend``);
-4. choice: with K > 1 the one scorer, ``core.safety.select_chunk`` (no predicted contact of the whole
-   formation's footprint with the observed obstacles, then cost-to-go progress on a
-   ``PROGRESS_RESOLUTION`` grid read bilinearly; escape manoeuvres of ``ESCAPE_SPEEDS`` when nothing
-   sampled is safe, else the widest of every candidate scored); with K = 1 the sample. A "nearest+route" policy may add route
-   pursuit's chunk from its route hint to the candidates (``safety_route_proposal``; with
-   ``safety_proposal_blend`` it enters from the last executed action) and have every
-   candidate followed by route pursuit in the check (``safety_route_lookahead``); with
-   ``safety_coherence`` the scorer prefers the safe candidate closest to the rest of the plan it
-   replaces (``warm_start_guess`` of it from the current step), unless the filter cut that plan short;
-5. filter (``safety_filter`` "cbf"): every executed action passes ``core.safety.cbf_filter``; an
+4. choice: with K > 1 the layer's best-of-K (``SafetyLayer.choose``: footprint check, cost-to-go
+   progress, route pursuit's proposal, escapes, coherence with the plan it replaces unless the
+   filter cut that plan short); with K = 1 the sample;
+5. filter (the layer's ``filter`` "cbf"): every executed action passes ``SafetyLayer.filter``; an
    episode whose action it changed replans at its next step (the plan met a barrier);
-6. recheck (K > 1): at each step before 1-5, the rest of the kept chunk is
-   checked again on the new view with best-of-K's own check (``core.safety.plan_is_safe``, with the
-   route lookahead); where it fails, the episode replans at once (a mover's estimated velocity and
-   the sensed obstacles change under a chunk in n_action_steps). A chunk kept where nothing was safe
-   (the widest fallback) is rechecked like any other, so such an episode replans at every step while
-   its rest still fails.
+6. recheck (K > 1): at each step before 1-5, the rest of the kept chunk is checked again on the new
+   view (``SafetyLayer.recheck``); where it fails, the episode replans at once. A chunk kept where
+   nothing was safe (the widest fallback) is rechecked like any other, so such an episode replans at
+   every step while its rest still fails.
 
-What the scorer and the filter see of an episode at a step is a ``SafetyView``, built once per step
-from the raw observation: the goal and obstacles of its ``nearest`` part; with
-``safety_moving_obstacles`` their velocities (the encoding's, else the estimates of the episode's
-``core.obstacle_tracker.ObstacleTracker``, which takes every step's observation); with a known
-actuator (``safety_action_delay``, ``safety_max_linear_accel`` / ``safety_max_angular_accel``)
-the ``core.safety.ChunkStart`` after the episode's commands in flight. For that the replanner keeps,
-per episode, the last ``safety_action_delay`` commands it sent (physical, clipped to the action
-bounds) and the velocity its actuator model executed last (``dynamics.rate_limit`` of the command
-that ran, action noise unknown). With a known sensing noise (``safety_obstacle_noise``,
-``safety_pose_noise``) the view's obstacles are smoothed over the steps (``core.obstacle_filter``,
-carried along with that executed velocity). All of it starts afresh with each episode (``start``).
+What the layer sees of an episode at a step is a ``core.safety_layer.SafetyView``, built once per
+step from the raw observation (``view``). All of it starts afresh with each episode (``start``).
 
-K, the filter, its margin and rate and the warm start come only from the
-policy config the replanner is given (the policy's own, or a copy made with ``dataclasses.replace``
-for a bench controller or an ablation row, which runs the config's checks). The settings of the
-ablation study that the shipped policy does not use are a ``ReplanExperiment``.
+The replanner's own settings are a ``PlanSettings`` and the layer's a ``core.safety_layer.SafetySettings``;
+``Replanner.from_config`` reads both from a policy config (the policy's own, or a copy made with
+``dataclasses.replace`` for a bench controller or an ablation row, which runs the config's checks).
+The settings of the ablation study that the shipped policy does not use are a ``ReplanExperiment``.
 """
 
 from __future__ import annotations
@@ -63,19 +53,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from lerobot_formation.core import guidance, safety
-from lerobot_formation.core.dynamics import FormationParams, rate_limit
-from lerobot_formation.core.obstacle_filter import ObstacleFilter
-from lerobot_formation.core.obstacle_grid import get_encoding
-from lerobot_formation.core.obstacle_tracker import ObstacleTracker
+from lerobot_formation.core import safety
 from lerobot_formation.core.replan_blend import blend_replan, smooth_chunks
-from lerobot_formation.core.route_pursuit import pursuit_chunk
+from lerobot_formation.core.safety_layer import (
+    SafetyLayer,
+    SafetySettings,
+    SafetyView,
+    action_bounds,
+)
 
-# The shipped layer's settings that are no config fields (``FormationDiffusionConfig``'s Args):
-ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6)  # [m/s] best-of-K's escape manoeuvres, each turn rate
-PROGRESS_RESOLUTION = 0.4  # [m] the cell of the cost-to-go grid best-of-K reads (bilinearly) progress on
-GUIDANCE_DISTANCE = 0.3  # [m] the clearance below which the sampling guidance's cost grows
-
+ACTION_DIM = 2  # [v, omega]
 STAT_KEYS = (
     "replans",
     "replans_none_safe",
@@ -86,6 +73,9 @@ STAT_KEYS = (
     "proposals",
     "rechecks_failed",
 )
+# a sampler: (normalised observation histories, K, noise=, warm_start=, warm_start_step=, warm_all=,
+# guide=) -> (B, K, chunk_length, 2) normalised chunks (``FormationDiffusionPolicy.sample_action_chunks``)
+Sampler = Callable[..., Tensor]
 
 
 @dataclass(frozen=True)
@@ -101,13 +91,12 @@ class ReplanExperiment:
             every safe sampled chunk's by that much.
         blocked_fallback: "widest" (the sampled chunk with the largest predicted clearance) or "stop"
             when nothing is safe (``core.safety.select_chunk``).
-        sampled: False: the network samples nothing; best-of-K's candidates are route pursuit's
-            proposal and the escapes, under the same check, filter and recheck. The safety layer
-            without the learned planner: the baseline the layer's rows are measured against (needs a
-            "nearest+route" config with ``safety_route_proposal``). With K = 1 and
-            ``sampling_guidance``, the plan is route pursuit's chunk moved by the sampler's clearance
-            guidance ``num_inference_steps`` times (the sampler's steps from noise; its warm-started
-            replans run ``warm_start_step`` fewer): the baseline of guided sampling.
+        sampled: False: nothing is sampled; best-of-K's candidates are route pursuit's proposal and
+            the escapes, under the same check, filter and recheck. The safety layer without the
+            learned planner: the baseline the layer's rows are measured against (needs a route
+            encoding with ``route_proposal``). With K = 1 and the layer's ``guidance``, the plan is
+            route pursuit's chunk moved by the clearance guidance ``PlanSettings.denoising_steps``
+            times: the baseline of guided sampling.
     """
 
     blend_steps: int = 0
@@ -126,47 +115,80 @@ class ReplanExperiment:
             )
 
 
-@functools.cache
-def safety_geometry() -> tuple[np.ndarray, float, float]:
-    """The formation template (N, 2), dt and agent radius the safety layer assumes: the env's defaults
-    (built once: ``FormationParams`` checks the graph's rigidity, ~0.7 ms, at every construction)."""
-    params = FormationParams()
-    template = np.asarray(params.graph.template)
-    template.flags.writeable = False
-    return template, params.dt, params.agent_radius
-
-
-@functools.cache
-def _escape_lattice(speeds: tuple[float, ...]) -> np.ndarray:
-    """``core.safety.escape_primitives`` of a config's speeds, built once per lattice."""
-    lattice = safety.escape_primitives(speeds)
-    lattice.flags.writeable = False
-    return lattice
-
-
 @dataclass(frozen=True)
-class SafetyView:
-    """What the safety layer sees of B episodes at one step (module docstring): goal (B, 2),
-    obstacles (B, M, 3) and mask (B, M) in the body frame, the obstacles' velocities (B, M, 2) (None:
-    static), where the next command starts (``core.safety.ChunkStart``; None: at once) and the route
-    hint's near and far carrots (B, 4) of a "nearest+route" policy (None otherwise)."""
+class PlanSettings:
+    """The replanner's own settings (plan bookkeeping and sampling): a policy config's fields of the
+    same names (``from_config``). The defaults are the shipped checkpoint's.
 
-    goal: np.ndarray
-    obstacles: np.ndarray
-    mask: np.ndarray
-    velocity: np.ndarray | None = None
-    start: safety.ChunkStart | None = None
-    route: np.ndarray | None = None  # (B, 4) the route hint's near and far carrots; None: no hint
+    Attributes:
+        horizon: the sampled window's length (steps).
+        n_obs_steps: observation steps; the window starts ``n_obs_steps - 1`` steps before the current
+            one, so a chunk holds ``chunk_length`` actions from the current step on.
+        n_action_steps: actions run before a scheduled replan.
+        num_candidates: K chunks sampled per replan; with K > 1 the layer keeps the best.
+        warm_start_step: j; a replan's candidates start at the sampler's j-th timestep from the rest
+            of the last plan (0: from pure noise).
+        denoising_steps: the sampler's steps from noise (``num_inference_steps``, else
+            ``num_train_timesteps``): how often a guided proposal is moved
+            (``ReplanExperiment.sampled``).
+    """
 
-    def __getitem__(self, rows) -> SafetyView:
-        return SafetyView(
-            self.goal[rows],
-            self.obstacles[rows],
-            self.mask[rows],
-            None if self.velocity is None else self.velocity[rows],
-            None if self.start is None else self.start[rows],
-            None if self.route is None else self.route[rows],
+    horizon: int = 16
+    n_obs_steps: int = 2
+    n_action_steps: int = 4
+    num_candidates: int = 10
+    warm_start_step: int = 1
+    denoising_steps: int = 4
+
+    @classmethod
+    def from_config(cls, config) -> PlanSettings:
+        return cls(
+            horizon=config.horizon,
+            n_obs_steps=config.n_obs_steps,
+            n_action_steps=config.n_action_steps,
+            num_candidates=config.num_candidates,
+            warm_start_step=config.warm_start_step,
+            denoising_steps=config.num_inference_steps or config.num_train_timesteps,
         )
+
+    @property
+    def chunk_length(self) -> int:
+        return self.horizon - self.n_obs_steps + 1
+
+
+@functools.cache
+def _action_scale() -> tuple[Tensor, Tensor]:
+    low, high = action_bounds()
+    return torch.tensor(low, dtype=torch.float32), torch.tensor(high, dtype=torch.float32)
+
+
+def unnormalize_action(action: Tensor) -> Tensor:
+    """Normalised actions (..., 2) in [-1, 1] -> [v, omega] with the env's fixed bounds (MIN_MAX, as
+    the policy's postprocessor), on the CPU."""
+    low, high = _action_scale()
+    return (action.float().cpu() + 1) / 2 * (high - low) + low
+
+
+def normalize_action(action: Tensor) -> Tensor:
+    """[v, omega] (..., 2) -> normalised actions in [-1, 1] (``unnormalize_action``'s inverse)."""
+    low, high = _action_scale()
+    return (action.float() - low) / (high - low) * 2 - 1
+
+
+@dataclass(frozen=True, eq=False)
+class PolicySampler:
+    """A policy's ``sample_action_chunks`` as a replanner's sampler, looked up at each call (so a
+    method patched on the policy or its class, e.g. by a profiler, is what runs)."""
+
+    policy: object
+
+    def __call__(self, *args, **kwargs) -> Tensor:
+        return self.policy.sample_action_chunks(*args, **kwargs)
+
+
+def policy_sampler(policy) -> PolicySampler:
+    """The sampler a policy hands its replanner (``PolicySampler``)."""
+    return PolicySampler(policy)
 
 
 def check_observation(batch: dict[str, Tensor], input_features: dict, dtype: torch.dtype) -> None:
@@ -219,114 +241,111 @@ def warm_start_guess(previous: Tensor, executed: Tensor, n_obs_steps: int, horiz
 
 
 class Replanner:
-    """Per-episode chunks, best-of-K, the filter and replans of one batch of episodes (module docstring).
+    """Per-episode chunks, sampling and replans of one batch of episodes, around a safety layer
+    (module docstring).
 
     Args:
-        policy: a ``FormationDiffusionPolicy`` (samples the chunks, holds the action bounds).
-        config: the policy config to run (K, filter, margin, warm start); default the policy's own.
+        settings: the plan's settings (default: the shipped checkpoint's, ``PlanSettings()``).
+        safety: the safety layer's settings (default: the shipped default's, ``SafetySettings()``).
+        sampler: draws the candidates (``Sampler``); None: nothing can be sampled (a replanner of
+            ``ReplanExperiment(sampled=False)``).
         experiment: ablation settings (``ReplanExperiment``); default none.
     """
 
-    def __init__(self, policy, config=None, experiment: ReplanExperiment | None = None):
-        self.policy = policy
-        self.config = policy.config if config is None else config
+    def __init__(
+        self,
+        settings: PlanSettings | None = None,
+        safety: SafetySettings | None = None,
+        sampler: Sampler | None = None,
+        experiment: ReplanExperiment | None = None,
+    ):
+        self.settings = PlanSettings() if settings is None else settings
         self.experiment = experiment or ReplanExperiment()
-        if self.experiment.blend_steps > self.chunk_length:
+        self.sampler = sampler
+        self.config = None  # the policy config it was built from (``from_config``), if any
+        ex = self.experiment
+        if ex.blend_steps > self.chunk_length:
             raise ValueError(
-                f"blend_steps must be in [0, {self.chunk_length}] (the chunk's length), "
-                f"got {self.experiment.blend_steps}"
+                f"blend_steps must be in [0, {self.chunk_length}] (the chunk's length), got {ex.blend_steps}"
             )
-        cfg = self.config
-        if not self.experiment.sampled and not (
-            cfg.safety_layer and cfg.safety_route_proposal and get_encoding(cfg.obstacle_encoding).map
-        ):
+        self.layer = SafetyLayer(
+            safety,
+            blend_steps=ex.blend_steps,
+            escape_advantage=ex.escape_advantage,
+            blocked_fallback=ex.blocked_fallback,
+        )
+        s = self.layer.settings
+        if not ex.sampled and not (self.uses_layer and s.route_proposal and self.layer.encoding.map):
             raise ValueError(
                 "a replanner that samples nothing (ReplanExperiment.sampled=False) needs route pursuit's "
                 "proposal and a safety layer: a route-encoding config with safety_route_proposal and "
-                f"num_candidates > 1, a filter or guidance, got obstacle_encoding={cfg.obstacle_encoding!r}, "
-                f"safety_route_proposal={cfg.safety_route_proposal}, num_candidates={cfg.num_candidates}, "
-                f"safety_filter={cfg.safety_filter!r}, sampling_guidance={cfg.sampling_guidance}"
+                f"num_candidates > 1, a filter or guidance, got obstacle_encoding={s.obstacle_encoding!r}, "
+                f"safety_route_proposal={s.route_proposal}, num_candidates={self.settings.num_candidates}, "
+                f"safety_filter={s.filter!r}, sampling_guidance={s.guidance}"
             )
-        self.stats = dict.fromkeys(STAT_KEYS, 0)
+        self._counts = {"replans": 0, "steps": 0}
         self.plan: Tensor | None = None
+
+    @classmethod
+    def from_config(
+        cls, config, sampler: Sampler | None = None, experiment: ReplanExperiment | None = None
+    ) -> Replanner:
+        """The replanner of a policy config: its ``PlanSettings`` and ``SafetySettings``
+        (``config`` is kept as ``.config``)."""
+        out = cls(PlanSettings.from_config(config), SafetySettings.from_config(config), sampler, experiment)
+        out.config = config
+        return out
 
     @property
     def chunk_length(self) -> int:
-        return self.config.horizon - self.config.n_obs_steps + 1
+        return self.settings.chunk_length
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """The counts since ``reset`` (``STAT_KEYS``): replans and steps, and the layer's
+        (``core.safety_layer.LAYER_STAT_KEYS``)."""
+        counts = {**self._counts, **self.layer.stats}
+        return {k: counts[k] for k in STAT_KEYS}
+
+    @property
+    def uses_layer(self) -> bool:
+        """Whether anything reads the observed obstacles: best-of-K, the filter or the guidance (a
+        policy config's ``safety_layer``)."""
+        s = self.layer.settings
+        return self.settings.num_candidates > 1 or s.filter != "none" or s.guidance > 0
+
+    @property
+    def best_of(self) -> bool:
+        """Whether replans choose among candidates (K > 1, or no samples: the proposal and escapes,
+        except the guided proposal alone of K = 1 with the layer's ``guidance``)."""
+        return self.settings.num_candidates > 1 or not (
+            self.experiment.sampled or self.layer.settings.guidance
+        )
 
     def reset(self, batch_size: int | None = None, device: torch.device | str = "cpu") -> None:
         """Forget every episode's plan (and with ``batch_size``, start ``batch_size`` episodes); the stats
         start from zero."""
-        self.stats = dict.fromkeys(STAT_KEYS, 0)
+        self._counts = {"replans": 0, "steps": 0}
+        self.layer.reset()
         self.plan = None
         if batch_size is not None:
             self.start(batch_size, device)
 
     def start(self, B: int, device: torch.device | str = "cpu") -> None:
-        """Start ``B`` episodes with no plan (each replans at its first ``act``)."""
-        A = self.config.action_feature.shape[0]
+        """Start ``B`` episodes with no plan (each replans at its first ``act``), and the layer's."""
+        A, n = ACTION_DIM, self.settings.n_action_steps
         self.plan = torch.zeros(B, self.chunk_length, A, device=device)  # normalised, whole chunk
-        self.plan_pos = torch.full((B,), self.config.n_action_steps, dtype=torch.long)  # next action
+        self.plan_pos = torch.full((B,), n, dtype=torch.long)  # next action
         self.executed = torch.zeros(B, dtype=torch.long)  # actions run since the episode's last replan
         self.last_action = torch.zeros(B, A, device=device)  # normalised
         self.has_last = torch.zeros(B, dtype=torch.bool)
-        cfg = self.config
-        self.in_flight = np.zeros((B, cfg.safety_action_delay, A))  # sent, not run yet; oldest first
-        self.executed_velocity = np.zeros((B, A))  # the actuator model's last executed [v, omega]
-        self.tracker = self.smoother = None
-        encoding = get_encoding(cfg.obstacle_encoding)
-        _, dt, _ = safety_geometry()
-        if cfg.safety_layer and cfg.safety_moving_obstacles and not encoding.velocity:
-            self.tracker = ObstacleTracker(B, encoding.slots(cfg.max_obstacles), dt)
-        if cfg.safety_layer and self.knows_noise:
-            self.smoother = ObstacleFilter(
-                B,
-                encoding.slots(cfg.max_obstacles),
-                dt,
-                obstacle_noise=cfg.safety_obstacle_noise,
-                pose_noise=cfg.safety_pose_noise,
-            )
-
-    @property
-    def knows_actuator(self) -> bool:
-        """Whether the config gives the actuator's delay or rate limits (``SafetyView.start``)."""
-        return bool(self.config.safety_action_delay or self.knows_rate_limits)
-
-    @property
-    def knows_rate_limits(self) -> bool:
-        """Whether the config gives the actuator's rate limits (it then ramps a step in [v, omega])."""
-        cfg = self.config
-        return cfg.safety_max_linear_accel is not None or cfg.safety_max_angular_accel is not None
-
-    @property
-    def agent_radii(self) -> float | np.ndarray:
-        """The agent radius the layer checks: one for all four, or with ``safety_follower_margin`` one
-        per template agent (N,), the followers' (agents 2 and 3) larger by it; not where the layer
-        predicts moving obstacles (``safety_moving_obstacles``), where the team needs its room to get
-        out of a mover's way (on level5's tuning scenes 0.03 m cost 21 of 200)."""
-        template, _, agent_radius = safety_geometry()
-        extra = self.config.safety_follower_margin
-        if not extra or self.config.safety_moving_obstacles:
-            return agent_radius
-        return agent_radius + extra * (np.arange(len(template)) >= 2)  # the first two are the leaders
-
-    @property
-    def knows_noise(self) -> bool:
-        """Whether the config gives the sensors' noise (then the view is smoothed)."""
-        return self.config.safety_obstacle_noise > 0 or self.config.safety_pose_noise > 0
-
-    @property
-    def best_of(self) -> bool:
-        """Whether replans choose among candidates (K > 1, or no samples: the proposal and escapes,
-        except the guided proposal alone of K = 1 with ``sampling_guidance``)."""
-        cfg = self.config
-        return cfg.num_candidates > 1 or not (self.experiment.sampled or cfg.sampling_guidance)
+        self.layer.start(B)
 
     def needs_replan(self, rows: Tensor) -> Tensor:
         """Which of ``rows`` replan at their next ``act`` (B,) bool."""
         if self.plan is None:
             return torch.ones(len(rows), dtype=torch.bool)
-        return self.plan_pos[rows] >= self.config.n_action_steps
+        return self.plan_pos[rows] >= self.settings.n_action_steps
 
     @torch.no_grad()
     def act(
@@ -350,183 +369,108 @@ class Replanner:
         to ``SMALL_BATCH_ROWS`` rows, oneDNN's above), and ~1e-6 apart is enough to flip a later
         choice of the safety layer. The calls cost about twice the sampler's time of a large batch.
         """
-        cfg = self.config
+        n = self.settings.n_action_steps
         if rows is None:
             rows = torch.arange(len(env_now))
         if self.plan is None:
             self.start(len(rows), env_now.device)
-        view = self.view(env_now, rows) if cfg.safety_layer else None
+        view = self.view(env_now, rows) if self.uses_layer else None
         if self.best_of:
             self._recheck(rows, view)
-        need = rows[self.plan_pos[rows] >= cfg.n_action_steps]
+        need = rows[self.plan_pos[rows] >= n]
         if len(need):
-            at = torch.nonzero(self.plan_pos[rows] >= cfg.n_action_steps).flatten()
+            at = torch.nonzero(self.plan_pos[rows] >= n).flatten()
             self._replan(need, None if view is None else view[at.numpy()], history(need), noise)
         action = self.plan[rows, self.plan_pos[rows]]
         self.plan_pos[rows] += 1
         self.executed[rows] += 1
-        self.stats["steps"] += len(rows)
-        if cfg.safety_filter == "cbf":
+        self._counts["steps"] += len(rows)
+        if self.layer.settings.filter != "none":
             action, changed = self.filter(view, action)
-            self.stats["filter_interventions"] += int(changed.sum())
-            # the plan met a barrier: replan at the next step
-            self.plan_pos[rows[torch.from_numpy(changed)]] = cfg.n_action_steps
+            self.plan_pos[rows[torch.from_numpy(changed)]] = n  # the plan met a barrier: replan next step
         self.last_action[rows] = action.to(self.last_action.dtype)
         self.has_last[rows] = True
-        if view is not None and (self.knows_actuator or self.knows_noise):
-            self._send(rows.cpu().numpy(), action)
+        if view is not None and self.layer.tracks_commands:
+            self.layer.send(rows.cpu().numpy(), unnormalize_action(action).numpy().astype(np.float64))
         return action
+
+    def view(self, env_state: Tensor, rows: Tensor) -> SafetyView:
+        """The layer's ``SafetyView`` of episodes ``rows`` at this step from their raw observation
+        (len(rows), D) (``SafetyLayer.view``; call it once per step)."""
+        env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
+        return self.layer.view(env, rows.cpu().numpy())
 
     def _recheck(self, rows: Tensor, view: SafetyView) -> None:
         """Best-of-K's recheck: episodes ``rows`` whose plan is under way check its rest on this step's
-        ``view`` (``core.safety.plan_is_safe``); those where it fails replan now (a chunk kept where
+        ``view`` (``SafetyLayer.recheck``); those where it fails replan now (a chunk kept where
         nothing was safe, the widest fallback, too: such an episode replans at every step while its
         rest still fails)."""
-        cfg = self.config
+        n = self.settings.n_action_steps
         pos = self.plan_pos[rows]  # >= 1 for a plan under way: its first action ran at its replan
-        live = pos < cfg.n_action_steps
+        live = pos < n
         for p in torch.unique(pos[live]).tolist():  # the plans' rests have one length per position
             at = torch.nonzero(live & (pos == p)).flatten()
-            sub = view[at.numpy()]
-            rest = self.policy.unnormalize_action(self.plan[rows[at], p:]).numpy().astype(np.float64)
-            safe = safety.plan_is_safe(rest, self._check(sub), cfg.safety_margin)
-            failed = rows[at[torch.from_numpy(~safe)]]
-            self.plan_pos[failed] = cfg.n_action_steps
-            self.stats["rechecks_failed"] += len(failed)
-
-    def _check(self, view: SafetyView) -> safety.FootprintCheck:
-        """Best-of-K's check (``core.safety.FootprintCheck``) on ``view`` with this config: the
-        observed obstacles and velocities, the actuator start, route pursuit's lookahead."""
-        template, dt, _ = safety_geometry()
-        return safety.FootprintCheck(
-            view.obstacles,
-            template,
-            dt,
-            self.agent_radii,
-            view.velocity,
-            view.start,
-            self._continuation(view),
-            self.config.safety_mover_uncertainty,
-        )
-
-    def _continuation(self, view: SafetyView) -> Callable[[np.ndarray], np.ndarray] | None:
-        """What best-of-K assumes the team runs after a sequence: route pursuit for
-        ``safety_route_lookahead`` steps from each end pose (B, P, 3) -> (B, P, n, 2); None without."""
-        cfg = self.config
-        if not cfg.safety_route_lookahead:
-            return None
-        _, dt, _ = safety_geometry()
-
-        def continuation(end: np.ndarray) -> np.ndarray:
-            B, P = end.shape[:2]
-            n = cfg.safety_route_lookahead
-            route, goal = np.repeat(view.route, P, axis=0), np.repeat(view.goal, P, axis=0)
-            out = pursuit_chunk(route, goal, n, dt, cfg.action_high[1], start=end.reshape(B * P, 3))
-            return out.reshape(B, P, n, 2)
-
-        return continuation
-
-    def _clearance_step(self, view: SafetyView) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-        """One application of the clearance guidance (``sampling_guidance``) to commands of the
-        B = len(view) replanning episodes: (commands (n, T, 2) [m/s, rad/s] from the current step on,
-        the episode of each row (n,)) -> the commands moved by one step of -eta dJ/da
-        (``core.guidance.clearance_cost_gradient``, on the view's obstacles from the actuator's
-        predicted start), each clipped to the action bounds."""
-        cfg = self.config
-        template, dt, _ = safety_geometry()
-        pose, steps = safety.chunk_origin(view.start, len(view.goal))
-        velocity = view.velocity  # None unless the layer predicts moving obstacles
-        low, high = np.asarray(cfg.action_low), np.asarray(cfg.action_high)
-
-        def step(moved: np.ndarray, at: np.ndarray) -> np.ndarray:
-            _, grad = guidance.clearance_cost_gradient(
-                pose[at],
-                moved[:, None],
-                view.obstacles[at],
-                template,
-                dt,
-                self.agent_radii,
-                GUIDANCE_DISTANCE,
-                None if velocity is None else velocity[at],
-                steps,
-            )
-            return np.clip(moved - cfg.sampling_guidance * grad[:, 0], low, high)
-
-        return step
+            rest = unnormalize_action(self.plan[rows[at], p:]).numpy().astype(np.float64)
+            safe = self.layer.recheck(view[at.numpy()], rest)
+            self.plan_pos[rows[at[torch.from_numpy(~safe)]]] = n
 
     def _guide(self, view: SafetyView, K: int) -> Callable[[Tensor, Tensor | None], Tensor]:
         """The sampler's clearance guidance for the B = len(view) replanning episodes, K samples each:
         x0 (n, horizon, 2) normalised of the rows ``rows`` (a mask over the B * K samples; None: all)
-        -> x0 with its commands from the current step on moved by ``_clearance_step``; the past step
-        is left as sampled."""
-        step = self._clearance_step(view)
+        -> x0 with its commands from the current step on moved by ``SafetyLayer.clearance_step``; the
+        past step is left as sampled."""
+        step = self.layer.clearance_step(view)
         sample_of = np.repeat(np.arange(len(view.goal)), K)  # the episode of each of the B * K samples
-        first = self.config.n_obs_steps - 1  # the sample's window starts at the step before the current one
+        first = self.settings.n_obs_steps - 1  # the sample's window starts at the step before the current one
 
         def guide(x0: Tensor, rows: Tensor | None = None) -> Tensor:
             at = sample_of if rows is None else sample_of[rows.cpu().numpy()]
-            moved = step(self.policy.unnormalize_action(x0[:, first:]).cpu().numpy().astype(np.float64), at)
+            moved = step(unnormalize_action(x0[:, first:]).cpu().numpy().astype(np.float64), at)
             out = x0.clone()
-            out[:, first:] = self.policy.normalize_action(torch.from_numpy(moved).to(x0))
+            out[:, first:] = normalize_action(torch.from_numpy(moved).to(x0))
             return out
 
         return guide
 
     def _guided_proposal(self, view: SafetyView) -> Tensor:
-        """Route pursuit's chunk (``pursuit_chunk`` of the view's route hint) moved by the clearance
-        guidance ``num_inference_steps`` times (as the sampler from noise; warm-started, it runs
-        ``warm_start_step`` fewer guided steps): the plan of
-        ``ReplanExperiment(sampled=False)`` at K = 1 with ``sampling_guidance``, normalised
+        """Route pursuit's chunk (``SafetyLayer.route_proposal``) moved by the clearance guidance
+        ``denoising_steps`` times (as the sampler from noise): the plan of
+        ``ReplanExperiment(sampled=False)`` at K = 1 with the layer's ``guidance``, normalised
         (B, 1, chunk_length, 2)."""
-        cfg = self.config
-        _, dt, _ = safety_geometry()
-        proposal = pursuit_chunk(view.route, view.goal, self.chunk_length, dt, cfg.action_high[1])
-        step, at = self._clearance_step(view), np.arange(len(view.goal))
-        for _ in range(cfg.num_inference_steps or cfg.num_train_timesteps):
+        proposal = self.layer.route_proposal(view, self.chunk_length)
+        step, at = self.layer.clearance_step(view), np.arange(len(view.goal))
+        for _ in range(self.settings.denoising_steps):
             proposal = step(proposal, at)
-        return self.policy.normalize_action(torch.from_numpy(proposal).to(self.plan))[:, None]
-
-    def _send(self, rows: np.ndarray, action: Tensor) -> None:
-        """Record the commands (normalised) sent to episodes ``rows``: the actuator model runs the
-        oldest in flight (or this one, without a delay) and queues this one."""
-        cfg = self.config
-        sent = np.clip(
-            self.policy.unnormalize_action(action).numpy().astype(np.float64), cfg.action_low, cfg.action_high
-        )
-        runs = sent
-        if cfg.safety_action_delay:
-            runs = self.in_flight[rows, 0]
-            self.in_flight[rows, :-1] = self.in_flight[rows, 1:]
-            self.in_flight[rows, -1] = sent
-        _, dt, _ = safety_geometry()
-        self.executed_velocity[rows] = rate_limit(
-            self.executed_velocity[rows], runs, cfg.safety_max_linear_accel, cfg.safety_max_angular_accel, dt
-        )
+        return normalize_action(torch.from_numpy(proposal).to(self.plan))[:, None]
 
     def _sample(self, stacked: dict[str, Tensor], noise, warm, view: SafetyView | None) -> Tensor:
         """K candidate chunks (B, K, chunk, A) of the B episodes of ``stacked`` in one sampler call."""
-        cfg = self.config
-        return self.policy.sample_action_chunks(
+        if self.sampler is None:
+            raise ValueError(
+                "this replanner has no sampler (ReplanExperiment.sampled=False runs without one)"
+            )
+        ps, K = self.settings, self.settings.num_candidates
+        return self.sampler(
             stacked,
-            cfg.num_candidates,
+            K,
             noise=noise,
             warm_start=warm,
-            warm_start_step=cfg.warm_start_step,
+            warm_start_step=ps.warm_start_step,
             warm_all=True,
-            guide=self._guide(view, cfg.num_candidates) if cfg.sampling_guidance else None,
+            guide=self._guide(view, K) if self.layer.settings.guidance else None,
         ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
 
     def _replan(self, need: Tensor, view: SafetyView | None, stacked: dict[str, Tensor], noise) -> None:
-        cfg, ex = self.config, self.experiment
-        K = cfg.num_candidates
+        ps, ex, s = self.settings, self.experiment, self.layer.settings
+        K = ps.num_candidates
         if not ex.sampled and not self.best_of:  # route pursuit's chunk, guided
             chunks = self._guided_proposal(view)
         elif not ex.sampled:  # the layer alone: the proposal and the escapes are the candidates
             chunks = self.plan.new_zeros(len(need), 0, *self.plan.shape[1:])
         else:
             warm = None
-            if cfg.warm_start_step:  # from the unexecuted rest of each episode's last chunk
-                guess = warm_start_guess(self.plan[need], self.executed[need], cfg.n_obs_steps, cfg.horizon)
+            if ps.warm_start_step:  # from the unexecuted rest of each episode's last chunk
+                guess = warm_start_guess(self.plan[need], self.executed[need], ps.n_obs_steps, ps.horizon)
                 warm = (guess, self.has_last[need])
             if callable(noise):  # each episode its own stream, and its own sampler call (``act``)
                 noise = noise(need, K)
@@ -545,144 +489,24 @@ class Replanner:
             else:
                 chunks = self._sample(stacked, noise, warm, view)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
-        chunks = smooth_chunks(chunks, last, has_last, cfg.chunk_smoothing)  # before best-of-K scores them
+        chunks = smooth_chunks(chunks, last, has_last, s.chunk_smoothing)  # before best-of-K scores them
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
         if self.best_of:
             previous, keep_to = None, None
-            if cfg.safety_coherence:  # the plan being replaced, from now on (normalised)
-                previous = warm_start_guess(self.plan[need], self.executed[need], 1, cfg.n_action_steps)
+            if s.coherence:  # the plan being replaced, from now on (normalised)
+                previous = warm_start_guess(self.plan[need], self.executed[need], 1, ps.n_action_steps)
                 # a plan the filter cut short met a barrier: nothing to keep to
-                keep_to = has_last & (self.executed[need] >= cfg.n_action_steps)
-            chosen, info = self.choose(view, chunks, last, has_last, previous, keep_to)
-            self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
-            self.stats["escapes"] += int(info["escaped"].sum())
-            self.stats["stops"] += int(info["stopped"].sum())
-            self.stats["proposals"] += int(info["proposal_kept"].sum())
+                keep_to = has_last & (self.executed[need] >= ps.n_action_steps)
+            chosen, _ = self.choose(view, chunks, last, has_last, previous, keep_to)
         else:
             chosen = chunks[:, 0]
-        self.stats["replans"] += len(need)
+        self._counts["replans"] += len(need)
         check_finite_chunks(chosen)  # never executed, never a warm start
         self.plan[need] = chosen.to(self.plan.dtype)
         self.plan_pos[need] = 0
         self.executed[need] = 0
 
-    # -- the safety layer: the one scorer and the filter, on physical actions ------------------------
-    def observed_obstacles(self, env_state) -> SafetyView:
-        """Goal (B, 2), obstacles (B, M, 3) and mask (B, M) in the body frame from a raw egocentric
-        observation (B, D), and with ``safety_moving_obstacles`` the velocities an encoding that
-        observes them gives (``nearest+velocity``: after the rows); no tracker, no actuator."""
-        cfg = self.config
-        encoding = get_encoding(cfg.obstacle_encoding)
-        slots = encoding.slots(cfg.max_obstacles)
-        env = env_state.float().cpu().numpy() if isinstance(env_state, Tensor) else np.asarray(env_state)
-        rows_end = encoding.fixed + encoding.per_slot * slots
-        # the nearest part only (e.g. "nearest+route" adds a route hint, "nearest+velocity" velocities)
-        goal, obstacles, mask = safety.decode_nearest(env[:, :rows_end], slots)
-        velocity = None
-        if cfg.safety_moving_obstacles and encoding.velocity:
-            velocity = env[:, rows_end : rows_end + 2 * slots].reshape(len(env), slots, 2).astype(np.float64)
-            velocity = np.where(mask[..., None], velocity, 0.0)
-        route = None
-        if encoding.map:  # the route hint's carrots, after the velocities (core.route_encoding)
-            at = rows_end + encoding.trailing_per_slot * slots
-            route = env[:, at : at + 4].astype(np.float64)
-        return SafetyView(goal, obstacles, mask, velocity, route=route)
-
-    def view(self, env_state: Tensor, rows: Tensor) -> SafetyView:
-        """The ``SafetyView`` of episodes ``rows`` at this step from their raw observation (len(rows),
-        D); updates their obstacle trackers (call it once per step)."""
-        view = self.observed_obstacles(env_state)
-        cfg = self.config
-        velocity, start = view.velocity, None
-        idx = rows.cpu().numpy()
-        if self.tracker is not None:
-            velocity = self.tracker.update(view.goal, view.obstacles, view.mask, idx)
-        obstacles = view.obstacles
-        if self.smoother is not None:  # carried along with the velocity the team executed last step
-            obstacles = self.smoother.update(obstacles, view.mask, self.executed_velocity[idx], velocity, idx)
-        if self.knows_actuator:
-            _, dt, _ = safety_geometry()
-            start = safety.predict_start(
-                self.in_flight[idx],
-                self.executed_velocity[idx],
-                dt,
-                cfg.safety_max_linear_accel,
-                cfg.safety_max_angular_accel,
-            )
-        return SafetyView(view.goal, obstacles, view.mask, velocity, start, view.route)
-
-    def _as_view(self, seen) -> SafetyView:
-        return seen if isinstance(seen, SafetyView) else self.observed_obstacles(seen)
-
-    def choose_raw(
-        self,
-        seen,
-        chunks: np.ndarray,
-        last_action: np.ndarray | None = None,
-        has_last=None,
-        previous: np.ndarray | None = None,
-        keep_to=None,
-    ) -> tuple[np.ndarray, dict]:
-        """Best-of-K (``core.safety.select_chunk``) with this config: ``seen`` a ``SafetyView`` or a raw
-        egocentric observation (B, D) (``observed_obstacles``), chunks (B, K, T, 2) in m/s and rad/s
-        -> kept chunks (B, T, 2), info. With blending and the last executed actions (B, 2) [m/s,
-        rad/s], the escape manoeuvres are blended into them as the sampled chunks were, and with
-        ``safety_proposal_blend`` route pursuit's proposal (where ``has_last``, default everywhere),
-        then smoothed as the sampled chunks are (``chunk_smoothing``). ``previous``
-        (B, n, 2) [m/s, rad/s]: the plan being replaced, from now on, kept to where ``keep_to`` (B,)
-        (default: everywhere) by the ``safety_coherence`` preference; None: no such preference."""
-        view = self._as_view(seen)
-        template, dt, _ = safety_geometry()
-        agent_radius = self.agent_radii
-        cfg, ex = self.config, self.experiment
-        blend = None
-        if last_action is not None and ex.blend_steps:
-            blend = (np.asarray(last_action), np.asarray(has_last), ex.blend_steps)
-        K = chunks.shape[1]
-        if cfg.safety_route_proposal:  # route pursuit's chunk competes with the sampled ones
-            proposal = pursuit_chunk(view.route, view.goal, chunks.shape[2], dt, cfg.action_high[1])
-            if cfg.safety_proposal_blend and last_action is not None and not self.knows_rate_limits:
-                # enter from the running command (a rate-limited actuator ramps the step by itself)
-                had = np.ones(len(proposal), bool) if has_last is None else np.asarray(has_last)
-                last = np.asarray(last_action)
-                proposal = blend_replan(proposal, last, had, cfg.safety_proposal_blend)
-                proposal = smooth_chunks(proposal, last, had, cfg.chunk_smoothing)
-            chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
-        coherence = None
-        if previous is not None and cfg.safety_coherence:
-            coherence = safety.PlanCoherence(
-                np.asarray(previous),
-                np.ones(len(chunks), bool) if keep_to is None else np.asarray(keep_to),
-                np.asarray(cfg.action_high) - np.asarray(cfg.action_low),
-                cfg.safety_coherence,
-            )
-        chosen, info = safety.select_chunk(
-            chunks,
-            view.obstacles,
-            view.goal,
-            template,
-            dt,
-            agent_radius,
-            self.config.safety_margin,
-            escape_advantage=ex.escape_advantage,
-            blend=blend,
-            blocked_fallback=ex.blocked_fallback,
-            obstacle_velocity=view.velocity,
-            start=view.start,
-            continuation=self._continuation(view),
-            coherence=coherence,
-            progress_resolution=PROGRESS_RESOLUTION,
-            progress_bilinear=True,
-            primitives=_escape_lattice(ESCAPE_SPEEDS),
-            mover_uncertainty=cfg.safety_mover_uncertainty,
-            halt_lookahead=cfg.safety_halt_lookahead if cfg.safety_moving_obstacles else 0,
-            fallback_all=True,
-        )
-        info["proposal_kept"] = (
-            info["choice"] == K if cfg.safety_route_proposal else np.zeros(len(chosen), bool)
-        )
-        return chosen, info
-
+    # -- the safety layer's calls on normalised actions ------------------------------------------------
     def choose(
         self,
         view: SafetyView,
@@ -692,44 +516,21 @@ class Replanner:
         previous: Tensor | None = None,
         keep_to=None,
     ) -> tuple[Tensor, dict]:
-        """``choose_raw`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept chunks
-        (B, T, 2) normalised."""
-        policy = self.policy
-        raw = policy.unnormalize_action(chunks).numpy().astype(np.float64)
+        """``SafetyLayer.choose`` on normalised chunks (B, K, T, 2) (and last actions (B, 2)) -> kept
+        chunks (B, T, 2) normalised, info."""
+        raw = unnormalize_action(chunks).numpy().astype(np.float64)
         if last_action is not None:
-            last_action = policy.unnormalize_action(last_action).numpy().astype(np.float64)
+            last_action = unnormalize_action(last_action).numpy().astype(np.float64)
             has_last = has_last.cpu().numpy()
         if previous is not None:
-            previous = policy.unnormalize_action(previous).numpy().astype(np.float64)
+            previous = unnormalize_action(previous).numpy().astype(np.float64)
         if keep_to is not None:
             keep_to = keep_to.cpu().numpy()
-        chosen, info = self.choose_raw(view, raw, last_action, has_last, previous, keep_to)
-        return policy.normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
-
-    def filter_raw(self, seen, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """CBF filter (``core.safety.cbf_filter``) with this config on [v, omega] (B, 2) -> (filtered,
-        changed); ``seen`` as in ``choose_raw``."""
-        view = self._as_view(seen)
-        template, dt, _ = safety_geometry()
-        agent_radius = self.agent_radii
-        cfg = self.config
-        return safety.cbf_filter(
-            action,
-            view.obstacles,
-            template,
-            agent_radius,
-            cfg.safety_margin,
-            cfg.cbf_rate,
-            np.asarray(cfg.action_low),
-            np.asarray(cfg.action_high),
-            obstacle_velocity=view.velocity,
-            start=view.start,
-            dt=dt,
-        )
+        chosen, info = self.layer.choose(view, raw, last_action, has_last, previous, keep_to)
+        return normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
     def filter(self, view: SafetyView, action: Tensor) -> tuple[Tensor, np.ndarray]:
-        """``filter_raw`` on normalised actions (B, 2) -> (filtered normalised, changed)."""
-        policy = self.policy
-        out, changed = self.filter_raw(view, policy.unnormalize_action(action).numpy().astype(np.float64))
-        filtered = policy.normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
+        """``SafetyLayer.filter`` on normalised actions (B, 2) -> (filtered normalised, changed)."""
+        out, changed = self.layer.filter(view, unnormalize_action(action).numpy().astype(np.float64))
+        filtered = normalize_action(torch.from_numpy(out).float()).to(action.device, action.dtype)
         return filtered, changed

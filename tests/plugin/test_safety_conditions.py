@@ -85,10 +85,10 @@ def test_safety_settings_are_checked_with_their_value():
 def test_the_layer_smooths_its_view_when_it_knows_the_sensing_noise():
     """With a noise std in the config the replanner's view of the obstacles is smoothed over the
     steps (``core.obstacle_filter``); with exact sensing it is the observation itself."""
-    exact = Replanner(_policy(safety_margin=0.05))
-    noisy = Replanner(_policy(safety_margin=0.05, safety_obstacle_noise=0.02, safety_pose_noise=0.02))
+    exact = _policy(safety_margin=0.05).replanner
+    noisy = _policy(safety_margin=0.05, safety_obstacle_noise=0.02, safety_pose_noise=0.02).replanner
     exact.start(1), noisy.start(1)
-    assert exact.smoother is None and noisy.smoother is not None
+    assert exact.layer.smoother is None and noisy.layer.smoother is not None
 
     def observed(x):
         return torch.from_numpy(
@@ -113,7 +113,7 @@ def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
     """With a delay of 2 the replanner remembers its last two commands (physical, oldest first), and
     the start of the next command is the pose after them, as the actuator model runs them."""
     policy = _policy(safety_action_delay=2, safety_max_linear_accel=0.5, safety_max_angular_accel=2.0)
-    replanner = Replanner(policy)
+    replanner = Replanner.from_config(policy.config, _reference_module().stand_in_sampler(policy))
     replanner.start(1)
     env = torch.from_numpy(
         environment_state(
@@ -129,22 +129,22 @@ def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
         n = len(rows) * K
         return torch.randn(n, policy.config.horizon, 2, generator=torch.Generator().manual_seed(n))
 
-    policy.sample_action_chunks = _reference_module().stand_in_sampler(policy)
     sent = []
     for _ in range(5):
         a = replanner.act(env, lambda rows: {}, noise=noise)
         sent.append(np.clip(policy.unnormalize_action(a).numpy(), [0.0, -1.5], [0.6, 1.5])[0])
-    np.testing.assert_allclose(replanner.in_flight[0], sent[-2:], atol=1e-6)
+    layer = replanner.layer
+    np.testing.assert_allclose(layer.in_flight[0], sent[-2:], atol=1e-6)
     # the actuator model ran the first three commands from rest, rate limited: 0.05 m/s per step
-    assert 0 < replanner.executed_velocity[0, 0] <= 0.15 + 1e-9
+    assert 0 < layer.executed_velocity[0, 0] <= 0.15 + 1e-9
     view = replanner.view(env, torch.tensor([0]))
     assert view.start.steps == 2 and view.start.pose[0, 1] > 0  # ahead of where the team is now
     replanner.start(1)  # a new episode: nothing in flight, at rest
-    assert not replanner.in_flight.any() and not replanner.executed_velocity.any()
+    assert not layer.in_flight.any() and not layer.executed_velocity.any()
 
 
-def _velocity_replanner(encoding: str) -> Replanner:
-    """The replanner of a best-of-4 policy of ``encoding`` that predicts moving obstacles."""
+def _velocity_layer(encoding: str):
+    """The safety layer of a best-of-4 policy of ``encoding`` that predicts moving obstacles."""
     inputs, outputs = formation_features(env_dim=environment_state_dim(encoding))
     config = nearest_config(
         input_features=inputs,
@@ -153,7 +153,7 @@ def _velocity_replanner(encoding: str) -> Replanner:
         num_candidates=4,
         safety_moving_obstacles=True,
     )
-    return FormationDiffusionPolicy(config).replanner
+    return FormationDiffusionPolicy(config).replanner.layer
 
 
 def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
@@ -164,7 +164,7 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     velocity[0, 0] = [0.3, 0.0]
     goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi]])  # facing -x: body axes turned
     mask = np.ones((1, 4), bool)
-    seeing = _velocity_replanner("nearest+velocity")
+    seeing = _velocity_layer("nearest+velocity")
     env = environment_state(obstacles, mask, goal, "nearest+velocity", pose=pose, obstacle_velocity=velocity)
     view = seeing.observed_obstacles(env)
     near = np.argmin(np.abs(view.obstacles[0, :, 2] - 0.3))  # the 0.3 m obstacle's slot
@@ -172,7 +172,7 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     assert view.velocity[0, ~view.mask[0]].sum() == 0 and seeing.observed_obstacles(env).velocity is not None
 
     # "nearest+route+velocity": the same velocities, then the route hint's carrots after them
-    both = _velocity_replanner("nearest+route+velocity").observed_obstacles(
+    both = _velocity_layer("nearest+route+velocity").observed_obstacles(
         environment_state(
             obstacles, mask, goal, "nearest+route+velocity", pose=pose, obstacle_velocity=velocity
         )
@@ -183,7 +183,7 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
 
     tracking = _policy(safety_moving_obstacles=True).replanner
     tracking.start(1)
-    assert tracking.tracker is not None
+    assert tracking.layer.tracker is not None
     for t in range(12):
         moved = obstacles.copy()
         moved[..., :2] += velocity * 0.1 * t
@@ -192,11 +192,11 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     near = np.argmin(np.abs(view.obstacles[0, :, 2] - 0.3))
     np.testing.assert_allclose(view.velocity[0, near], [0.0, -0.3], atol=0.05)
     tracking.start(1)
-    assert not tracking.tracker.started.any()  # a new episode, new tracks
-    assert _policy().replanner.observed_obstacles(env).velocity is None
+    assert not tracking.layer.tracker.started.any()  # a new episode, new tracks
+    assert _policy().replanner.layer.observed_obstacles(env.numpy()).velocity is None
     plain = _policy().replanner
     plain.start(1)
-    assert plain.tracker is None
+    assert plain.layer.tracker is None
 
 
 def test_mover_settings_reach_best_of_k(monkeypatch):
@@ -205,7 +205,7 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     settings: the escape lattice of ``ESCAPE_SPEEDS`` and the widest of every candidate scored as the
     fallback."""
     from lerobot_formation.core import safety
-    from lerobot_formation.policy.replanner import ESCAPE_SPEEDS
+    from lerobot_formation.core.safety_layer import ESCAPE_SPEEDS
 
     seen = {}
     real = safety.select_chunk
@@ -219,16 +219,16 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi / 2]])
     env = environment_state(obstacles, np.ones((1, 1), bool), goal, "nearest", pose=pose)
     chunks = np.zeros((1, 4, 16, 2))
-    _policy().replanner.choose_raw(env, chunks)
+    _policy().replanner.layer.choose(env, chunks)
     np.testing.assert_array_equal(seen["primitives"], safety.escape_primitives(ESCAPE_SPEEDS))
     assert seen["mover_uncertainty"] == 0.0
     assert seen["fallback_all"] is True
-    _policy(safety_mover_uncertainty=0.05).replanner.choose_raw(env, chunks)
+    _policy(safety_mover_uncertainty=0.05).replanner.layer.choose(env, chunks)
     assert seen["mover_uncertainty"] == 0.05 and seen["halt_lookahead"] == 0
     # the halt lookahead reaches the scorer only where the layer predicts movers
-    _policy(safety_halt_lookahead=20).replanner.choose_raw(env, chunks)
+    _policy(safety_halt_lookahead=20).replanner.layer.choose(env, chunks)
     assert seen["halt_lookahead"] == 0
-    _policy(safety_halt_lookahead=20, safety_moving_obstacles=True).replanner.choose_raw(env, chunks)
+    _policy(safety_halt_lookahead=20, safety_moving_obstacles=True).replanner.layer.choose(env, chunks)
     assert seen["halt_lookahead"] == 20
 
 
@@ -240,15 +240,15 @@ def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(m
     passes and the chunk runs on. Before a wall 0.6 m ahead nothing is safe (the samples drive on, the
     only manoeuvres here are 0.6 m/s arcs) and the widest, a sample, is kept: it fails the check too,
     so the episode replans at every step."""
-    from lerobot_formation.policy import replanner as replanner_module
+    from lerobot_formation.core import safety_layer
 
-    monkeypatch.setattr(replanner_module, "ESCAPE_SPEEDS", (0.6,))
+    monkeypatch.setattr(safety_layer, "ESCAPE_SPEEDS", (0.6,))
     torch.manual_seed(0)  # no filter: it would replan where it intervenes
     config = nearest_config(num_candidates=4)
     policy = FormationDiffusionPolicy(config).eval()
     forward = policy.normalize_action(torch.tensor([0.4, 0.0]))
     T = policy.replanner.chunk_length
-    policy.sample_action_chunks = lambda batch, num_candidates=1, **_: forward.expand(1, num_candidates, T, 2)
+    sampler = lambda batch, num_candidates=1, **_: forward.expand(1, num_candidates, T, 2)  # noqa: E731
     goal, pose = np.array([[0.0, 8.0]]), np.array([[0.0, 0.0, np.pi / 2]])
 
     def seen(obstacles):
@@ -262,7 +262,7 @@ def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(m
         (far, ahead, 2, 1, 1),
         (wall, wall, 2, 2, 0),
     ):
-        replanner = Replanner(policy)
+        replanner = Replanner.from_config(policy.config, sampler)
         replanner.start(1)
         replanner.act(first, lambda rows: {})
         assert replanner.stats["replans"] == 1

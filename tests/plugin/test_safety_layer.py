@@ -194,17 +194,17 @@ def test_replan_experiment_settings_are_checked_with_their_value():
         ReplanExperiment(blend_steps=-1)
     policy = FormationDiffusionPolicy(nearest_config())
     with pytest.raises(ValueError, match=r"blend_steps must be in \[0, 15\] \(the chunk's length\), got 16"):
-        Replanner(policy, experiment=ReplanExperiment(blend_steps=16))
+        Replanner.from_config(policy.config, experiment=ReplanExperiment(blend_steps=16))
 
 
 def test_replan_blending_starts_a_new_chunk_at_the_executed_action():
     """With blending (an experiment setting) the first action after a replan moves from the last
     executed action toward the new chunk by 1 - 1/(m+1) of the way (``core.replan_blend``)."""
-    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
 
     torch.manual_seed(0)
     policy = FormationDiffusionPolicy(nearest_config()).eval()
-    replanner = Replanner(policy, experiment=ReplanExperiment(blend_steps=3))
+    replanner = Replanner.from_config(policy.config, policy_sampler(policy), ReplanExperiment(blend_steps=3))
     env = _env_state([])
     stacked = {k: v[:, None].repeat(1, N_OBS, 1) for k, v in _batch(env).items()}
     noise = torch.randn(2, HORIZON, 2, generator=torch.Generator().manual_seed(3))
@@ -233,8 +233,8 @@ def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
     straight = np.tile([0.5, 0.0], (1, 1, HORIZON, 1))  # into the first obstacle
     turn = np.tile([0.3, 1.0], (1, 1, HORIZON, 1))
     chunks = np.concatenate([straight, turn], axis=1)
-    kept55, info55 = route.replanner.choose_raw(env55, chunks)
-    kept50, info50 = plain.replanner.choose_raw(env50, chunks)
+    kept55, info55 = route.replanner.layer.choose(env55, chunks)
+    kept50, info50 = plain.replanner.layer.choose(env50, chunks)
     np.testing.assert_array_equal(kept55, kept50)
     np.testing.assert_array_equal(info55["safe"], info50["safe"])
     assert not info55["safe"][0, 0]  # the straight chunk hits the obstacle ahead
@@ -253,7 +253,7 @@ def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
     kept = {}
     for proposal in (False, True):
         policy = FormationDiffusionPolicy(nearest_config(safety_route_proposal=proposal, **kw)).eval()
-        kept[proposal], info = policy.replanner.choose_raw(env, chunks)
+        kept[proposal], info = policy.replanner.layer.choose(env, chunks)
         assert not info["safe"][0, :3].any()
         assert info["proposal_kept"][0] == proposal
     assert kept[True][0, 0, 1] > 0  # it turns left, down the route
@@ -287,19 +287,19 @@ def test_route_proposal_blending_enters_from_the_executed_action():
     env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
     chunks = np.tile([0.6, 0.0], (1, 3, HORIZON, 1))  # every sample drives into the obstacles
     last = np.array([[0.1, 0.0]])
-    plain, _ = FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.choose_raw(env, chunks)
+    plain, _ = FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.layer.choose(env, chunks)
     policy = FormationDiffusionPolicy(nearest_config(safety_proposal_blend=3, **kw)).eval()
-    kept, info = policy.replanner.choose_raw(env, chunks, last, np.array([True]))
+    kept, info = policy.replanner.layer.choose(env, chunks, last, np.array([True]))
     assert info["proposal_kept"][0]
     np.testing.assert_allclose(kept[0, 0], plain[0, 0] + 0.75 * (last[0] - plain[0, 0]))
     np.testing.assert_allclose(kept[0, 3:], plain[0, 3:])
-    first, _ = policy.replanner.choose_raw(env, chunks, last, np.array([False]))
+    first, _ = policy.replanner.layer.choose(env, chunks, last, np.array([False]))
     np.testing.assert_allclose(first, plain)
     # a rate-limited actuator ramps the step itself: the proposal is left as computed
     limited = FormationDiffusionPolicy(
         nearest_config(safety_proposal_blend=3, safety_max_linear_accel=0.5, **kw)
     ).eval()
-    as_computed, _ = limited.replanner.choose_raw(env, chunks, last, np.array([True]))
+    as_computed, _ = limited.replanner.layer.choose(env, chunks, last, np.array([True]))
     np.testing.assert_allclose(as_computed, plain)
 
 
@@ -324,26 +324,27 @@ def test_follower_margin_is_checked_and_widens_only_the_followers():
     with pytest.raises(ValueError, match="finite.*safety_follower_margin=inf"):
         nearest_config(safety_follower_margin=float("inf"))
     policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_follower_margin=0.03))
-    from lerobot_formation.policy.replanner import Replanner, safety_geometry
+    from lerobot_formation.core.safety_layer import SafetyLayer, SafetySettings, safety_geometry
+
+    def layer(config) -> SafetyLayer:
+        return SafetyLayer(SafetySettings.from_config(config))
 
     _, _, radius = safety_geometry()
-    np.testing.assert_allclose(Replanner(policy).agent_radii, [radius, radius, radius + 0.03, radius + 0.03])
-    assert Replanner(FormationDiffusionPolicy(nearest_config(num_candidates=2))).agent_radii == radius
+    np.testing.assert_allclose(
+        policy.replanner.layer.agent_radii, [radius, radius, radius + 0.03, radius + 0.03]
+    )
+    assert layer(nearest_config(num_candidates=2)).agent_radii == radius
     movers = nearest_config(num_candidates=2, safety_follower_margin=0.03, safety_moving_obstacles=True)
-    assert Replanner(FormationDiffusionPolicy(movers)).agent_radii == radius  # room to dodge a mover
+    assert layer(movers).agent_radii == radius  # room to dodge a mover
     # a turn that swings the right follower (template (0.5, -1)) at an obstacle h = 0.53 m from its
     # disc: the barrier (alpha = 2) lets it approach at up to 2 h, which 1 rad/s keeps to without the
     # allowance; with a 5 cm allowance h is 0.48 m and the filter slows the turn
     beside_follower = _env_state([[0.5 + radius + 0.3 + 0.53, -1.0, 0.3]])
     turn = np.array([[0.0, 1.0]])
-    plain = Replanner(FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_margin=0.0)))
-    wide = Replanner(
-        FormationDiffusionPolicy(
-            nearest_config(num_candidates=2, safety_margin=0.0, safety_follower_margin=0.05)
-        )
-    )
-    assert not plain.filter_raw(beside_follower, turn)[1][0]
-    slowed, changed = wide.filter_raw(beside_follower, turn)
+    plain = layer(nearest_config(safety_filter="cbf", safety_margin=0.0))
+    wide = layer(nearest_config(safety_filter="cbf", safety_margin=0.0, safety_follower_margin=0.05))
+    assert not plain.filter(beside_follower.numpy(), turn)[1][0]
+    slowed, changed = wide.filter(beside_follower.numpy(), turn)
     assert changed[0] and 0.0 < slowed[0, 1] < 1.0
 
 
@@ -369,10 +370,10 @@ def test_coherence_is_checked_with_its_value():
 
 
 def test_progress_grid_reaches_the_scorer(monkeypatch):
-    """``choose_raw`` scores progress on the shipped layer's grid: ``PROGRESS_RESOLUTION`` cells, read
-    bilinearly."""
+    """``SafetyLayer.choose`` scores progress on the shipped layer's grid: ``PROGRESS_RESOLUTION``
+    cells, read bilinearly."""
     from lerobot_formation.core import safety
-    from lerobot_formation.policy.replanner import PROGRESS_RESOLUTION
+    from lerobot_formation.core.safety_layer import PROGRESS_RESOLUTION
 
     seen = []
     real = safety.cost_to_go_progress
@@ -384,12 +385,12 @@ def test_progress_grid_reaches_the_scorer(monkeypatch):
     monkeypatch.setattr(safety, "cost_to_go_progress", spy)
     env = _env_state([])
     chunks = np.tile([0.5, 0.0], (1, 2, HORIZON - N_OBS + 1, 1))
-    FormationDiffusionPolicy(nearest_config(num_candidates=2)).eval().replanner.choose_raw(env, chunks)
+    FormationDiffusionPolicy(nearest_config(num_candidates=2)).eval().replanner.layer.choose(env, chunks)
     assert seen == [(PROGRESS_RESOLUTION, True)] and PROGRESS_RESOLUTION == 0.4
 
 
 def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypatch):
-    """``choose_raw`` with the rest of the previous plan: a large weight keeps the left arc it
+    """``SafetyLayer.choose`` with the rest of the previous plan: a large weight keeps the left arc it
     continues over the straight chunk that makes more progress; without a previous plan, progress
     decides. Through ``select_action`` every replan after the first hands the scorer the plan it
     replaces, from the current step on (here n_action_steps = 8 of them)."""
@@ -401,9 +402,9 @@ def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypat
     chunks = np.concatenate([straight, arc], axis=1)
     policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_coherence=10.0)).eval()
     previous = np.tile([0.5, 0.3], (1, 8, 1))
-    kept, info = policy.replanner.choose_raw(env, chunks, np.zeros((1, 2)), np.array([True]), previous)
+    kept, info = policy.replanner.layer.choose(env, chunks, np.zeros((1, 2)), np.array([True]), previous)
     assert info["choice"][0] == 1
-    kept, info = policy.replanner.choose_raw(env, chunks)
+    kept, info = policy.replanner.layer.choose(env, chunks)
     assert info["choice"][0] == 0
 
     seen = []
@@ -524,10 +525,10 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
     chunks = np.zeros((1, 3, HORIZON, 2))  # every sample stands still: the proposal makes the progress
     last, had = np.array([[0.1, 0.0]]), np.array([True])
     blended, _ = (
-        FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.choose_raw(env, chunks, last, had)
+        FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.layer.choose(env, chunks, last, had)
     )
     policy = FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **kw)).eval()
-    kept, info = policy.replanner.choose_raw(env, chunks, last, had)
+    kept, info = policy.replanner.layer.choose(env, chunks, last, had)
     assert info["proposal_kept"][0]
     np.testing.assert_allclose(kept, smooth_chunks(blended, last, had, 2))
     assert not np.allclose(kept, blended)
@@ -535,12 +536,12 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
     plain, _ = (
         FormationDiffusionPolicy(nearest_config(**limited))
         .eval()
-        .replanner.choose_raw(env, chunks, last, had)
+        .replanner.layer.choose(env, chunks, last, had)
     )
     as_computed, _ = (
         FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **limited))
         .eval()
-        .replanner.choose_raw(env, chunks, last, had)
+        .replanner.layer.choose(env, chunks, last, had)
     )
     np.testing.assert_allclose(as_computed, plain)
 
@@ -550,7 +551,8 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
     nothing; on an open field the kept chunk is route pursuit's proposal (every replan keeps it), and
     with obstacles across the route an escape or the proposal, never a sample. It needs the proposal."""
     from lerobot_formation.core.route_pursuit import pursuit_chunk
-    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, safety_geometry
+    from lerobot_formation.core.safety_layer import safety_geometry
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
 
     kw = _route_proposal_config(num_candidates=4, safety_filter="cbf")
     policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
@@ -559,7 +561,7 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
         raise AssertionError("the network was sampled")
 
     monkeypatch.setattr(policy, "sample_action_chunks", no_sampling)
-    replanner = Replanner(policy, experiment=ReplanExperiment(sampled=False))
+    replanner = Replanner.from_config(policy.config, policy_sampler(policy), ReplanExperiment(sampled=False))
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
     free = np.array([[[FAR, FAR, 0.0]]])
     env = torch.from_numpy(
@@ -567,7 +569,7 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
     ).float()
     replanner.start(1)
     actions = [replanner.act(env, lambda rows: None) for _ in range(3)]
-    view = replanner.observed_obstacles(env)
+    view = replanner.layer.observed_obstacles(env.numpy())
     _, dt, _ = safety_geometry()
     proposal = pursuit_chunk(view.route, view.goal, replanner.chunk_length, dt, policy.config.action_high[1])
     raw = policy.unnormalize_action(torch.stack(actions, 1)).numpy()
@@ -584,37 +586,31 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
     assert stats["escapes"] > 0
     assert stats["proposals"] + stats["escapes"] + stats["stops"] == stats["replans"]
 
+    alone = ReplanExperiment(sampled=False)
     with pytest.raises(ValueError, match=r"samples nothing.*num_candidates=4, safety_filter='none'"):
-        Replanner(  # a layer needs K > 1 or a filter: here K = 4 is fine, the proposal is off
-            FormationDiffusionPolicy(
-                nearest_config(**{**kw, "safety_route_proposal": False, "safety_filter": "none"})
-            ),
-            experiment=ReplanExperiment(sampled=False),
+        Replanner.from_config(  # a layer needs K > 1 or a filter: here K = 4 is fine, the proposal is off
+            nearest_config(**{**kw, "safety_route_proposal": False, "safety_filter": "none"}),
+            experiment=alone,
         )
     with pytest.raises(ValueError, match=r"samples nothing.*num_candidates=1, safety_filter='none'"):
-        Replanner(
-            FormationDiffusionPolicy(nearest_config(**_route_proposal_config())),
-            experiment=ReplanExperiment(sampled=False),
-        )
+        Replanner.from_config(nearest_config(**_route_proposal_config()), experiment=alone)
     with pytest.raises(ValueError, match=r"samples nothing.*safety_route_proposal=False"):
-        Replanner(
-            FormationDiffusionPolicy(
-                nearest_config(**{**_route_proposal_config(), "safety_route_proposal": False})
-            ),
-            experiment=ReplanExperiment(sampled=False),
+        Replanner.from_config(
+            nearest_config(**{**_route_proposal_config(), "safety_route_proposal": False}), experiment=alone
         )
 
 
-def test_route_pursuit_safe_is_a_controller_that_reads_a_checkpoint():
+def test_route_pursuit_safe_is_a_controller_that_needs_no_checkpoint():
     from lerobot_formation.bench.controllers import controller_names, needs_policy
 
     assert "route-pursuit-safe" in controller_names()
-    assert needs_policy("route-pursuit-safe") and not needs_policy("route-pursuit")
+    assert not needs_policy("route-pursuit-safe") and not needs_policy("route-pursuit")
 
 
-def test_bench_runs_route_pursuit_safe_from_a_checkpoint_without_sampling(tmp_path, monkeypatch):
-    """``lerobot-formation-bench --controllers route-pursuit-safe`` on a level with moving obstacles:
-    it loads the checkpoint for its layer's settings, never samples, and reports the layer's counts."""
+def test_bench_runs_route_pursuit_safe_without_a_checkpoint(tmp_path, monkeypatch):
+    """``lerobot-formation-bench --controllers route-pursuit-safe`` on a level with moving obstacles,
+    no ``--policy.path``: the shipped default's layer settings, nothing sampled, the layer's counts
+    reported."""
     import json
 
     from lerobot_formation.bench import cli
@@ -623,9 +619,8 @@ def test_bench_runs_route_pursuit_safe_from_a_checkpoint_without_sampling(tmp_pa
         raise AssertionError("the network was sampled")
 
     monkeypatch.setattr(FormationDiffusionPolicy, "sample_action_chunks", no_sampling)
-    ckpt = save_nearest_checkpoint(tmp_path / "ckpt", **_route_proposal_config(safety_route_lookahead=5))
     out = tmp_path / "out"
-    argv = ["--controllers", "route-pursuit-safe", "--policy.path", str(ckpt), "--scenes", "level5:2"]
+    argv = ["--controllers", "route-pursuit-safe", "--scenes", "level5:2"]
     assert (
         cli.main(
             [*argv, "--candidates", "4", "--threads", "1", "--no-figures", "--no-progress", "--out", str(out)]
@@ -658,11 +653,11 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
     """K = 1, no filter: with ``sampling_guidance`` the sample itself is moved away from the observed
     obstacle (the footprint's predicted clearance grows) against the same network's sample from the
     same noise without it."""
+    from lerobot_formation.core import safety_layer
     from lerobot_formation.core.footprint import sequence_clearance
-    from lerobot_formation.policy import replanner
-    from lerobot_formation.policy.replanner import safety_geometry
+    from lerobot_formation.core.safety_layer import safety_geometry
 
-    monkeypatch.setattr(replanner, "GUIDANCE_DISTANCE", 0.5)
+    monkeypatch.setattr(safety_layer, "GUIDANCE_DISTANCE", 0.5)
     template, dt, radius = safety_geometry()
     obstacle = [0.0, 1.0, 0.4]  # straight ahead of the midpoint
     env = _env_state([obstacle])
@@ -688,15 +683,16 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
 def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_never_samples(monkeypatch):
     """``ReplanExperiment(sampled=False)`` at K = 1 with ``sampling_guidance`` (the "route-pursuit-guided"
     baseline): the plan is route pursuit's chunk moved by the clearance guidance
-    ``num_inference_steps`` times, with no best-of-K; it keeps more clearance from an obstacle beside
+    ``num_inference_steps`` times (``PlanSettings.denoising_steps``), with no best-of-K; it keeps more clearance from an obstacle beside
     the route than route pursuit's own chunk, and equals that chunk where no obstacle is within the
     guidance distance."""
+    from lerobot_formation.core import safety_layer
     from lerobot_formation.core.footprint import sequence_clearance
     from lerobot_formation.core.route_pursuit import pursuit_chunk
-    from lerobot_formation.policy import replanner as replanner_module
-    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, safety_geometry
+    from lerobot_formation.core.safety_layer import safety_geometry
+    from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
 
-    monkeypatch.setattr(replanner_module, "GUIDANCE_DISTANCE", 0.5)
+    monkeypatch.setattr(safety_layer, "GUIDANCE_DISTANCE", 0.5)
     kw = _route_proposal_config(inference_backend="lean", sampling_guidance=2.0)
     policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
 
@@ -704,7 +700,7 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
         raise AssertionError("the network was sampled")
 
     monkeypatch.setattr(policy, "sample_action_chunks", no_sampling)
-    replanner = Replanner(policy, experiment=ReplanExperiment(sampled=False))
+    replanner = Replanner.from_config(policy.config, policy_sampler(policy), ReplanExperiment(sampled=False))
     assert not replanner.best_of
     template, dt, radius = safety_geometry()
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.0, 6.0]])
@@ -716,7 +712,7 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
         ).float()
         replanner.reset(1)
         replanner.act(env, lambda rows: None)
-        view = replanner.observed_obstacles(env)
+        view = replanner.layer.observed_obstacles(env.numpy())
         proposal = pursuit_chunk(
             view.route, view.goal, replanner.chunk_length, dt, policy.config.action_high[1]
         )
@@ -736,9 +732,9 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
     assert replanner.stats["replans"] == 1 and replanner.stats["proposals"] == 0
 
 
-def test_bench_runs_route_pursuit_guided_from_a_checkpoint_without_sampling(tmp_path, monkeypatch):
-    """``--controllers route-pursuit-guided`` on a level with moving obstacles: the checkpoint's
-    guidance (or the tuned one) moves route pursuit's chunk, one per replan, the network never sampled."""
+def test_bench_runs_route_pursuit_guided_without_a_checkpoint(tmp_path, monkeypatch):
+    """``--controllers route-pursuit-guided`` on a level with moving obstacles, no ``--policy.path``:
+    the shipped default's guidance moves route pursuit's chunk, one per replan, nothing sampled."""
     import json
 
     from lerobot_formation.bench import cli
@@ -747,11 +743,10 @@ def test_bench_runs_route_pursuit_guided_from_a_checkpoint_without_sampling(tmp_
     def no_sampling(*args, **kwargs):
         raise AssertionError("the network was sampled")
 
-    assert needs_policy("route-pursuit-guided")
+    assert not needs_policy("route-pursuit-guided")
     monkeypatch.setattr(FormationDiffusionPolicy, "sample_action_chunks", no_sampling)
-    ckpt = save_nearest_checkpoint(tmp_path / "ckpt", **_route_proposal_config(inference_backend="lean"))
     out = tmp_path / "out"
-    argv = ["--controllers", "route-pursuit-guided", "--policy.path", str(ckpt), "--scenes", "level5:2"]
+    argv = ["--controllers", "route-pursuit-guided", "--scenes", "level5:2"]
     assert cli.main([*argv, "--threads", "1", "--no-figures", "--no-progress", "--out", str(out)]) == 0
     res = json.loads((out / "results.json").read_text())["route-pursuit-guided"]
     assert res["n_episodes"] == 2
