@@ -19,7 +19,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from datasets_scripts.generate_pac_dataset import PAPER_EPISODES  # noqa: E402
 from lerobot_formation.compat.lerobot_compat import skip_noop_image_embedding  # noqa: E402
-from lerobot_formation.core.dynamics import FormationParams  # noqa: E402
+from lerobot_formation.core.world.dynamics import FormationParams  # noqa: E402
 from lerobot_formation.data import (
     dataset_frames,
     lerobot_writer,

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.perception.conditions import Conditions
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.vector_env import FormationVectorEnv
 

@@ -69,7 +69,7 @@ QUICK_STOCK = "default,10:sync,2:async"
 
 def checkpoint_encoding(path: str) -> str:
     """The env's obstacle encoding that matches the checkpoint's environment_state size."""
-    from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+    from lerobot_formation.core.encodings.obstacle_grid import ENCODINGS, environment_state_dim
 
     cfg = json.loads((Path(path) / "config.json").read_text())
     dim = cfg["input_features"]["observation.environment_state"]["shape"][0]
@@ -103,7 +103,7 @@ def stock_command(
     level=None,
 ) -> list[str]:
     """The ``lerobot-eval`` command line of one stock setting (the safety layer's flags included):
-    the scenes file from seed 0, or a ``core.levels.Level`` from its own first seed.
+    the scenes file from seed 0, or a ``core.episodes.levels.Level`` from its own first seed.
     ``safety_fields``: the safety layer's knowledge of the run's world (``safety_settings``)."""
     if level is not None:
         scenes = [f"--env.level={level.name}", f"--seed={level.seed}"]
@@ -166,7 +166,7 @@ def run_stock(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--policy.path", dest="policy_path", required=True, help="checkpoint folder")
@@ -213,15 +213,15 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.bench.evaluation import evaluate
     from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.metrics import two_proportion_z
-    from lerobot_formation.core.rollout import SUCCESS
-    from lerobot_formation.core.scene import save_scenes
+    from lerobot_formation.core.episodes.metrics import two_proportion_z
+    from lerobot_formation.core.episodes.rollout import SUCCESS
+    from lerobot_formation.core.world.dynamics import FormationParams
+    from lerobot_formation.core.world.scene_files import save_scenes
 
     threads = apply_threads(args.threads)
     level, conditions = None, None
     if args.level:
-        from lerobot_formation.core.levels import get_level
+        from lerobot_formation.core.episodes.levels import get_level
 
         try:
             level = get_level(args.level)

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import (
+from lerobot_formation.core.world.dynamics import (
     FormationParams,
     agent_positions,
     formation_error,

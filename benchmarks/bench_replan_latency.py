@@ -87,7 +87,7 @@ def paper_policy(config_path: Path):
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-    from lerobot_formation.core.obstacle_grid import environment_state_dim
+    from lerobot_formation.core.encodings.obstacle_grid import environment_state_dim
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
     from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
@@ -137,11 +137,11 @@ def stock_replan_s(policy, pre, post, env_dim: int, repeats: int) -> float:
 def engine_replan_s(ctrl, n: int, repeats: int) -> float:
     """One batched engine replan for n episodes: ``reset`` then the first ``act`` (every episode
     replans), seconds for the whole call."""
-    from lerobot_formation.core.dynamics import initial_state
-    from lerobot_formation.core.scene import UNSEEN_SEED_START, sample_scenes
+    from lerobot_formation.core.world.dynamics import initial_state
+    from lerobot_formation.core.world.sampling import UNSEEN_SEED_START, sample_scenes
 
     scenes = sample_scenes(UNSEEN_SEED_START + np.arange(n))
-    from lerobot_formation.core.conditions import Perception
+    from lerobot_formation.core.perception.conditions import Perception
 
     view = Perception.exact(scenes, initial_state(scenes.start, ctrl.params))  # what the engine passes
     idx = np.arange(n)
@@ -283,13 +283,13 @@ def episode_replans_ms(
     """Run one B=1 episode per seed (unseen paper scenes) through ``FormationEnv`` and the policy's
     ``select_action`` (pre/post processors), as ``lerobot-eval`` steps it; return the duration [ms] of
     every call that replanned (sampled and, with K > 1, scored a new chunk) and the actions taken.
-    ``scorer``: a replacement for ``core.safety.cost_to_go_at`` (the baseline), else the shipped one.
+    ``scorer``: a replacement for ``core.safety.filters.cost_to_go_at`` (the baseline), else the shipped one.
     ``env_kwargs``: ``FormationEnv`` keyword arguments (a level's scenes and conditions). Torch's generator is seeded per episode, so two scorers that keep the same chunks take the same
     actions. ``plain_trace``: the policy's trace is a plain ``torch.jit.trace`` of LeRobot's U-Net, not
     of ``policy.unet_inference``'s copies."""
     from lerobot.envs.utils import preprocess_observation
 
-    from lerobot_formation.core import safety
+    from lerobot_formation.core.safety import filters as safety
     from lerobot_formation.envs.env import FormationEnv
     from lerobot_formation.policy import modeling_formation_diffusion as modeling
 
@@ -331,7 +331,7 @@ def layer_setup(path: str, scenes: int, level: str | None = None):
     (policy, pre, post, seeds, env_kwargs, where). ``scenes`` unseen paper scenes, or with ``level``
     that level's first scenes under its conditions, the policy's safety layer told them as the bench
     tells it (``safety_settings``)."""
-    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
     from lerobot_formation.policy.checkpoint import load_policy
 
     policy, pre, post = load_policy(path)
@@ -340,7 +340,7 @@ def layer_setup(path: str, scenes: int, level: str | None = None):
     env_kwargs, where = None, f"{scenes} unseen paper scenes"
     if level is not None:
         from lerobot_formation.bench.controllers import safety_settings
-        from lerobot_formation.core.levels import get_level
+        from lerobot_formation.core.episodes.levels import get_level
         from lerobot_formation.envs.env_config import FormationEnvConfig
 
         env_cfg = FormationEnvConfig(level=level, obstacle_encoding=policy.config.obstacle_encoding)
@@ -511,7 +511,8 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
     the same inputs, the two interleaved, so the host's drift between runs does not enter the ratio),
     the values checked equal. ``level``: that level's scenes and conditions instead of unseen paper
     scenes."""
-    from lerobot_formation.core import navigation, safety
+    from lerobot_formation.core.safety import filters as safety
+    from lerobot_formation.core.world import navigation
     from lerobot_formation.policy.configuration_formation_diffusion import TUNED_SAMPLING_GUIDANCE
 
     policy, pre, post, seeds, env_kwargs, where = layer_setup(path, scenes, level)

@@ -1,7 +1,7 @@
 """Observation cost of the route hint: one ``FormationEnv`` control step at B = 1 observing ``nearest+route``
 against the same step observing ``nearest`` (the baseline), on the same scenes and actions.
 
-The route hint (``core/route_encoding.py``) needs a grid cost-to-go of the observed scene. It is built
+The route hint (``core/encodings/route_encoding.py``) needs a grid cost-to-go of the observed scene. It is built
 once per distinct observed scene (cached by ``navigation.SceneFields``), so the first step of an episode
 pays for it and later steps cost a few look-ups. Both are reported: the reset (first observation) and the
 median step, each with its ratio to ``nearest``. A step includes the followers' 100 sub-steps of 1 ms, so
@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from lerobot_formation.core.scene import UNSEEN_SEED_START
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 from lerobot_formation.envs.env import FormationEnv
 
 

@@ -7,7 +7,7 @@ made with ``controllers.make_controller`` (``num_inference_steps`` = that count:
 ``diffusion_controller.set_inference_steps``) and run by the batched engine (``evaluation.evaluate``)
 on every scene set of ``--scenes`` (default ``dataset:100``, the first 100 episodes of the training
 data, from the checkpoint's dataset_scenes.json, and ``random:100``, unseen scenes of seeds from
-``--seed`` = core.scene.UNSEEN_SEED_START). Success is ``bench_results.controller_results``' success rate
+``--seed`` = core.world.sampling.UNSEEN_SEED_START). Success is ``bench_results.controller_results``' success rate
 with its Wilson 95 % interval. The policy's noise is seeded (``--seed-policy``), so every setting
 sees the same scenes and the same first noise draw.
 
@@ -95,7 +95,7 @@ def int_list(text: str) -> list[int]:
 def same_rate(x1: int, n1: int, x2: int, n2: int, z_crit: float = 1.96) -> bool:
     """Whether two success counts x1/n1 and x2/n2 are within sampling noise of each other: the pooled
     two-proportion z-test does not reject equal rates at 5 % (two-sided, |z| < 1.96)."""
-    from lerobot_formation.core.metrics import two_proportion_z
+    from lerobot_formation.core.episodes.metrics import two_proportion_z
 
     return abs(two_proportion_z(x1, n1, x2, n2)) < z_crit
 
@@ -120,7 +120,7 @@ def seconds_per_replan(sets: dict[str, dict]) -> float | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench.results import controller_results
     from lerobot_formation.bench.scene_sets import parse_scenes
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.world.dynamics import FormationParams
     from lerobot_formation.policy.checkpoint import load_policy
 
     if args.controller not in CONTROLLERS:

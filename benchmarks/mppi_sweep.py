@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import initial_state
-from lerobot_formation.core.metrics import wilson_interval
-from lerobot_formation.core.mppi import MPPIConfig, MPPIController
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
-from lerobot_formation.core.scene import UNSEEN_SEED_START, sample_scenes
+from lerobot_formation.core.controllers.mppi import MPPIConfig, MPPIController
+from lerobot_formation.core.episodes.metrics import wilson_interval
+from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, TIMEOUT, rollout
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.world.dynamics import initial_state
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START, sample_scenes
 
 # The sweep's centre: the pre-sweep defaults. Fixed here (not read from MPPIConfig) so that the
 # table does not change when the defaults are set to the winner. Unswept fields use MPPIConfig's defaults.

@@ -46,21 +46,16 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.footprint import sequence_clearance
-from lerobot_formation.core.levels import get_level
-from lerobot_formation.core.rollout import COLLISION, rollout
-from lerobot_formation.core.scene import (
-    SCENE_MIXES,
-    SCENE_PRESETS,
-    SceneConfig,
-    Scenes,
-    distribution_entries,
-    passage_exists,
-    sample_distribution,
-    save_scenes,
-)
+from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.episodes.rollout import COLLISION, rollout
+from lerobot_formation.core.perception.conditions import CONDITION_FIELDS, Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.presets import SCENE_MIXES, SCENE_PRESETS, SceneConfig, distribution_entries
+from lerobot_formation.core.world.sampling import sample_distribution
+from lerobot_formation.core.world.scene_files import save_scenes
+from lerobot_formation.core.world.scenes import Scenes
+from lerobot_formation.core.world.validity import passage_exists
 from lerobot_formation.envs.condition_flags import add_condition_arguments
 from lerobot_formation.threads import add_threads_argument, apply_threads
 
@@ -98,7 +93,7 @@ def dagger_scenes(
     conditions: Conditions | None = None,
 ) -> tuple[Scenes, dict]:
     """Branch scenes of ``rollouts`` policy episodes on scenes of ``preset`` (a
-    ``core.scene.sample_distribution`` spec) under ``conditions`` (None: none), and a summary."""
+    ``core.world.sampling.sample_distribution`` spec) under ``conditions`` (None: none), and a summary."""
     from lerobot_formation.bench.diffusion_controller import DiffusionController
 
     params = FormationParams()

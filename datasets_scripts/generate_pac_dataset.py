@@ -30,7 +30,7 @@ frames hold the team's observations and PAC's commands, and ``meta/generation.js
 ``--expert privileged``: PAC acts on the true world instead (every obstacle, moving ones predicted,
 the delay compensated) while the frames still hold what the team perceived. ``--conditions-randomize
 level5``: each group of 16 seeds gets its own draw of conditions up to level 5's
-(``core.conditions.randomized_conditions``)::
+(``core.perception.conditions.randomized_conditions``)::
 
     lerobot-formation-generate --episodes 1500 --root data/formation_priv --obstacle-encoding nearest \
         --scene-preset paper,wide,mixed-hard,structures --expert privileged --conditions-randomize level5
@@ -56,10 +56,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.levels import get_level
-from lerobot_formation.core.obstacle_grid import ENCODINGS
-from lerobot_formation.core.scene import SCENE_MIXES, SCENE_PRESETS, distribution_entries
+from lerobot_formation.core.encodings.obstacle_grid import ENCODINGS
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.presets import SCENE_MIXES, SCENE_PRESETS, distribution_entries
 from lerobot_formation.data.hub_folder import hub_destinations, push_to_folder
 from lerobot_formation.data.lerobot_writer import generate
 from lerobot_formation.data.pac_episodes import EXPERTS
@@ -98,7 +98,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         choices=ENCODINGS,
         help="observation.environment_state: 'grid' (the paper's 7x7 radius grid + goal, 51 values), "
         "'grid+list' (plus the obstacles [x, y, r], 66; the CPU config's) or another encoding of "
-        "core/obstacle_grid.py; must match the policy trained on it",
+        "core/encodings/obstacle_grid.py; must match the policy trained on it",
     )
     ap.add_argument(
         "--scene-slots",
@@ -112,7 +112,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default="paper",
         help=f"scene distribution: a preset {tuple(SCENE_PRESETS)}, a mixture {tuple(SCENE_MIXES)}, or a "
         "comma list of those, e.g. 'paper,wide,mixed-hard,structures' (seed s draws entry s %% k; "
-        "core/scene.py sample_distribution)",
+        "core/world/sampling.py sample_distribution)",
     )
     ap.add_argument(
         "--expert",

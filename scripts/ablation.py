@@ -13,15 +13,15 @@ Conditions: a graded level's set (``--sets level5:500``) runs under that level's
 sets under the ``--env.<field> VALUE`` flags of the bench (docs/conditions.md), which a level refuses
 (``bench.scene_sets.scene_set_conditions``). ``ablation.md`` names each set's conditions.
 
-Rows: PAC; MPPI; route pursuit (``core/route_pursuit.py``, no learning); the old default (paper data, egocentric grid+list list) standard; the
+Rows: PAC; MPPI; route pursuit (``core/controllers/route_pursuit.py``, no learning); the old default (paper data, egocentric grid+list list) standard; the
 new model (wide data, "nearest" encoding) standard, best-of-K, best-of-K + escapes, CBF filter,
 both, both + escapes ("escapes": ``ReplanExperiment.escape_advantage`` = ``--escape-advantage``, a safe manoeuvre
 also replaces sampled chunks that make too little progress; without it, only when none is safe);
 with ``--dagger CKPT`` the same model after a DAgger round; with ``--route CKPT`` the same rows for
-a model observing the "nearest+route" encoding (the route hint, ``core/route_encoding.py``); with ``--n-action-steps N`` the new
+a model observing the "nearest+route" encoding (the route hint, ``core/encodings/route_encoding.py``); with ``--n-action-steps N`` the new
 model executing N instead of its trained number of actions per replan (an action-execution change);
 "+ blending": ``ReplanExperiment.blend_steps`` = ``--blend-steps`` (a new chunk's first actions blended from the
-executed one, ``core.replan_blend``; the other rows run without it); "+ warm start":
+executed one, ``core.safety.replan_blend``; the other rows run without it); "+ warm start":
 ``warm_start_step`` = ``--warm-start-step`` (a replan starts from the last chunk's unexecuted rest,
 noised, every candidate with its own noise; the other rows sample from pure noise; with
 ``--blend-steps 0`` these rows are named without "+ blending"); "+ stop":
@@ -45,9 +45,10 @@ from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.results import controller_results, safety_rates
 from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions
 from lerobot_formation.bench.settings import ControllerOptions
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
+from lerobot_formation.core.world.scenes import Scenes
 from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.policy.replanner import ReplanExperiment
 

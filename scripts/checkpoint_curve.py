@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench.diffusion_controller import DiffusionController
     from lerobot_formation.bench.evaluation import evaluate
     from lerobot_formation.bench.scene_sets import parse_scenes
-    from lerobot_formation.core.metrics import wilson_interval
-    from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT
+    from lerobot_formation.core.episodes.metrics import wilson_interval
+    from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, TIMEOUT
 
     ckpts = sorted(p for p in (args.run / "checkpoints").iterdir() if p.name.isdigit())
     if not ckpts:

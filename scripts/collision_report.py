@@ -25,8 +25,8 @@ collisions, timeouts, and how many collisions came after the team was already wi
 obstacle in the 10 steps before (grazes, not run-ins), how many were with a moving obstacle (its
 line gives that obstacle's speed over the last step, the part of it towards the agent it hit and, on
 a level with a sensing range, how long before the contact the team first sensed it) and
-how many of those struck a team that was not closing on the mover (``core.metrics.mover_strikes``), and
-the mean jerk and control smoothness of the successful episodes (``core.metrics``).
+how many of those struck a team that was not closing on the mover (``core.episodes.metrics.mover_strikes``), and
+the mean jerk and control smoothness of the successful episodes (``core.episodes.metrics``).
 ``--controller pac-privileged`` (no checkpoint) reports the privileged expert, on the true world.
 
 ``--trace EPISODE ...`` then prints the last ``--trace-steps`` steps (default 30) of those episodes
@@ -56,12 +56,12 @@ from lerobot_formation.threads import add_threads_argument, apply_threads  # noq
 def collision_lines(rec, scenes, params, sensed: bool = False) -> tuple[list[str], int, int, int]:
     """One line per collision of the records ``rec`` (module docstring), how many came after the
     team was within 2 cm in the 10 steps before, how many were with a moving obstacle, and how many
-    of those struck a team that was not closing on it (``core.metrics.mover_strikes``). With
+    of those struck a team that was not closing on it (``core.episodes.metrics.mover_strikes``). With
     ``sensed`` (the run had a sensing range), a mover's line says how long before the contact the
     team first observed it (``EpisodeRecords.seen_step``: some agent came within the range of it)."""
-    from lerobot_formation.core.dynamics import desired_follower_positions
-    from lerobot_formation.core.metrics import mover_strikes
-    from lerobot_formation.core.rollout import COLLISION
+    from lerobot_formation.core.episodes.metrics import mover_strikes
+    from lerobot_formation.core.episodes.rollout import COLLISION
+    from lerobot_formation.core.world.dynamics import desired_follower_positions
 
     lines, dwelt, movers = [], 0, 0
     struck = mover_strikes(rec, scenes.obstacles, scenes.mask, params.agent_radius)
@@ -104,7 +104,7 @@ def collision_lines(rec, scenes, params, sensed: bool = False) -> tuple[list[str
 def agent_obstacle_gaps(positions, obstacles, mask, agent_radius) -> np.ndarray:
     """(N, M) the gap between each agent disc at positions (N, 2) and each obstacle (M, 3) of one
     episode, inf where ``mask`` (M,) says there is none."""
-    from lerobot_formation.core.geometry import obstacle_gaps
+    from lerobot_formation.core.world.geometry import obstacle_gaps
 
     gap = obstacle_gaps(positions[None], obstacles[None])[0] - agent_radius
     return np.where(mask[None], gap, np.inf)
@@ -177,8 +177,8 @@ def layer_note(recorder, b: int, t: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench import level_report
     from lerobot_formation.bench.controllers import runs_replanner
-    from lerobot_formation.core.levels import get_level
-    from lerobot_formation.core.rollout import COLLISION, SUCCESS
+    from lerobot_formation.core.episodes.levels import get_level
+    from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     level_report.add_arguments(ap)

@@ -47,8 +47,8 @@ def _widened(src: Path, cfg, encoding: str):
     from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
     from safetensors.torch import load_file
 
-    from lerobot_formation.core.observation import STATE_DIM
-    from lerobot_formation.core.obstacle_grid import ENCODINGS, get_encoding
+    from lerobot_formation.core.encodings.obstacle_grid import ENCODINGS, get_encoding
+    from lerobot_formation.core.perception.observation import STATE_DIM
     from lerobot_formation.policy.widen_inputs import widen_condition_weights
 
     if encoding not in ENCODINGS:

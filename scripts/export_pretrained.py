@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
             if f.name.startswith("policy_") or f.name == "train_config.json":
                 shutil.copy(f, tmp / f.name)
         from lerobot_formation.bench.scene_sets import dataset_scenes
-        from lerobot_formation.core.scene import save_scenes
+        from lerobot_formation.core.world.scene_files import save_scenes
 
         save_scenes(dataset_scenes(args.dataset_root, args.scenes), tmp / "dataset_scenes.json")
         card = args.card.read_text() if args.card else ""

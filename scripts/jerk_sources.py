@@ -3,7 +3,7 @@
     python scripts/jerk_sources.py --policy.path pretrained/formation_diffusion_route_v1 --level level3 \
         --scenes 100 [--seed 5000000] [--proposal-blend M] [--coherence W] [other safety overrides]
 
-The jerk (``core.metrics``, SPEC) at step t is the third difference of the midpoint position over
+The jerk (``core.episodes.metrics``, SPEC) at step t is the third difference of the midpoint position over
 positions t .. t+3, i.e. v_{t+2} - 2 v_{t+1} + v_t of the commands t, t+1 and t+2: a command that
 differs from the one before it at step s shows in the jerk at t = s-2 and s-1. Each jerk value of a
 successful episode is put in the class of the first event, in this order, at its step t+1 or t+2:
@@ -66,7 +66,7 @@ def jerk_sources(positions: np.ndarray, steps: np.ndarray, events: dict[str, np.
 
 def main(argv: list[str] | None = None) -> int:
     from lerobot_formation.bench import level_report
-    from lerobot_formation.core.rollout import SUCCESS
+    from lerobot_formation.core.episodes.rollout import SUCCESS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     level_report.add_arguments(ap, policy_required=True)

@@ -8,7 +8,7 @@ folders of the same set (say, a rerun of one controller) are merged, the later f
 controller both hold. ``FOLDER@TAG`` keys that folder's controllers ``KEY@TAG``, so another model's
 rows stand beside the default's (label them with ``--name KEY@TAG=LABEL``). One row per level and controller: success % with its Wilson 95 % interval,
 collisions (with "(k struck)": k of them a moving obstacle struck a team that was not closing on
-it, ``core.metrics.mover_strikes``) / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
+it, ``core.episodes.metrics.mover_strikes``) / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
 the episodes' minimum clearance and, for controllers with a safety layer, the filter's
 interventions per 100 steps and the share of replans where no candidate was safe (and, with
 ``safety_route_proposal``, the share where route pursuit's proposal was kept). ``--compact``
@@ -48,7 +48,7 @@ NAMES = {
 
 def _collisions(m: dict) -> str:
     """Collisions, with how many of them a moving obstacle struck a team not closing on it
-    (``core.metrics.mover_strikes``) where a run counted them and any happened."""
+    (``core.episodes.metrics.mover_strikes``) where a run counted them and any happened."""
     struck = m.get("struck_by_mover")
     return f"{m['collisions']} ({struck} struck)" if struck else f"{m['collisions']}"
 

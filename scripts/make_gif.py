@@ -76,10 +76,10 @@ def run_episode(args):
     from lerobot_formation.bench.controllers import make_controller, needs_policy
     from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.conditions import Conditions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.rollout import rollout
-    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.core.episodes.rollout import rollout
+    from lerobot_formation.core.perception.conditions import Conditions
+    from lerobot_formation.core.world.dynamics import FormationParams
+    from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 
     level = scene_set_level(args.scenes)
     seed = args.seed if args.seed is not None else (level.seed if level is not None else UNSEEN_SEED_START)
@@ -122,7 +122,7 @@ def draw_gif(rec, scenes, params, title: str, path: Path, args) -> int:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from lerobot_formation.core.rollout import OUTCOME_NAMES
+    from lerobot_formation.core.episodes.rollout import OUTCOME_NAMES
 
     n = int(rec.steps[0])
     pos = rec.positions[0, : n + 1]  # (T + 1, N, 2)
@@ -279,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         rec, scenes, conditions, params = run_episode(args)
     except ValueError as e:
         ap.error(str(e))
-    from lerobot_formation.core.rollout import OUTCOME_NAMES
+    from lerobot_formation.core.episodes.rollout import OUTCOME_NAMES
 
     seed = int(scenes.seeds[0])
     outcome = OUTCOME_NAMES[int(rec.outcome[0])]

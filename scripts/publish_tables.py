@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))  # run from a checkout without installing it
 
 from lerobot_formation.bench.artifacts import dump_artifact, read_artifact, reduce_results  # noqa: E402
-from lerobot_formation.core.metrics import wilson_interval  # noqa: E402
+from lerobot_formation.core.episodes.metrics import wilson_interval  # noqa: E402
 
 OPEN = re.compile(r"^<!-- table:([\w-]+) -->\s*$")
 CLOSE = "<!-- /table:{} -->"

@@ -8,7 +8,8 @@ import pytest
 
 from lerobot_formation.bench.cli import main
 from lerobot_formation.bench.scene_sets import parse_scenes
-from lerobot_formation.core.scene import sample_scenes, save_scenes
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import save_scenes
 
 
 def test_bench_pac_and_mppi_write_results_tables_and_figures(tmp_path):
@@ -92,9 +93,9 @@ def test_bench_runs_the_privileged_expert_on_the_true_world():
     from lerobot_formation.bench.controllers import make_controller
     from lerobot_formation.bench.evaluation import evaluate
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.conditions import Conditions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.scene import sample_scenes
+    from lerobot_formation.core.perception.conditions import Conditions
+    from lerobot_formation.core.world.dynamics import FormationParams
+    from lerobot_formation.core.world.sampling import sample_scenes
 
     scenes, params = sample_scenes(range(3)), dataclasses.replace(FormationParams(), max_steps=150)
     sensing = Conditions(sensing_range=3.0, obstacle_noise=0.1, pose_noise=0.05)

@@ -75,7 +75,7 @@ def test_eval_speed_stock_command_plays_a_level_with_its_conditions(tmp_path):
     import dataclasses
 
     from lerobot_formation.bench.controllers import safety_settings
-    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.episodes.levels import get_level
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 
     m = _script("benchmarks/bench_eval_speed.py")

@@ -61,7 +61,7 @@ def test_every_generator_and_bench_option_has_help(monkeypatch):
 
 def test_every_env_config_field_has_draccus_help():
     """draccus (lerobot-eval --help) shows a help for every field: its comment line above it, or for a
-    condition field the help declared with it in ``core.conditions.Conditions``."""
+    condition field the help declared with it in ``core.perception.conditions.Conditions``."""
     helps = {a.dest: a.help for a in draccus.argparsing.ArgumentParser(FormationEnvConfig).parser._actions}
     for f in dataclasses.fields(FormationEnvConfig):
         text = helps.get(f.name)

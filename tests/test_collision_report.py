@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import COLLISION, rollout
-from lerobot_formation.core.scene import Scenes
+from lerobot_formation.core.episodes.rollout import COLLISION, rollout
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.scenes import Scenes
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -43,9 +43,10 @@ def test_trajectories_and_observations_unchanged():
 
 
 def test_conditions_all_off_is_no_conditions():
-    from lerobot_formation.core.conditions import Conditions
-    from lerobot_formation.core.rollout import PACController, Teams, rollout
-    from lerobot_formation.core.scene import sample_scenes
+    from lerobot_formation.core.controllers.pac import PACController
+    from lerobot_formation.core.episodes.rollout import Teams, rollout
+    from lerobot_formation.core.perception.conditions import Conditions
+    from lerobot_formation.core.world.sampling import sample_scenes
 
     scenes = sample_scenes([1_000_000, 1_000_001])
     assert Teams(scenes, conditions=Conditions()).world is None

@@ -9,7 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.bench.controllers import CONTROLLER_FACTORIES
-from lerobot_formation.core.obstacle_grid import ENCODING_REGISTRY, environment_state_dim, get_encoding
+from lerobot_formation.core.encodings.obstacle_grid import (
+    ENCODING_REGISTRY,
+    environment_state_dim,
+    get_encoding,
+)
 
 STRAIGHT = '''
 import numpy as np
@@ -36,7 +40,7 @@ def make_controller(name, params, args, bundle=None):
 GOAL_ONLY = """
 import numpy as np
 
-from lerobot_formation.core.encoding import ObstacleEncoding, world_to_body
+from lerobot_formation.core.encodings.encoding import ObstacleEncoding, world_to_body
 
 
 def encode(obstacles, mask, goal, pose, slots):
@@ -63,8 +67,9 @@ def test_a_controller_is_one_file_and_one_registry_line(tmp_path, monkeypatch):
 
 
 def test_an_obstacle_encoding_is_one_file_and_one_registry_line(tmp_path, monkeypatch):
-    from lerobot_formation.core.rollout import PACController, rollout
-    from lerobot_formation.core.scene import sample_scenes
+    from lerobot_formation.core.controllers.pac import PACController
+    from lerobot_formation.core.episodes.rollout import rollout
+    from lerobot_formation.core.world.sampling import sample_scenes
     from lerobot_formation.data.dataset_frames import dataset_features, episode_frames
     from lerobot_formation.envs.env import FormationEnv
 
@@ -97,8 +102,8 @@ def _package_files() -> dict[str, ast.Module]:
 
 def test_a_safety_filter_touches_at_most_three_files():
     """The shipped filter "cbf" is named (as a value, not in docs) and called in three files: its
-    function in core/safety.py, its name in the config's SAFETY_FILTERS and its call in the safety
-    layer (core/safety_layer.py, whose FILTERS name it too).
+    function in core/safety/filters.py, its name in the config's SAFETY_FILTERS and its call in the safety
+    layer (core/safety/layer.py, whose FILTERS name it too).
     A new filter touches the same three (a bench controller that runs it is an optional registry line)."""
     named, called = set(), set()
     for path, tree in _package_files().items():
@@ -113,9 +118,9 @@ def test_a_safety_filter_touches_at_most_three_files():
                 called.add(path)
     touched = (named - {"bench/controllers.py"}) | called
     assert touched == {
-        "core/safety.py",
+        "core/safety/filters.py",
         "policy/configuration_formation_diffusion.py",
-        "core/safety_layer.py",
+        "core/safety/layer.py",
     }, touched
 
 

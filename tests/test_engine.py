@@ -46,16 +46,11 @@ from lerobot_formation.bench.diffusion_controller import (
     episode_noise_seeds,
 )
 from lerobot_formation.bench.evaluation import evaluate
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams, initial_state
-from lerobot_formation.core.rollout import COLLISION, SUCCESS
-from lerobot_formation.core.scene import (
-    UNSEEN_SEED_START,
-    load_scenes,
-    sample_scenes,
-    save_scenes,
-    scenes_from_list,
-)
+from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.world.dynamics import FormationParams, initial_state
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START, sample_scenes
+from lerobot_formation.core.world.scene_files import load_scenes, save_scenes, scenes_from_list
 from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
 REPO = Path(__file__).resolve().parents[1]
@@ -125,7 +120,7 @@ def test_engine_actions_equal_lerobot_rollout(checkpoint, bundle, workdir):
     from lerobot.scripts.lerobot_eval import rollout
     from lerobot.utils.constants import ACTION
 
-    from lerobot_formation.core.dynamics import clip_action
+    from lerobot_formation.core.world.dynamics import clip_action
     from lerobot_formation.envs.env_config import FormationEnvConfig
 
     B, T, seed = 8, 24, 7  # three replans of n_action_steps = 8; far goals, so all stay alive

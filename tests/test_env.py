@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.scene import sample_scenes, save_scenes
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import save_scenes
 from lerobot_formation.envs import ENV_ID
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.vector_env import FormationVectorEnv

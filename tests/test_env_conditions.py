@@ -1,5 +1,5 @@
 """Realistic conditions through the env, the vector env, the env config (``--env.<field>``), the
-bench and the generator: the same episode path as the engine (``core.rollout.Teams``)."""
+bench and the generator: the same episode path as the engine (``core.episodes.rollout.Teams``)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,16 @@ import draccus
 import numpy as np
 import pytest
 
-from lerobot_formation.core.conditions import CONDITION_FIELDS, CONDITION_TYPES, Conditions, condition_help
-from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.scene import sample_scenes, scenes_from_list
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.perception.conditions import (
+    CONDITION_FIELDS,
+    CONDITION_TYPES,
+    Conditions,
+    condition_help,
+)
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import scenes_from_list
 from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.env_config import FormationEnvConfig
@@ -138,7 +145,7 @@ def test_vector_env_with_conditions_matches_single_envs(encoding):
 
 
 def test_scenes_file_velocities_round_trip(tmp_path):
-    from lerobot_formation.core.scene import load_scenes, save_scenes
+    from lerobot_formation.core.world.scene_files import load_scenes, save_scenes
 
     scenes = scenes_from_list(
         [{"obstacles": [[3.0, 5.0, 0.5]], "goal": [0.0, 10.0], "velocities": [[0.1, -0.2]]}]
@@ -206,7 +213,7 @@ def test_episode_metrics_see_moving_obstacles_and_executed_actions():
 
 
 def test_episode_metrics_flag_a_mover_that_strikes_a_standing_team():
-    """``struck_by_mover`` (core.metrics.mover_strikes) in lerobot-eval's per-episode record: the team
+    """``struck_by_mover`` (core.episodes.metrics.mover_strikes) in lerobot-eval's per-episode record: the team
     leaves the start zone (movers bounce off it), stops, and a crossing obstacle runs into it."""
     from lerobot_formation.envs.episode_metrics import INFO_KEY, FormationEpisodeMetrics
 

@@ -9,11 +9,14 @@ from matplotlib.container import ErrorbarContainer
 
 from lerobot_formation.bench.plots import figures
 from lerobot_formation.bench.scene_sets import scene_set_presets
-from lerobot_formation.core import metrics
-from lerobot_formation.core.dynamics import FormationParams, agent_positions, initial_state
-from lerobot_formation.core.geometry import agent_clearances
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords, PACController, rollout
-from lerobot_formation.core.scene import Scenes, sample_scenes, scenes_from_list
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.episodes import metrics
+from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords, rollout
+from lerobot_formation.core.world.dynamics import FormationParams, agent_positions, initial_state
+from lerobot_formation.core.world.geometry import agent_clearances
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import scenes_from_list
+from lerobot_formation.core.world.scenes import Scenes
 
 PAPER_START = [0.0, 0.0, np.pi / 2]  # midpoint at the origin, heading +y
 
@@ -265,7 +268,7 @@ def test_bench_writes_the_success_chart_and_lists_the_figures(tmp_path, capsys):
 
 def test_success_chart_names_each_scene_set_by_what_it_is(captured, tmp_path):
     from lerobot_formation.bench.figures import write_success_figure
-    from lerobot_formation.core.scene import UNSEEN_SEED_START
+    from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 
     entry = {"success_rate": 0.5, "n_episodes": 4}
     results = {"random": {"diffusion": entry}, "unseen": {"diffusion": entry}}

@@ -11,8 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import Scenes, load_scenes
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.scene_files import load_scenes
+from lerobot_formation.core.world.scenes import Scenes
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.vector_env import FormationVectorEnv
 

@@ -11,23 +11,15 @@ from lerobot_formation.bench.controllers import make_controller
 from lerobot_formation.bench.evaluation import evaluate
 from lerobot_formation.bench.merge import main as merge_main
 from lerobot_formation.bench.scene_sets import level_scenes, parse_scenes, scene_set_conditions
-from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.levels import LEVELS, get_level, level_env_fields
-from lerobot_formation.core.rollout import SUCCESS, Teams, rollout
-from lerobot_formation.core.route_pursuit import RoutePursuitConfig, RoutePursuitController
-from lerobot_formation.core.scene import (
-    FAR,
-    SCENE_MIXES,
-    SCENE_PRESETS,
-    STRUCTURE_PRESETS,
-    Scenes,
-    passage_exists,
-    sample_mixed,
-    sample_scenes,
-    scene_preset,
-    scene_validity,
-)
+from lerobot_formation.core.controllers.route_pursuit import RoutePursuitConfig, RoutePursuitController
+from lerobot_formation.core.episodes.levels import LEVELS, get_level, level_env_fields
+from lerobot_formation.core.episodes.rollout import SUCCESS, Teams, rollout
+from lerobot_formation.core.perception.conditions import CONDITION_FIELDS, Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.presets import SCENE_MIXES, SCENE_PRESETS, STRUCTURE_PRESETS, scene_preset
+from lerobot_formation.core.world.sampling import sample_mixed, sample_scenes
+from lerobot_formation.core.world.scenes import FAR, Scenes
+from lerobot_formation.core.world.validity import passage_exists, scene_validity
 from lerobot_formation.envs.env_config import FormationEnvConfig, report_level_seed
 from lerobot_formation.envs.vector_env import FormationVectorEnv
 
@@ -380,7 +372,7 @@ def test_three_shards_merge_to_the_whole_run(tmp_path, capsys):
 
 
 def test_a_level_with_movers_counts_the_collisions_a_mover_struck_and_shards_merge_them(tmp_path, capsys):
-    """``struck_by_mover`` (core.metrics.mover_strikes): in results.json per episode and counted in
+    """``struck_by_mover`` (core.episodes.metrics.mover_strikes): in results.json per episode and counted in
     the summary, and a merge of shards recounts it from the episodes."""
     # from the 14th scene of level5: route pursuit is struck by a mover in two of these six
     argv = ["--controllers", "route-pursuit", "--scenes", "level5:6", "--seed", "1000013"]

@@ -1,5 +1,6 @@
-"""The package's layers (docs/design.md): what each subpackage may import, no import cycles (hidden
-behind a registry string or not), and a short longest import chain. Read from the source with ``ast``
+"""The package's layers (docs/design.md): what each subpackage may import, the core's subpackages and
+their order (no import back up), no import cycles (hidden behind a registry string or not), and a
+short longest import chain. Read from the source with ``ast``
 (every import, function-local ones included), so nothing is run."""
 
 import ast
@@ -25,6 +26,8 @@ FOREIGN = {  # third-party packages a layer must not import
     "core": {"torch", "lerobot", "gymnasium", "diffusers", "datasets", "matplotlib"},
     "envs": {"diffusers"},
 }
+# The core's subpackages, lowest first: a module imports only its own subpackage and those below it.
+CORE_FLOORS = ("world", "encodings", "perception", "controllers", "safety", "episodes")
 ENGINE = ("bench.evaluation", "bench.controllers", "bench.diffusion_controller")
 REPORTS = ("bench.results", "bench.paper_tables", "bench.figures", "bench.plots")
 MAX_CHAIN = 7  # modules of ours, the numpy core counted as one (its own layering is core's business)
@@ -109,6 +112,36 @@ def test_each_layer_imports_only_what_it_may():
     assert not wrong, wrong
 
 
+def core_floor(name: str) -> int:
+    """The floor of a core module: its subpackage's place in ``CORE_FLOORS``."""
+    return CORE_FLOORS.index(name.split(".")[1])
+
+
+def test_the_core_is_its_subpackages():
+    """Every module of the core but its package face (``core/__init__.py``) lives in one of the
+    subpackages of ``CORE_FLOORS``, and each of them holds modules."""
+    core = [m for m in modules() if layer(m) == "core" and m != "core"]
+    stray = [m for m in core if m.split(".")[1] not in CORE_FLOORS]
+    assert not stray, f"core modules outside {CORE_FLOORS}: {stray}"
+    assert {m.split(".")[1] for m in core if m.count(".") == 2} == set(CORE_FLOORS)
+
+
+def test_no_import_back_up_inside_the_core():
+    """A core module imports its own subpackage and lower ones only (world < encodings < perception <
+    controllers < safety < episodes), registry strings and function-local imports included; nothing
+    in the core imports its package face."""
+    wrong = []
+    for name in modules():
+        if layer(name) != "core" or name == "core":
+            continue
+        for dep in imports(name):
+            if dep.startswith("!") or layer(dep) != "core":
+                continue
+            if dep == "core" or core_floor(dep) > core_floor(name):
+                wrong.append(f"{name} -> {dep}")
+    assert not wrong, wrong
+
+
 def test_the_engine_imports_no_report_module():
     wrong = [
         f"{e} -> {d}"
@@ -175,19 +208,25 @@ def test_no_import_cycles_and_a_short_longest_chain():
 
 def test_the_checker_sees_imports():
     """Not vacuous: the graph holds the arrows it must (a function-local import and a registry string)."""
-    assert "core.dynamics" in imports("core.rollout")
+    assert "core.world.dynamics" in imports("core.episodes.rollout")
     assert "policy.replanner" in imports("policy.modeling_formation_diffusion")
-    assert "core.route_encoding" in imports("core.obstacle_grid")  # the registry string
+    assert "core.encodings.route_encoding" in imports("core.encodings.obstacle_grid")  # the registry string
+    assert "core.controllers.protocol" in imports("core.controllers.mppi")  # function-local
 
 
 def test_the_safety_layer_is_one_unit_of_the_core():
-    """The replanner calls the safety layer (``core.safety_layer``), none of its insides; the layer is
+    """The replanner calls the safety layer (``core.safety.layer``), none of its insides; the layer is
     NumPy only and imports nothing above the core; the layer's baselines around route pursuit
     (``bench.layer_controller``) read no checkpoint."""
-    assert "core.safety_layer" in imports("policy.replanner")
-    insides = {"core.guidance", "core.obstacle_filter", "core.obstacle_tracker", "core.route_pursuit"}
+    assert "core.safety.layer" in imports("policy.replanner")
+    insides = {
+        "core.safety.guidance",
+        "core.perception.obstacle_filter",
+        "core.perception.obstacle_tracker",
+        "core.controllers.route_pursuit",
+    }
     assert not insides & imports("policy.replanner")
-    deps = imports("core.safety_layer")
+    deps = imports("core.safety.layer")
     assert all(layer(d) == "core" for d in deps if not d.startswith("!"))
     assert not {d[1:] for d in deps if d.startswith("!")} & FOREIGN["core"]
     assert not {"policy.checkpoint", "policy.modeling_formation_diffusion"} & imports(

@@ -93,8 +93,8 @@ def test_the_recording_replanner_records_what_the_controller_did():
     from lerobot_formation.bench.controllers import make_controller
     from lerobot_formation.bench.scene_sets import level_scenes
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.rollout import rollout
+    from lerobot_formation.core.episodes.rollout import rollout
+    from lerobot_formation.core.world.dynamics import FormationParams
 
     root = Path(__file__).resolve().parents[1]
     params = FormationParams()

@@ -7,7 +7,7 @@ Fast checks, running nothing but parsers:
   are checked against their own help text (scoped to the formation env and policy);
 - every repository path the docs mention (in backticks, links or commands) exists. The check is
   generic: a path counts when its first component is a top-level entry of the repository (or a
-  subpackage of ``lerobot_formation``, for short paths such as ``core/scene.py``); a bare file name
+  subpackage of ``lerobot_formation``, for short paths such as ``core/world/scenes.py``); a bare file name
   such as ``controllers.py`` must exist somewhere in the package. Moving a module only means fixing
   the docs' paths;
 - every folder the docs' commands write at the repository root is git-ignored.
@@ -374,7 +374,7 @@ def test_the_path_check_catches_a_moved_module(tmp_path):
     assert path_problem(doc, "lerobot_formation/no_such_module.py")
     assert path_problem(doc, "core/no_such_file.py")
     assert path_problem(doc, "no_such_file.py")
-    assert path_problem(doc, "log.md") is None and path_problem(doc, "core/scene.py") is None
+    assert path_problem(doc, "log.md") is None and path_problem(doc, "core/world/scenes.py") is None
 
 
 def test_what_the_commands_write_at_the_root_is_git_ignored():

@@ -24,8 +24,10 @@ from helpers import last_error_line, standard_policy_kwargs, stock_diffusion_che
 from datasets_scripts import generate_pac_dataset as gen_mod
 from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.bench.scene_sets import parse_scenes
-from lerobot_formation.core.navigation import cost_to_go
-from lerobot_formation.core.scene import SceneConfig, load_scenes, sample_scenes, scenes_from_list
+from lerobot_formation.core.world.navigation import cost_to_go
+from lerobot_formation.core.world.presets import SceneConfig
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import load_scenes, scenes_from_list
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.safe_destination import remove_stale_temporaries, rename_noreplace
 from lerobot_formation.envs.env import FormationEnv
@@ -673,7 +675,7 @@ def test_non_finite_chunk_never_enters_the_warm_start():
 
 # -- item 5: a finished evaluation is never lost ------------------------------------------------------
 def test_perfect_controller_on_100_scenes_draws_and_writes(tmp_path):
-    from lerobot_formation.core.metrics import wilson_interval
+    from lerobot_formation.core.episodes.metrics import wilson_interval
 
     assert wilson_interval(100, 100) == (pytest.approx(0.963, abs=1e-3), 1.0)
     assert wilson_interval(500, 500)[1] == 1.0 and wilson_interval(0, 500)[0] == 0.0
@@ -865,7 +867,7 @@ def test_fine_tuning_on_another_encoding_fails_at_start_up(tmp_path):
 
 # -- item 9: scenes files: size, count, keys, repeated obstacles ---------------------------------------
 def test_scenes_file_limits_and_top_level_keys(tmp_path, monkeypatch):
-    from lerobot_formation.core import scene as scene_mod
+    from lerobot_formation.core.world import scene_files as scene_mod
 
     g = tmp_path / "typo.json"
     g.write_text(json.dumps({"scenes": [EMPTY_NEAR_GOAL], "sceens": [EMPTY_NEAR_GOAL]}))
@@ -897,7 +899,7 @@ def test_repeated_obstacles_are_warned_about(tmp_path, caplog):
         {"obstacles": [[3.0, 3.0, 0.5]], "goal": [5.0, 5.0]},
     ]
     f = write_scenes(tmp_path / "s.json", scenes)
-    with caplog.at_level(logging.WARNING, logger="lerobot_formation.core.scene"):
+    with caplog.at_level(logging.WARNING, logger="lerobot_formation.core.world.scene_files"):
         assert len(load_scenes(f)) == 2
     assert [r.getMessage() for r in caplog.records] == [
         f"scenes file {f}: scene 0 lists obstacle 0 [3.0, 3.0, 0.5] 50 times (49 repeated obstacles in the file)"
@@ -909,7 +911,7 @@ def test_register_registers_everything_and_the_package_root_stays_light():
     code = (
         "import sys, lerobot_formation\n"
         "assert 'torch' not in sys.modules and 'lerobot' not in sys.modules, 'the package root imported torch'\n"
-        "from lerobot_formation.core.scene import sample_scenes\n"
+        "from lerobot_formation.core.world.sampling import sample_scenes\n"
         "assert 'torch' not in sys.modules\n"
         "import lerobot_formation.plugin\n"
         "from lerobot.configs.policies import PreTrainedConfig\n"

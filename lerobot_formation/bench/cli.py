@@ -11,7 +11,7 @@ Example::
         --seed 1000000 --out outputs/bench
 
 Scenes: ``random:N`` (the valid scenes of seeds S..S+N-1, S = --seed, default 1_000_000, which the
-dataset never uses; ``<preset>:N`` the same from a scene preset of ``core.scene.SCENE_PRESETS``, e.g.
+dataset never uses; ``<preset>:N`` the same from a scene preset of ``core.world.presets.SCENE_PRESETS``, e.g.
 ``gates:25``; ``hard:N`` N/4 scenes of each of gates, blockers, dense and goals), the
 ``dataset:N`` (the first N episodes of a dataset: ``--dataset.root``, or the
 ``dataset_scenes.json`` shipped with the policy), or a scenes JSON file. ``--unseen random:N`` also
@@ -28,7 +28,7 @@ and exit code 2. If a controller fails after others finished, ``results.json`` a
 still written with the finished ones (``meta.incomplete``, ``meta.error``) before the error.
 Clearance metrics are null (n/a in the tables) for scenes with no obstacle.
 
-Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.core.levels``)
+Graded levels: ``--scenes levelK:N`` runs the first N scenes of level K (``lerobot_formation.core.episodes.levels``)
 under the level's conditions, from the level's first seed unless ``--seed`` is given. Each scene set
 runs under its own conditions: ``--scenes`` and ``--unseen`` a level's if it is a level, else the
 ``--env`` flags (``scene_sets.scene_set_conditions``; ``--env`` flags with a level are an error);
@@ -73,9 +73,9 @@ from lerobot_formation.bench.results import (
 )
 from lerobot_formation.bench.scene_sets import parse_scenes, scene_set_conditions, scene_set_level
 from lerobot_formation.bench.settings import RUN_SETTINGS, BenchSettings, ControllerOptions
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import UNSEEN_SEED_START, SamplingReport
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START, SamplingReport
 from lerobot_formation.envs.condition_flags import add_condition_arguments, conditions_from_flags
 from lerobot_formation.threads import add_threads_argument, apply_threads
 

@@ -3,7 +3,7 @@
 ``CONTROLLER_FACTORIES`` maps a name to a factory ``(name, params, options, policy bundle) ->
 controller``, or to the ``"module:function"`` path of one (imported when the controller is first
 made, so a new controller is one new file and one line here). A controller needs only
-``reset(scenes)`` and ``act(state, idx) -> (len(idx), 2)`` (``core.rollout.Controller``);
+``reset(scenes)`` and ``act(state, idx) -> (len(idx), 2)`` (``core.controllers.protocol.Controller``);
 ``options`` is a ``ControllerOptions``. Controllers whose name starts with ``diffusion`` run a
 checkpoint: the bench asks for ``--policy.path`` and loads it once into ``bundle``. Each of them is
 the policy's ``Replanner`` with the checkpoint's config and, for K and the filter, an override
@@ -14,7 +14,7 @@ The controllers with a safety layer (best-of-K or the filter) also know the run'
 conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
 limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
 never its noise draws. "route-pursuit-safe" runs the safety layer with no network and no checkpoint
-(``bench.layer_controller``; the shipped default's settings, ``core.safety_layer.SafetySettings()``):
+(``bench.layer_controller``; the shipped default's settings, ``core.safety.layer.SafetySettings()``):
 the candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows);
 "route-pursuit-guided" runs route pursuit's chunk moved by the same settings' clearance guidance,
 one chunk per replan as "diffusion-guided" samples (the baseline of the guided rows).
@@ -27,15 +27,15 @@ import importlib
 from collections.abc import Callable
 
 from lerobot_formation.bench.settings import ControllerOptions
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import PACController
-from lerobot_formation.core.safety_layer import SafetySettings, known_world
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.safety.layer import SafetySettings, known_world
+from lerobot_formation.core.world.dynamics import FormationParams
 
 
 def safety_settings(conditions: Conditions | None, scenes_move: bool = False) -> dict:
     """The policy config fields of the safety layer's knowledge of a run under ``conditions``
-    (``core.safety_layer.known_world``): the actuator's delay and acceleration limits, the sensors'
+    (``core.safety.layer.known_world``): the actuator's delay and acceleration limits, the sensors'
     noise stds, and whether obstacles move (then it predicts the observed ones at their velocities):
     ``moving_obstacles`` of the conditions, or ``scenes_move`` (the scenes give their obstacles'
     ``velocities``, as a scenes file may). Empty when neither conditions nor moving scenes."""
@@ -125,7 +125,7 @@ def _pac_privileged(name, params, options, bundle=None):
 
 
 def _mppi(name, params, options, bundle=None):
-    from lerobot_formation.core.mppi import MPPIConfig, MPPIController
+    from lerobot_formation.core.controllers.mppi import MPPIConfig, MPPIController
 
     return MPPIController(MPPIConfig(seed=options.seed_policy), params)
 
@@ -134,7 +134,7 @@ def _mppi(name, params, options, bundle=None):
 CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "pac": _pac,
     "mppi": _mppi,
-    "route-pursuit": "lerobot_formation.core.route_pursuit:make_route_pursuit",
+    "route-pursuit": "lerobot_formation.core.controllers.route_pursuit:make_route_pursuit",
     # a reference, not a baseline: the demonstrator of the students, on the true world (every
     # obstacle, exact, moving ones predicted, the delay compensated)
     "pac-privileged": _pac_privileged,

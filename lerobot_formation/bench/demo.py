@@ -24,7 +24,7 @@ from pathlib import Path
 
 from lerobot_formation.bench import cli as bench_cli
 from lerobot_formation.bench.scene_sets import scene_set_level
-from lerobot_formation.core.scene import UNSEEN_SEED_START
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 
 # the repository root's pretrained/ (this file is lerobot_formation/bench/demo.py)
 PRETRAINED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"

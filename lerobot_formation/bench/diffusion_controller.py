@@ -7,7 +7,7 @@ that needs a new chunk, through the checkpoint's own preprocessor; the postproce
 action. K candidates, the filter and warm starts are the policy config's; a bench controller's K and
 filter are an override made with ``dataclasses.replace`` (the config's checks run).
 
-It sees only what the teams perceive (``core.conditions.Perception``): the observation is encoded from
+It sees only what the teams perceive (``core.perception.conditions.Perception``): the observation is encoded from
 the observed pose and obstacles at every step (a world-frame encoding too, since under conditions the
 observed obstacles change), and the safety layer scores chunks against those observed obstacles.
 
@@ -28,10 +28,10 @@ import numpy as np
 import torch
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.observation import STATE_DIM, observe_perception
-from lerobot_formation.core.obstacle_grid import get_encoding
+from lerobot_formation.core.encodings.obstacle_grid import get_encoding
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.perception.observation import STATE_DIM, observe_perception
+from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, check_observation, policy_sampler
 

@@ -7,10 +7,11 @@ controller call per control step, then computes the per-episode records. It is t
 
 from __future__ import annotations
 
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import Controller, EpisodeRecords, rollout
-from lerobot_formation.core.scene import Scenes
+from lerobot_formation.core.controllers.protocol import Controller
+from lerobot_formation.core.episodes.rollout import EpisodeRecords, rollout
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.scenes import Scenes
 
 
 def evaluate(

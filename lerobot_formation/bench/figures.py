@@ -9,8 +9,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from lerobot_formation.core.rollout import EpisodeRecords
-from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes
+from lerobot_formation.core.episodes.rollout import EpisodeRecords
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
+from lerobot_formation.core.world.scenes import Scenes
 
 
 def write_figures(

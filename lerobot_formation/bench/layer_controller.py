@@ -1,12 +1,12 @@
 """The safety layer with no network: route pursuit's chunk is its proposal, and no checkpoint is read.
 
 ``SafetyLayerController`` runs the ``Replanner`` of ``ReplanExperiment(sampled=False)`` (no sampler)
-around a ``core.safety_layer.SafetyLayer``: at a replan the candidates are route pursuit's chunk
+around a ``core.safety.layer.SafetyLayer``: at a replan the candidates are route pursuit's chunk
 from the observed route hint and, where it is not safe, the escape manoeuvres, under the same check,
 recheck and filter as the learned planner's ("route-pursuit-safe", the baseline of the layer's
 rows); with K = 1 and the layer's guidance, route pursuit's chunk moved by the clearance guidance
 ("route-pursuit-guided", the baseline of guided sampling). It observes as the engine's diffusion
-controller does (``core.observation.observe_perception`` with the settings' encoding) and keeps its
+controller does (``core.perception.observation.observe_perception`` with the settings' encoding) and keeps its
 plan in the same normalised units, so it acts as that controller with a checkpoint of the same
 settings would, bit for bit.
 """
@@ -18,10 +18,10 @@ import dataclasses
 import numpy as np
 import torch
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.observation import observe_perception
-from lerobot_formation.core.safety_layer import SafetySettings
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.perception.observation import observe_perception
+from lerobot_formation.core.safety.layer import SafetySettings
+from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.policy.replanner import PlanSettings, ReplanExperiment, Replanner, unnormalize_action
 
 

@@ -15,14 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.levels import TUNING_SEED_START
-from lerobot_formation.core.safety_layer import SafetySettings
+from lerobot_formation.core.episodes.levels import TUNING_SEED_START
+from lerobot_formation.core.safety.layer import SafetySettings
 
 
 @dataclass
 class LevelRun:
     """What ``run_level`` ran and recorded: the controller (its replanner, if any, holds the safety
-    layer's counts), the scenes, the records (``core.rollout.EpisodeRecords``) and the formation's
+    layer's counts), the scenes, the records (``core.episodes.rollout.EpisodeRecords``) and the formation's
     parameters."""
 
     name: str
@@ -35,9 +35,9 @@ class LevelRun:
 
     def summary(self, detail: str = "") -> str:
         """success %, collisions, timeouts, ``detail`` (a caller's counts), and the mean jerk and
-        control smoothness over the successful episodes (``core.metrics``)."""
-        from lerobot_formation.core.metrics import episode_metrics
-        from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT
+        control smoothness over the successful episodes (``core.episodes.metrics``)."""
+        from lerobot_formation.core.episodes.metrics import episode_metrics
+        from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, TIMEOUT
 
         rec = self.records
         ok = rec.outcome == SUCCESS
@@ -71,9 +71,9 @@ def run_level(
     from lerobot_formation.bench.controllers import make_controller, needs_policy
     from lerobot_formation.bench.scene_sets import level_scenes
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.levels import get_level
-    from lerobot_formation.core.rollout import rollout
+    from lerobot_formation.core.episodes.levels import get_level
+    from lerobot_formation.core.episodes.rollout import rollout
+    from lerobot_formation.core.world.dynamics import FormationParams
 
     level = get_level(level_name)  # a bad name: ValueError naming the choices
     if needs_policy(controller_name) and not policy_path:
@@ -183,7 +183,7 @@ def safety_overrides(
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's),
     through the one mapping of the layer's settings to config fields
-    (``core.safety_layer.SafetySettings.config_fields``): ``safety_margin`` (the settings' ``margin``);
+    (``core.safety.layer.SafetySettings.config_fields``): ``safety_margin`` (the settings' ``margin``);
     ``follower_margin`` (0: no follower allowance); ``layer_ignores_noise``: the layer is not told
     the sensing noise (no smoothing); ``layer_ignores_motion``: not told that obstacles move;
     ``route_proposal``, ``route_lookahead`` (off and 0: neither route pursuit's proposal nor its

@@ -3,7 +3,7 @@
 Each shard is the output folder of ``lerobot-formation-bench ... --shard I/N`` (its ``results.json``).
 The merged ``results.json`` and ``tables.md`` are those of the same command run whole: per controller
 and scene set, the episodes of all shards in scene-index order, and the summary recomputed from them
-(``core.metrics.summarize``; the same numbers up to float rounding). ``wall_time_s`` is the sum over
+(``core.episodes.metrics.summarize``; the same numbers up to float rounding). ``wall_time_s`` is the sum over
 the shards and the safety layer's counts are summed (rates recomputed). Figures are not merged (run the
 figures on the whole set, or look at each shard's own).
 
@@ -29,9 +29,9 @@ from lerobot_formation.bench.controllers import controller_names, needs_policy
 from lerobot_formation.bench.results import collisions_text, existing_run, safety_rates, write_results
 from lerobot_formation.bench.settings import RUN_SETTINGS as SETTINGS
 from lerobot_formation.bench.settings import BenchSettings, ControllerOptions
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS, STRUCK_KEY, summarize
-from lerobot_formation.core.scene import SamplingReport
+from lerobot_formation.core.episodes.metrics import FLAG_KEYS, METRIC_KEYS, STRUCK_KEY, summarize
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.sampling import SamplingReport
 
 
 def read_shard(folder: Path) -> dict:

@@ -13,10 +13,17 @@ import numpy as np
 from lerobot_formation.bench.artifacts import bench_command, host_description
 from lerobot_formation.bench.paper_tables import adaptive_table, three_way_table
 from lerobot_formation.bench.settings import BenchSettings
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.metrics import FLAG_KEYS, STRUCK_KEY, episode_metrics, mover_strikes, summarize
-from lerobot_formation.core.rollout import OUTCOME_NAMES, EpisodeRecords
-from lerobot_formation.core.scene import SamplingReport, Scenes
+from lerobot_formation.core.episodes.metrics import (
+    FLAG_KEYS,
+    STRUCK_KEY,
+    episode_metrics,
+    mover_strikes,
+    summarize,
+)
+from lerobot_formation.core.episodes.rollout import OUTCOME_NAMES, EpisodeRecords
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import SamplingReport
+from lerobot_formation.core.world.scenes import Scenes
 
 # the bench's own files in an output folder: one of them there means the folder holds a run
 RUN_FILES = ("results.json", "tables.md")
@@ -90,7 +97,7 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
 def collisions_text(entry: dict) -> str:
     """A controller summary's collision count as printed, "collisions N", with "(k struck by a mover)"
     where k > 0 of them were a moving obstacle striking a team that was not closing on it
-    (``core.metrics.mover_strikes``)."""
+    (``core.episodes.metrics.mover_strikes``)."""
     struck = entry.get(STRUCK_KEY)
     return f"collisions {entry['collisions']}" + (f" ({struck} struck by a mover)" if struck else "")
 
@@ -100,7 +107,7 @@ def controller_results(
 ) -> dict:
     """A controller's summary (``summarize``) plus ``episodes``: per episode its ``scene_index`` in
     the scene set (``indices[b]``, default b: a shard keeps the whole set's), seed, outcome, steps and
-    metrics, ``struck_by_mover`` among them (``core.metrics.mover_strikes`` with the agents'
+    metrics, ``struck_by_mover`` among them (``core.episodes.metrics.mover_strikes`` with the agents'
     ``agent_radius``)."""
     per = episode_metrics(rec, scenes.start, scenes.goal)
     per[STRUCK_KEY] = mover_strikes(rec, scenes.obstacles, scenes.mask, agent_radius)

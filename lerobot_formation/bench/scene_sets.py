@@ -1,8 +1,8 @@
 """The bench's scene sets: ``random:N``, ``<preset>:N``, ``hard:N``, ``<mix>:N``, ``levelK:N``,
 ``dataset:N`` or a scenes file.
 
-``<mix>:N`` (``core.scene.SCENE_MIXES``: ``structures``, ``mixed-hard``) draws seed s from preset
-``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.core.levels``),
+``<mix>:N`` (``core.world.presets.SCENE_MIXES``: ``structures``, ``mixed-hard``) draws seed s from preset
+``mix[s % len(mix)]``; ``levelK:N`` the first N scenes of a graded level (``lerobot_formation.core.episodes.levels``),
 from the level's own first seed unless a seed is given. A scene set runs under its own conditions
 (``scene_set_conditions``): a level's, else the ``--env.<field>`` flags.
 """
@@ -13,21 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.levels import Level, get_level
-from lerobot_formation.core.scene import (
-    HARD_PRESETS,
-    SCENE_MIXES,
-    SCENE_PRESETS,
+from lerobot_formation.core.episodes.levels import Level, get_level
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.presets import HARD_PRESETS, SCENE_MIXES, SCENE_PRESETS, scene_preset
+from lerobot_formation.core.world.sampling import (
     UNSEEN_SEED_START,
     SamplingReport,
-    Scenes,
-    load_scenes,
     sample_mixed,
     sample_scenes,
-    scene_preset,
-    scenes_from_frames,
 )
+from lerobot_formation.core.world.scene_files import load_scenes
+from lerobot_formation.core.world.scenes import Scenes, scenes_from_frames
 
 
 def scene_set_level(spec: str) -> Level | None:

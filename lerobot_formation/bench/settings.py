@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lerobot_formation.core.conditions import Conditions
+from lerobot_formation.core.perception.conditions import Conditions
 
 
 @dataclass(frozen=True)

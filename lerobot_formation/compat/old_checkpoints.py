@@ -35,7 +35,7 @@ from lerobot_formation.compat.run_checks import (  # noqa: F401  (re-exported)
     OldCheckpointError,
     drop_retired_fields,
 )
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.core.encodings.obstacle_grid import ENCODINGS, environment_state_dim
 
 OBS_ENV_STATE = "observation.environment_state"  # lerobot.utils.constants.OBS_ENV_STATE (no torch here)
 

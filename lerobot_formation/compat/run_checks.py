@@ -333,7 +333,7 @@ RETIRED_FIELDS = {
     "blocked_fallback": "widest",
     "replan_blend_steps": 0,
     "egocentric_state": False,
-    # the shipped safety layer's, now wired (core.safety_layer's constants)
+    # the shipped safety layer's, now wired (core.safety.layer's constants)
     "safety_escape_speeds": [0.0, 0.1, 0.2, 0.3, 0.45, 0.6],
     "safety_fallback_all": True,
     "safety_recheck": True,

@@ -13,7 +13,8 @@ scenes at once. Symbols used in shape comments:
 Units: metres, seconds, radians.
 """
 
-from lerobot_formation.core.dynamics import (
+from lerobot_formation.core.encodings.obstacle_grid import environment_state, obstacle_grid
+from lerobot_formation.core.world.dynamics import (
     FormationParams,
     FormationState,
     agent_positions,
@@ -21,16 +22,12 @@ from lerobot_formation.core.dynamics import (
     initial_state,
     step,
 )
-from lerobot_formation.core.formation_graph import FormationGraph
-from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance
-from lerobot_formation.core.obstacle_grid import environment_state, obstacle_grid
-from lerobot_formation.core.scene import (
-    SceneConfig,
-    Scenes,
-    load_scenes,
-    sample_scenes,
-    save_scenes,
-)
+from lerobot_formation.core.world.formation_graph import FormationGraph
+from lerobot_formation.core.world.geometry import agent_clearances, midpoint_clearance
+from lerobot_formation.core.world.presets import SceneConfig
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import load_scenes, save_scenes
+from lerobot_formation.core.world.scenes import Scenes
 
 __all__ = [
     "FormationGraph",

@@ -1,8 +1,8 @@
 """What a PAC dataset holds: its LeRobot features and the frames of one recorded episode.
 
-The observations are ``core.observation``'s, the builder the env uses, so a policy trained on the
+The observations are ``core.perception.observation``'s, the builder the env uses, so a policy trained on the
 dataset sees in the env what it saw in training (``tests/core/test_house.py`` checks it frame by
-frame). Under realistic conditions (``core.conditions``) the frames hold what the team observed
+frame). Under realistic conditions (``core.perception.conditions``) the frames hold what the team observed
 during the rollout (``EpisodeRecords.observations``: noisy pose, sensed obstacles) and the commands
 PAC sent (``EpisodeRecords.commands``, clipped), not the executed velocities.
 """
@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import FormationParams, clip_action
-from lerobot_formation.core.observation import STATE_DIM, STATE_NAMES, observe, observed_velocities
-from lerobot_formation.core.obstacle_grid import get_encoding
-from lerobot_formation.core.rollout import EpisodeRecords
-from lerobot_formation.core.scene import Scenes
+from lerobot_formation.core.encodings.obstacle_grid import get_encoding
+from lerobot_formation.core.episodes.rollout import EpisodeRecords
+from lerobot_formation.core.perception.observation import STATE_DIM, STATE_NAMES, observe, observed_velocities
+from lerobot_formation.core.world.dynamics import FormationParams, clip_action
+from lerobot_formation.core.world.scenes import Scenes
 
 # LeRobot's feature keys (``lerobot.utils.constants``; not imported here: that module loads torch,
 # which the generator's numpy workers do without; tests/test_design.py checks they are equal).

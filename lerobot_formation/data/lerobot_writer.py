@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_formation.compat.lerobot_compat import save_episode_buffer, skip_noop_image_embedding
-from lerobot_formation.core.conditions import RANDOMIZE_ON, Conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.scene import distribution_slots, load_scenes
+from lerobot_formation.core.perception.conditions import RANDOMIZE_ON, Conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.presets import distribution_slots
+from lerobot_formation.core.world.scene_files import load_scenes
 from lerobot_formation.data.dataset_frames import ACTION, FPS, MAX_OBSTACLES, dataset_features
 from lerobot_formation.data.pac_episodes import (
     CONDITION_GROUP,
@@ -68,12 +69,12 @@ def generate(
     policy_expert: ExpertFactory | None = None,
 ) -> dict:
     """Generate the dataset at ``root`` (atomically) and return a summary dict; ``conditions``: the
-    episodes under realistic conditions (``core.conditions``; None or all off: none); ``expert``:
+    episodes under realistic conditions (``core.perception.conditions``; None or all off: none); ``expert``:
     "pac" (on the perception), "privileged" (on the true world) or "policy" (the controllers
     ``policy_expert`` makes, e.g. ``bench.controllers.PolicyExpert``; ``workers`` must be 0), ``pac_episodes.EXPERTS``;
     ``randomize``: each group of seeds under its own draw of conditions up to these
     (``pac_episodes``; not with ``conditions``). ``scene_preset``: a
-    ``core.scene.sample_distribution`` spec (a preset, a mixture or a comma list).
+    ``core.world.sampling.sample_distribution`` spec (a preset, a mixture or a comma list).
 
     Raises:
         FileExistsError: ``root`` exists and not ``overwrite``, or ``overwrite`` but ``root`` is not a

@@ -2,7 +2,7 @@
 (optionally in worker processes that die with the generating process), successful ones kept in
 seed order; and the seeds and episode counts of each shard.
 
-The expert (``EXPERTS``): "pac" drives on what the team perceives (``core.conditions.Perception``);
+The expert (``EXPERTS``): "pac" drives on what the team perceives (``core.perception.conditions.Perception``);
 "privileged" acts on the true world (``rollout(privileged=True)``: every obstacle where it is, with
 its velocity), avoids the moving obstacles over the next ``EXPERT_PREDICT`` seconds and compensates
 the action delay (``PACController(predict=, delay=)``), while the frames still hold what the team
@@ -17,7 +17,7 @@ rollout's batch from its seed, so its episodes repeat for the same seeds and ``b
 across batch sizes.
 
 Randomized conditions (``randomize``: the ceiling, e.g. a level's conditions): episode seed s gets
-``core.conditions.randomized_conditions(ceiling, s // CONDITION_GROUP)``. The engine takes one
+``core.perception.conditions.randomized_conditions(ceiling, s // CONDITION_GROUP)``. The engine takes one
 ``Conditions`` per rollout, so the episodes of a batch that share a group are rolled out together,
 one rollout per group; an episode's conditions are a pure function of its seed, whatever the batch
 size, the workers or the shards.
@@ -33,10 +33,13 @@ from typing import Protocol
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Conditions, randomized_conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.rollout import SUCCESS, Controller, EpisodeRecords, PACController, rollout
-from lerobot_formation.core.scene import Scenes, sample_distribution
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.controllers.protocol import Controller
+from lerobot_formation.core.episodes.rollout import SUCCESS, EpisodeRecords, rollout
+from lerobot_formation.core.perception.conditions import Conditions, randomized_conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import sample_distribution
+from lerobot_formation.core.world.scenes import Scenes
 from lerobot_formation.data.dataset_frames import MAX_OBSTACLES, episode_frames
 
 EXPERTS = ("pac", "privileged", "policy")
@@ -120,7 +123,7 @@ def simulate_batch(
     policy_expert: ExpertFactory | None = None,
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
     """The expert on one batch of scenes (the seeds' scenes of ``scene_preset``, a
-    ``core.scene.sample_distribution`` spec, or the given ones), under ``conditions``, or under
+    ``core.world.sampling.sample_distribution`` spec, or the given ones), under ``conditions``, or under
     randomized conditions up to ``randomize`` drawn per group of seeds (module docstring):
     (attempted, frames of the successful episodes in seed order). Runs in a worker process when
     generation is pipelined."""

@@ -1,13 +1,18 @@
-"""``--env.<field> VALUE`` command-line flags of the realistic conditions (``core.conditions``) for
+"""``--env.<field> VALUE`` command-line flags of the realistic conditions (``core.perception.conditions``) for
 ``lerobot-formation-bench`` and ``lerobot-formation-generate``: the same names as the env config's
 fields (``lerobot-eval --env.sensing_range=3``), so one spelling works everywhere. Each flag's type and
-help come from the field's declaration in ``core.conditions.Conditions``."""
+help come from the field's declaration in ``core.perception.conditions.Conditions``."""
 
 from __future__ import annotations
 
 import argparse
 
-from lerobot_formation.core.conditions import CONDITION_FIELDS, Conditions, condition_help, condition_kind
+from lerobot_formation.core.perception.conditions import (
+    CONDITION_FIELDS,
+    Conditions,
+    condition_help,
+    condition_kind,
+)
 
 
 def _bool(text: str) -> bool:

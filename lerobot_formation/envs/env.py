@@ -17,7 +17,7 @@ A ``Dict`` (LeRobot maps ``agent_pos`` to ``observation.state`` and ``environmen
 | key | shape | content |
 |---|---|---|
 | agent_pos | (7,) | midpoint [x, y, cos phi, sin phi, x', y', omega] |
-| environment_state | (51,) "grid" / (66,) "grid+list" / (50,) "nearest" / (55,) "nearest+route" or "nearest+maproute" / (74,) "nearest+velocity" / (79,) "nearest+route+velocity" | see ``core/obstacle_grid.py``: the paper's 7x7 obstacle-radius grid (49) and goal [x, y] (2), optionally the 5 obstacles [x, y, r]; or ("nearest") the goal and the 12 nearest obstacles [x, y, r, present] in the midpoint's body frame |
+| environment_state | (51,) "grid" / (66,) "grid+list" / (50,) "nearest" / (55,) "nearest+route" or "nearest+maproute" / (74,) "nearest+velocity" / (79,) "nearest+route+velocity" | see ``core/encodings/obstacle_grid.py``: the paper's 7x7 obstacle-radius grid (49) and goal [x, y] (2), optionally the 5 obstacles [x, y, r]; or ("nearest") the goal and the 12 nearest obstacles [x, y, r, present] in the midpoint's body frame |
 
 ## Rewards
 Progress toward the goal in metres per step, +1 on success, -1 on collision. (LeRobot reports the
@@ -33,7 +33,7 @@ obstacle). Truncated after 600 steps (60 s) by the ``TimeLimit`` of the registra
 
 ## Scenes
 ``reset(seed=s)`` gives the scene of seed s (``sample_scenes``; with ``scene_mix``, a mixture of presets
-such as ``core.scene.SCENE_MIXES["structures"]``, seed s is drawn from preset ``scene_mix[s % k]``,
+such as ``core.world.presets.SCENE_MIXES["structures"]``, seed s is drawn from preset ``scene_mix[s % k]``,
 ``sample_mixed``: the bench's ``<mix>:N`` scene of that seed); ``reset(options={"scene": {...}})``
 uses a given scene (scenes-file format); with ``scenes_file=...`` seed s is scene s of that file
 (0 <= s < number of scenes; a seed past the end raises ``ValueError``, it does not wrap around),
@@ -51,7 +51,7 @@ raise ``ValueError``.
 file or given by hand), ``scene_index`` (the scene's index in ``scenes_file``, else ``None``).
 
 ## Realistic conditions
-``conditions=Conditions(...)`` (``core.conditions``: sensing range and memory, obstacle and pose
+``conditions=Conditions(...)`` (``core.perception.conditions``: sensing range and memory, obstacle and pose
 noise, action noise and delay, rate limits, moving obstacles): the observation is then built from what
 the team perceives, the action is executed late, noisy and rate limited, and obstacles may move
 (``render`` draws them where they are). Off by default: everything as without them.
@@ -72,21 +72,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from lerobot_formation.core import dynamics
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams, FormationState
-from lerobot_formation.core.observation import STATE_DIM
-from lerobot_formation.core.obstacle_grid import environment_state_dim
-from lerobot_formation.core.rollout import SUCCESS, Teams
-from lerobot_formation.core.scene import (
-    SceneConfig,
-    Scenes,
-    load_scenes,
-    sample_mixed,
-    sample_scenes,
-    scene_preset,
-    scenes_from_list,
-)
+from lerobot_formation.core.encodings.obstacle_grid import environment_state_dim
+from lerobot_formation.core.episodes.rollout import SUCCESS, Teams
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.perception.observation import STATE_DIM
+from lerobot_formation.core.world import dynamics
+from lerobot_formation.core.world.dynamics import FormationParams, FormationState
+from lerobot_formation.core.world.presets import SceneConfig, scene_preset
+from lerobot_formation.core.world.sampling import sample_mixed, sample_scenes
+from lerobot_formation.core.world.scene_files import load_scenes, scenes_from_list
+from lerobot_formation.core.world.scenes import Scenes
 from lerobot_formation.envs.render import Renderer
 
 TASK = "Navigate the four-robot formation to the goal without collisions."
@@ -156,7 +151,7 @@ def _finite_or_none(x) -> float | None:
 
 
 class FormationEnv(gym.Env):
-    """Single-team formation navigation, stepped by the engine's ``core.rollout.Teams`` (one team); see the
+    """Single-team formation navigation, stepped by the engine's ``core.episodes.rollout.Teams`` (one team); see the
     module docstring for the full specification."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -199,7 +194,7 @@ class FormationEnv(gym.Env):
         self._renderer = Renderer(render_size) if render_mode == "rgb_array" else None
         self.scene: Scenes | None = None
         self.scene_index: int | None = None  # index in scenes_file of the current scene
-        self.teams: Teams | None = None  # the episode: core.rollout.Teams of one team
+        self.teams: Teams | None = None  # the episode: core.episodes.rollout.Teams of one team
         self._ended: str | None = None  # "success" / "collision" once the episode has terminated
         self.applied_action: np.ndarray | None = None  # (1, 2) the action the last step executed
 

@@ -30,11 +30,17 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.compat.lerobot_compat import keep_final_eval_frame
 from lerobot_formation.compat.run_checks import config_error, install_run_hooks
-from lerobot_formation.core.conditions import CONDITION_FIELDS, CONDITION_TYPES, Conditions, condition_help
-from lerobot_formation.core.levels import get_level, level_env_fields
-from lerobot_formation.core.observation import STATE_DIM
-from lerobot_formation.core.obstacle_grid import ENCODINGS, environment_state_dim
-from lerobot_formation.core.scene import SCENE_MIXES, SCENE_PRESETS, SceneConfig, load_scenes
+from lerobot_formation.core.encodings.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.core.episodes.levels import get_level, level_env_fields
+from lerobot_formation.core.perception.conditions import (
+    CONDITION_FIELDS,
+    CONDITION_TYPES,
+    Conditions,
+    condition_help,
+)
+from lerobot_formation.core.perception.observation import STATE_DIM
+from lerobot_formation.core.world.presets import SCENE_MIXES, SCENE_PRESETS, SceneConfig
+from lerobot_formation.core.world.scene_files import load_scenes
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.episode_metrics import (
     FormationEpisodeMetrics,
@@ -124,7 +130,7 @@ class FormationEnvFactory:
         return FreezeAfterEpisodeEnd(EpisodeOverlay(env))
 
 
-# The env config's condition fields, built from ``core.conditions.Conditions`` (where each is declared
+# The env config's condition fields, built from ``core.perception.conditions.Conditions`` (where each is declared
 # once, with its help and bounds): the same names, types and defaults (all off), and the help that
 # draccus shows for ``--env.<field>`` (draccus takes a field's ``metadata["custom_args"]`` as the
 # options of its argument). ``FormationEnvConfig`` checks them by building ``Conditions``.
@@ -140,7 +146,9 @@ ConditionFields = make_dataclass(
     ],
     module=__name__,
 )
-ConditionFields.__doc__ = "The condition fields of ``FormationEnvConfig`` (``core.conditions.Conditions``)."
+ConditionFields.__doc__ = (
+    "The condition fields of ``FormationEnvConfig`` (``core.perception.conditions.Conditions``)."
+)
 
 
 @EnvConfig.register_subclass("formation")
@@ -163,24 +171,24 @@ class FormationEnvConfig(ConditionFields, EnvConfig):
             ``take_policy_encoding``), or without one ``DEFAULT_OBSTACLE_ENCODING`` ("grid", the gym
             env's own default); a given value that differs from the policy's is a config error naming
             both. ``encoding`` is the resolved value.
-        level: a graded level (``core.levels``: "0".."5" or "level0".."level5"), or None. When set, the
+        level: a graded level (``core.episodes.levels``: "0".."5" or "level0".."level5"), or None. When set, the
             level's scene preset and all its conditions apply (``level_env_fields``); ``scene_preset``,
             ``scenes_file`` and the condition fields must then be left at their defaults (or equal the
             level's): any other value is a config error, as in the bench, since a level is a fixed
             benchmark (a field at its default cannot be told from one not given, so it is the level's).
             Episode i of ``lerobot-eval --seed=S`` plays the scene of seed S + i, so ``--seed=1000000``
             (the level's ``seed``) evaluates the bench's ``levelK:N`` scenes.
-        scene_preset: scene distribution of seeded resets: a preset (``core.scene.SCENE_PRESETS``:
+        scene_preset: scene distribution of seeded resets: a preset (``core.world.presets.SCENE_PRESETS``:
             "paper", "wide", "gates", "blockers", "dense", "goals", "bend", "trap", "crowd", "long",
-            "behind") or a mixture (``core.scene.SCENE_MIXES``: "structures", "mixed-hard"; seed s
+            "behind") or a mixture (``core.world.presets.SCENE_MIXES``: "structures", "mixed-hard"; seed s
             from preset ``mix[s % k]``, the bench's ``<mix>:N`` scene of seed s).
-        scenes_file: JSON scenes file (``core.scene.save_scenes``); reset seed s picks scene s of the
+        scenes_file: JSON scenes file (``core.world.scene_files.save_scenes``); reset seed s picks scene s of the
             file (a seed past its end is an error: run lerobot-eval with ``--seed=0`` and at most as many
             episodes as the file holds). None: the scene of seed s is sampled (``sample_scenes``).
         render_mode: ``"rgb_array"`` (lerobot-eval always renders some episodes to video).
         episode_metrics_path: if set, every finished episode appends its formation metrics (one
             JSON line) to this file; see ``lerobot_formation.envs.episode_metrics``.
-        the condition fields (``ConditionFields``: every field of ``core.conditions.Conditions``,
+        the condition fields (``ConditionFields``: every field of ``core.perception.conditions.Conditions``,
             with its type, default and help, docs/conditions.md): realistic conditions, all off by
             default, e.g. ``--env.sensing_range=3 --env.action_delay=2``; the in-training evaluation
             uses them too.
@@ -204,13 +212,13 @@ class FormationEnvConfig(ConditionFields, EnvConfig):
     # values) or nearest+route / nearest+maproute (plus a route hint, 55). None: the run's policy's
     # obstacle_encoding (without a policy: grid, DEFAULT_OBSTACLE_ENCODING); another given one is an error.
     obstacle_encoding: str | None = None
-    # A graded level (core/levels.py: 0..5): its scene preset and conditions, fixed; the condition fields
+    # A graded level (core/episodes/levels.py: 0..5): its scene preset and conditions, fixed; the condition fields
     # and scene_preset must then stay at their defaults. lerobot-eval --seed=1000000 plays its scenes.
     level: str | None = None
-    # Scene distribution of seeded resets: paper, a wider preset (core/scene.py SCENE_PRESETS) or a
+    # Scene distribution of seeded resets: paper, a wider preset (core/world/presets.py SCENE_PRESETS) or a
     # mixture of presets (SCENE_MIXES: structures, mixed-hard).
     scene_preset: str = "paper"
-    # JSON scenes file (core.scene.save_scenes); reset seed s plays scene s of the file (a seed past its
+    # JSON scenes file (core.world.scene_files.save_scenes); reset seed s plays scene s of the file (a seed past its
     # end is an error, no wrap-around: use --seed=0). None: the scene of seed s is sampled.
     scenes_file: str | None = None
     # Render mode of the sub-envs; lerobot-eval renders episodes to video with rgb_array.
@@ -344,7 +352,7 @@ class FormationEnvConfig(ConditionFields, EnvConfig):
         return Conditions(**{name: getattr(self, name) for name in CONDITION_FIELDS})
 
     def conditions(self) -> Conditions:
-        """The realistic conditions (``core.conditions.Conditions``): the level's if ``level`` is set,
+        """The realistic conditions (``core.perception.conditions.Conditions``): the level's if ``level`` is set,
         else those of the condition fields."""
         return get_level(self.level).conditions if self.level is not None else self._field_conditions()
 

@@ -6,8 +6,8 @@ and drops every other ``info`` key, so a plugin cannot add columns to ``eval_inf
 episode ends:
 
 1. adds ``info["formation_metrics"]``: the SPEC "Metrics" of the episode, recorded and computed by
-   the engine's own code (``core.rollout.frame_record`` / ``step_record``, then
-   ``core.metrics.episode_metrics``), plus ``outcome``, ``steps``,
+   the engine's own code (``core.episodes.rollout.frame_record`` / ``step_record``, then
+   ``core.episodes.metrics.episode_metrics``), plus ``outcome``, ``steps``,
    ``scene_seed`` (None for a scene without one: from a scenes file or given by hand),
    ``scene_index`` (the scene's index in ``scenes_file``, None for a sampled scene) and
    ``reset_seed``. A vector env carries it in ``info["final_info"]``;
@@ -16,7 +16,7 @@ episode ends:
    with ``run_id`` (one per ``create_envs`` call: start time and pid, shared by its sub-envs and
    their worker processes), ``env_index`` (the sub-env), ``episode_index`` (0, 1, ... per sub-env
    within the run), ``wall_time`` and ``pid``, so appends of several runs to one file can be told
-   apart. Clearances are null in a scene with no obstacle (``core.metrics``).
+   apart. Clearances are null in a scene with no obstacle (``core.episodes.metrics``).
    ``--env.episode_metrics_path=<file>`` turns this on for ``lerobot-eval`` and for the env
    evaluation inside ``lerobot-train``; join the lines with ``eval_info.json``'s
    ``per_task[*].metrics`` / per-episode ``seed`` through ``reset_seed``. Episodes LeRobot
@@ -27,8 +27,8 @@ episode ends:
    lines unless ``episode_metrics_exists`` is ``"append"`` or ``"overwrite"``; the runs a process
    has started itself (every in-training evaluation of one ``lerobot-train``) append.
 
-Episode metrics key list: ``core.metrics.METRIC_KEYS``, ``FLAG_KEYS`` (``success``,
-``collision``, ``timeout``) and ``struck_by_mover`` (``core.metrics.mover_strikes``: a moving
+Episode metrics key list: ``core.episodes.metrics.METRIC_KEYS``, ``FLAG_KEYS`` (``success``,
+``collision``, ``timeout``) and ``struck_by_mover`` (``core.episodes.metrics.mover_strikes``: a moving
 obstacle struck a team that was not closing on it), as in the bench's ``results.json``.
 """
 
@@ -44,8 +44,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from lerobot_formation.core.metrics import STRUCK_KEY, episode_metrics, mover_strikes
-from lerobot_formation.core.rollout import (
+from lerobot_formation.core.episodes.metrics import STRUCK_KEY, episode_metrics, mover_strikes
+from lerobot_formation.core.episodes.rollout import (
     COLLISION,
     OUTCOME_NAMES,
     SUCCESS,

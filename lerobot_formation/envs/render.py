@@ -205,7 +205,7 @@ class EpisodeOverlay(gym.Wrapper):
 
     def _colliding_agent(self) -> str | None:
         """The name (L1, L2, F1, F2) of the agent deepest in an obstacle, from the env's last positions."""
-        from lerobot_formation.core.geometry import agent_clearances
+        from lerobot_formation.core.world.geometry import agent_clearances
 
         env = self.env.unwrapped
         positions = np.asarray(env._path[-1])  # (N, 2): what render() draws

@@ -1,6 +1,6 @@
 """FormationVectorEnv: B formation teams stepped by one NumPy call per control step.
 
-A gymnasium face over the engine's batched episodes (``core.rollout.Teams``, which ``FormationEnv``
+A gymnasium face over the engine's batched episodes (``core.episodes.rollout.Teams``, which ``FormationEnv``
 steps too): the same physics, observations, rewards and termination, with gymnasium's vector API and SAME_STEP autoreset: when a team's episode ends,
 the returned observation already belongs to its next episode and ``infos["final_obs"]`` /
 ``infos["final_info"]`` hold the last one. ``reset(seed=s)`` gives env i the scene of seed s + i
@@ -17,10 +17,12 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.dynamics import FormationParams, FormationState
-from lerobot_formation.core.rollout import Teams
-from lerobot_formation.core.scene import SceneConfig, Scenes, load_scenes, mix_max_obstacles
+from lerobot_formation.core.episodes.rollout import Teams
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.dynamics import FormationParams, FormationState
+from lerobot_formation.core.world.presets import SceneConfig, mix_max_obstacles
+from lerobot_formation.core.world.scene_files import load_scenes
+from lerobot_formation.core.world.scenes import Scenes
 from lerobot_formation.envs.env import (
     TASK,
     action_space,

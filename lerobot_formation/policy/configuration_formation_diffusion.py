@@ -11,15 +11,15 @@ from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.compat.run_checks import config_error, install_config_upgrade, install_run_hooks
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.observation import STATE_DIM
-from lerobot_formation.core.obstacle_grid import (
+from lerobot_formation.core.encodings.obstacle_grid import (
     ENCODINGS,
     egocentric_encodings,
     environment_state_dim,
     get_encoding,
     route_encodings,
 )
+from lerobot_formation.core.perception.observation import STATE_DIM
+from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.policy.obstacle_tokens import TOKEN_HEADS, token_layout
 
 ACTION_DIM = 2  # [v, omega]
@@ -104,7 +104,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             nearest obstacle first (a preprocessor step; needs the "grid+list" encoding). Off by default
             (the paper feeds world coordinates).
         obstacle_encoding: name of the ``observation.environment_state`` encoding
-            (``core.obstacle_grid.ENCODING_REGISTRY``: "nearest+route" (default, the shipped policy's:
+            (``core.encodings.obstacle_grid.ENCODING_REGISTRY``: "nearest+route" (default, the shipped policy's:
             the safety layer needs the "nearest" family, route pursuit's proposal a route hint),
             "grid" (the paper's), "grid+list", "nearest", "nearest+maproute", "nearest+velocity",
             "nearest+route+velocity"). ``lerobot-eval`` and ``lerobot-train`` give the env this encoding
@@ -121,7 +121,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             values per observation step instead of the environment state. Only with "tokens".
         action_space: what the network's chunk is. "velocity" (default): the commands [v, omega]
             themselves, normalised to [-1, 1]. "route-residual": a correction to route pursuit's
-            chunk (``core.route_pursuit.pursuit_chunk`` from the route hint of the current
+            chunk (``core.controllers.route_pursuit.pursuit_chunk`` from the route hint of the current
             observation): the network denoises r = (a - a_rp) / 2 in normalised units and the chunk
             is clip(a_rp + 2 r, -1, 1) (``FormationDiffusionModel.route_prior``). A residual over a
             hand-written rule, reported as such beside the rule alone; needs an encoding with a route
@@ -132,14 +132,14 @@ class FormationDiffusionConfig(DiffusionConfig):
             the policy itself knows the action in physical units (the safety layer needs it). True
             (default); false: the dataset's min/max (the paper's).
         num_candidates: K action chunks drawn per replan in one batched call; with K > 1 the safety
-            layer keeps the best (``core.safety.select_chunk``: no predicted collision of the whole
+            layer keeps the best (``core.safety.filters.select_chunk``: no predicted collision of the whole
             formation's footprint, then cost-to-go progress toward the goal on a 0.4 m grid read
-            bilinearly; the escape manoeuvres of ``core.safety_layer.ESCAPE_SPEEDS`` where no sample is
+            bilinearly; the escape manoeuvres of ``core.safety.layer.ESCAPE_SPEEDS`` where no sample is
             safe, else the widest of every candidate scored), and at every step checks the rest of
-            the kept chunk again on the newest view (``core.safety.plan_is_safe``), replanning at
+            the kept chunk again on the newest view (``core.safety.filters.plan_is_safe``), replanning at
             once where it fails. 10 (default, the shipped policy's); 1: the standard policy.
         safety_filter: "none", or "cbf" (default): every executed action passes a control-barrier-
-            function filter on [v, omega] for all four agents (``core.safety.cbf_filter``); an episode
+            function filter on [v, omega] for all four agents (``core.safety.filters.cbf_filter``); an episode
             whose action it changed replans at its next step. Needs an egocentric encoding ("nearest")
             and ``fixed_action_bounds``; it uses only the observed obstacles.
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
@@ -154,10 +154,10 @@ class FormationDiffusionConfig(DiffusionConfig):
             velocity (best-of-K checks a chunk against where the obstacles will be, the filter's
             barrier counts their approach): the velocities the "nearest+velocity" encoding observes,
             else those the safety layer's tracker estimates from the observation history
-            (``core.obstacle_tracker``). Off by default (obstacles stand still).
+            (``core.perception.obstacle_tracker``). Off by default (obstacles stand still).
         safety_mover_uncertainty: u >= 0 [m/s]. With ``safety_moving_obstacles``, best-of-K grows a
             moving obstacle's predicted radius by u t at t seconds ahead (over the chunk and its route
-            lookahead; ``core.obstacle_tracker.predict_obstacles``): its constant-velocity prediction
+            lookahead; ``core.perception.obstacle_tracker.predict_obstacles``): its constant-velocity prediction
             drifts with the velocity estimate's error and with every bounce, so a chunk that passes a
             mover closely late in the horizon is not safe. Default 0.1; 0: the prediction as exact.
         safety_action_delay: control steps between sending a command and its execution, a known
@@ -170,12 +170,12 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_obstacle_noise: std [m] of the noise on the observed obstacles' centres and radii, a
             known property of the robot's sensing (the env's ``obstacle_noise``). With either noise
             field > 0 the layer smooths the obstacles it sees over the steps
-            (``core.obstacle_filter``: a Kalman gain per obstacle from the two noise stds; a
+            (``core.perception.obstacle_filter``: a Kalman gain per obstacle from the two noise stds; a
             standing team's estimate keeps averaging): a barrier on raw noisy clearances lets a team that
             cannot back up creep into the obstacle it waits beside. 0 (default): exact observations.
         safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
         safety_route_proposal: best-of-K also scores route pursuit's chunk
-            (``core.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
+            (``core.controllers.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
             a route encoding, "nearest+route", "nearest+maproute" or "nearest+route+velocity") beside the K sampled
             ones, and keeps it when it is safe and makes the most
             progress (the ``proposals`` count says how often). True (default).
@@ -188,7 +188,7 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_halt_lookahead: n >= 0 steps. With n > 0, where no candidate passes with its route
             lookahead, best-of-K prefers the candidates after which the team, braking to a standstill
             (rate limited) and standing for the rest of n steps, keeps the margin
-            (``core.safety.FootprintCheck.halted``): a stop is the team's last resort, and a place
+            (``core.safety.filters.FootprintCheck.halted``): a stop is the team's last resort, and a place
             where a standing team is struck by a mover it could have left is not one to stop in
             (the leaders cannot back up). Used only where the layer predicts moving obstacles
             (``safety_moving_obstacles``): standing obstacles come no closer to a standing team, and
@@ -196,7 +196,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             chunk alone decides there.
         safety_proposal_blend: m >= 0 steps. With m > 0 route pursuit's proposal
             (``safety_route_proposal``) enters from the command being executed: its first m actions
-            are blended from the last executed one (``core.replan_blend``) before it is scored, as the
+            are blended from the last executed one (``core.safety.replan_blend``) before it is scored, as the
             continuous controller it comes from would move (a proposal computed from the hint alone
             starts with a step in [v, omega]). Not with a rate-limited actuator
             (``safety_max_linear_accel`` / ``safety_max_angular_accel``), which ramps that step by
@@ -205,7 +205,7 @@ class FormationDiffusionConfig(DiffusionConfig):
         safety_coherence: w >= 0 [m]. With w > 0 best-of-K prefers, among the safe candidates, the
             one closest to the rest of the plan it replaces: a candidate whose first
             ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
-            scores w d less progress (``core.safety.select_chunk``); not after a plan the filter cut
+            scores w d less progress (``core.safety.filters.select_chunk``); not after a plan the filter cut
             short (it met a barrier). Default 1; 0: progress alone.
         warm_start_step: j >= 0. j > 0: a replan starts at the sampler's j-th timestep from the
             unexecuted rest of the episode's previous chunk, noised to that level (SDEdit; the module
@@ -214,7 +214,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             fewer denoiser calls. Must be below ``num_inference_steps``. Default 1; 0: every replan
             samples from pure noise, as LeRobot does.
         chunk_smoothing: n >= 0 passes of the [1, 2, 1] / 4 kernel over every sampled chunk along
-            time, entered from the command being executed (``core.replan_blend.smooth_chunks``), before
+            time, entered from the command being executed (``core.safety.replan_blend.smooth_chunks``), before
             best-of-K scores the candidates (so it judges what will run); with K = 1 too. A diffusion
             sample's step-to-step noise is most of the jerk where a chunk runs on. Route pursuit's
             proposal is smoothed too where it is blended in (``safety_proposal_blend``). Default 2;
@@ -224,8 +224,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             footprint against the observed obstacles (movers at their velocities; from the actuator's
             predicted start where the layer knows it): the commands change by -eta dJ/da, J the sum
             of 0.5 max(0, delta - clearance)^2 over steps, agents and obstacles, delta =
-            ``core.safety_layer.GUIDANCE_DISTANCE`` (0.3 m), one gradient step per denoising step
-            (``core.guidance``; cost guidance of diffusion planners). With K = 1 too: it shapes the
+            ``core.safety.layer.GUIDANCE_DISTANCE`` (0.3 m), one gradient step per denoising step
+            (``core.safety.guidance``; cost guidance of diffusion planners). With K = 1 too: it shapes the
             sample itself, before best-of-K or the filter. Needs the lean or trace backend and DDIM.
             Default 1; 0: unguided sampling.
         inference_backend: how chunks are sampled at inference (``select_action``, ``lerobot-eval``,

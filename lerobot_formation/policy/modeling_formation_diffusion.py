@@ -88,9 +88,9 @@ from lerobot_formation.compat.lerobot_compat import (
     stock_global_conditioning,
     use_conditioning_method,
 )
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import get_encoding
-from lerobot_formation.core.route_pursuit import pursuit_chunk
+from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
+from lerobot_formation.core.encodings.obstacle_grid import get_encoding
+from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.obstacle_tokens import ObstacleTokenEncoder, token_layout
 from lerobot_formation.policy.replanner import (
@@ -135,7 +135,7 @@ class _DDIMSteps:
     ) -> Tensor:
         """x_t -> x_{t_prev} at the i-th timestep, from the network's output ``eps`` (the predicted
         noise, or with prediction_type "sample" the predicted x_0; diffusers' order of operations).
-        ``guide``: x_0 -> a moved x_0 (clearance guidance, ``core.guidance``); the step then goes on
+        ``guide``: x_0 -> a moved x_0 (clearance guidance, ``core.safety.guidance``); the step then goes on
         from the moved estimate, with the noise that is consistent with it and ``sample``."""
         sqrt_beta, sqrt_alpha, sqrt_alpha_prev, sqrt_beta_prev = self.coefs[i]
         if self.predicts_sample:
@@ -301,7 +301,7 @@ class FormationDiffusionModel(DiffusionModel):
 
     # -- action_space "route-residual": the chunk is a correction to route pursuit's ---------------------
     def route_prior(self, batch: dict[str, Tensor]) -> Tensor | None:
-        """(B, horizon, 2) route pursuit's chunk in normalised units (``core.route_pursuit.pursuit_chunk``
+        """(B, horizon, 2) route pursuit's chunk in normalised units (``core.controllers.route_pursuit.pursuit_chunk``
         from the route hint of the last observation step; the steps before it, never executed, hold its
         first command), or None with ``action_space="velocity"``. Deterministic: a function of the
         observation, so training and every sampler see the same prior."""

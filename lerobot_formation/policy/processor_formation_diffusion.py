@@ -32,7 +32,7 @@ from lerobot.utils.constants import ACTION
 from lerobot.utils.constants import OBS_ENV_STATE as ENV
 from lerobot.utils.constants import OBS_STATE as STATE
 
-from lerobot_formation.core.obstacle_grid import GRID_SIZE, environment_state_dim
+from lerobot_formation.core.encodings.obstacle_grid import GRID_SIZE, environment_state_dim
 
 if TYPE_CHECKING:  # a type only: the processors need no config module at run time
     from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig

@@ -2,7 +2,7 @@
 (so ``lerobot-eval``) and the engine's diffusion controller (``bench``) both run.
 
 A ``Replanner`` keeps the plan bookkeeping and the sampling; the safety layer is a unit of its own in
-the numpy core (``core.safety_layer.SafetyLayer``), which the replanner calls with numpy arrays in
+the numpy core (``core.safety.layer.SafetyLayer``), which the replanner calls with numpy arrays in
 physical units. It is given a sampler (a callable with the signature of
 ``FormationDiffusionPolicy.sample_action_chunks``: the policy passes ``policy_sampler(policy)``), never
 the policy itself.
@@ -23,7 +23,7 @@ first:
    denoising step moves them away from the view's obstacles (``SafetyLayer.clearance_step``,
    ``_guide``); ``chunk_smoothing`` smooths them;
 3. blending (``ReplanExperiment.blend_steps``, experiments only): the new chunks' first actions are
-   blended from the last executed one (``core.replan_blend``);
+   blended from the last executed one (``core.safety.replan_blend``);
 4. choice: with K > 1 the layer's best-of-K (``SafetyLayer.choose``: footprint check, cost-to-go
    progress, route pursuit's proposal, escapes, coherence with the plan it replaces unless the
    filter cut that plan short); with K = 1 the sample;
@@ -34,10 +34,10 @@ first:
    nothing was safe (the widest fallback) is rechecked like any other, so such an episode replans at
    every step while its rest still fails.
 
-What the layer sees of an episode at a step is a ``core.safety_layer.SafetyView``, built once per
+What the layer sees of an episode at a step is a ``core.safety.layer.SafetyView``, built once per
 step from the raw observation (``view``). All of it starts afresh with each episode (``start``).
 
-The replanner's own settings are a ``PlanSettings`` and the layer's a ``core.safety_layer.SafetySettings``;
+The replanner's own settings are a ``PlanSettings`` and the layer's a ``core.safety.layer.SafetySettings``;
 ``Replanner.from_config`` reads both from a policy config (the policy's own, or a copy made with
 ``dataclasses.replace`` for a bench controller or an ablation row, which runs the config's checks).
 The settings of the ablation study that the shipped policy does not use are a ``ReplanExperiment``.
@@ -53,14 +53,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from lerobot_formation.core import safety
-from lerobot_formation.core.replan_blend import blend_replan, smooth_chunks
-from lerobot_formation.core.safety_layer import (
-    SafetyLayer,
-    SafetySettings,
-    SafetyView,
-    action_bounds,
-)
+from lerobot_formation.core.safety import filters as safety
+from lerobot_formation.core.safety.layer import SafetyLayer, SafetySettings, SafetyView, action_bounds
+from lerobot_formation.core.safety.replan_blend import blend_replan, smooth_chunks
 
 ACTION_DIM = 2  # [v, omega]
 STAT_KEYS = (
@@ -85,12 +80,12 @@ class ReplanExperiment:
 
     Args:
         blend_steps: m >= 0; a new chunk's first m actions are blended from the last executed action
-            (``core.replan_blend``) before best-of-K scores them. 0: plain chunk execution.
+            (``core.safety.replan_blend``) before best-of-K scores them. 0: plain chunk execution.
         escape_advantage: None: the escape manoeuvres of best-of-K are used only when no sampled chunk
             is safe. A number [m]: a safe manoeuvre is also kept when its cost-to-go progress beats
             every safe sampled chunk's by that much.
         blocked_fallback: "widest" (the sampled chunk with the largest predicted clearance) or "stop"
-            when nothing is safe (``core.safety.select_chunk``).
+            when nothing is safe (``core.safety.filters.select_chunk``).
         sampled: False: nothing is sampled; best-of-K's candidates are route pursuit's proposal and
             the escapes, under the same check, filter and recheck. The safety layer without the
             learned planner: the baseline the layer's rows are measured against (needs a route
@@ -303,7 +298,7 @@ class Replanner:
     @property
     def stats(self) -> dict[str, int]:
         """The counts since ``reset`` (``STAT_KEYS``): replans and steps, and the layer's
-        (``core.safety_layer.LAYER_STAT_KEYS``)."""
+        (``core.safety.layer.LAYER_STAT_KEYS``)."""
         counts = {**self._counts, **self.layer.stats}
         return {k: counts[k] for k in STAT_KEYS}
 

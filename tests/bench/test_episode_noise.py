@@ -10,9 +10,9 @@ from helpers import tiny_diffusion_kwargs
 
 from lerobot_formation.bench.diffusion_controller import DiffusionController, episode_noise_seeds
 from lerobot_formation.bench.evaluation import evaluate
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.levels import TUNING_SEED_START
-from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.core.episodes.levels import TUNING_SEED_START
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import sample_scenes
 
 K, STEPS = 3, 40
 

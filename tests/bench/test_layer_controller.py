@@ -8,9 +8,9 @@ import numpy as np
 
 from lerobot_formation.bench.controllers import make_controller, safety_settings
 from lerobot_formation.bench.settings import ControllerOptions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.levels import get_level
-from lerobot_formation.core.rollout import rollout
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.world.dynamics import FormationParams
 
 SHIPPED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"
 STEPS = 60

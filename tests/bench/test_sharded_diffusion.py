@@ -18,7 +18,7 @@ import pytest
 
 from lerobot_formation.bench.cli import main as bench_main
 from lerobot_formation.bench.merge import main as merge_main
-from lerobot_formation.core.levels import TUNING_SEED_START
+from lerobot_formation.core.episodes.levels import TUNING_SEED_START
 
 CHECKPOINT = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"
 CONTROLLER, SCENES, SHARDS = "diffusion-safe", "level5:30", 3

@@ -1,4 +1,4 @@
-"""Each realistic condition (``core.conditions``) does what docs/conditions.md says."""
+"""Each realistic condition (``core.perception.conditions``) does what docs/conditions.md says."""
 
 from __future__ import annotations
 
@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 from helpers import Spy
 
-from lerobot_formation.core.conditions import (
+from lerobot_formation.core.controllers.mppi import MPPIConfig, MPPIController
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.episodes.rollout import COLLISION, Teams, rollout
+from lerobot_formation.core.perception.conditions import (
     CONDITION_FIELDS,
     CONDITION_TYPES,
     ZONE_RADIUS,
@@ -17,12 +21,11 @@ from lerobot_formation.core.conditions import (
     obstacle_velocities,
     scene_bounds,
 )
-from lerobot_formation.core.dynamics import FormationParams, rate_limit
-from lerobot_formation.core.geometry import obstacle_gaps
-from lerobot_formation.core.mppi import MPPIConfig, MPPIController
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.rollout import COLLISION, PACController, Teams, rollout
-from lerobot_formation.core.scene import FAR, sample_scenes, scenes_from_list
+from lerobot_formation.core.world.dynamics import FormationParams, rate_limit
+from lerobot_formation.core.world.geometry import obstacle_gaps
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import scenes_from_list
+from lerobot_formation.core.world.scenes import FAR
 
 # An obstacle right of the straight line x = 0, far from the start: a team driving straight up
 # passes it at 1.5 m (its right leader at 1.0 m of its surface) around y = 5.

@@ -7,7 +7,7 @@ import sys
 def test_core_imports_no_torch_or_lerobot():
     code = (
         "import sys, pkgutil, importlib, lerobot_formation.core as c\n"
-        "for m in pkgutil.iter_modules(c.__path__): importlib.import_module('lerobot_formation.core.' + m.name)\n"
+        "for m in pkgutil.walk_packages(c.__path__, 'lerobot_formation.core.'): importlib.import_module(m.name)\n"
         "bad = [m for m in ('torch', 'lerobot', 'gymnasium') if m in sys.modules]\n"
         "assert not bad, bad\n"
     )

@@ -3,17 +3,19 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.dynamics import rotate_body
-from lerobot_formation.core.encoding import world_to_body
-from lerobot_formation.core.obstacle_grid import (
+from lerobot_formation.core.encodings.encoding import world_to_body
+from lerobot_formation.core.encodings.obstacle_grid import (
     ENCODING_REGISTRY,
     ENCODINGS,
     environment_state,
     environment_state_dim,
     get_encoding,
 )
-from lerobot_formation.core.safety import decode_nearest
-from lerobot_formation.core.scene import FAR, SCENE_PRESETS, sample_scenes
+from lerobot_formation.core.safety.filters import decode_nearest
+from lerobot_formation.core.world.dynamics import rotate_body
+from lerobot_formation.core.world.presets import SCENE_PRESETS
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scenes import FAR
 
 
 def _random_scene(rng, n, M=16):

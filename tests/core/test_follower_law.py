@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.dynamics import (
+from lerobot_formation.core.world.dynamics import (
     FormationParams,
     agent_positions,
     formation_error,

@@ -1,9 +1,9 @@
-"""``core.geometry.xy_clearance``: the clearance every footprint check reads."""
+"""``core.world.geometry.xy_clearance``: the clearance every footprint check reads."""
 
 import numpy as np
 import pytest
 
-from lerobot_formation.core import geometry
+from lerobot_formation.core.world import geometry
 
 
 def _brute_force(x, y, obstacles, min_axis=None):

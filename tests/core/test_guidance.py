@@ -1,11 +1,11 @@
-"""Clearance guidance's cost and gradient (``core.guidance``)."""
+"""Clearance guidance's cost and gradient (``core.safety.guidance``)."""
 
 import numpy as np
 import pytest
 
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.footprint import sequence_clearance
-from lerobot_formation.core.guidance import clearance_cost_gradient
+from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.safety.guidance import clearance_cost_gradient
+from lerobot_formation.core.world.dynamics import FormationParams
 
 PARAMS = FormationParams()
 TEMPLATE, DT, RADIUS = np.asarray(PARAMS.graph.template), PARAMS.dt, PARAMS.agent_radius

@@ -5,14 +5,16 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from lerobot_formation.core import dynamics
-from lerobot_formation.core.footprint import sequence_clearance
-from lerobot_formation.core.formation_graph import FormationGraph
-from lerobot_formation.core.geometry import agent_clearances
-from lerobot_formation.core.navigation import _SHIFTS, cost_to_go, cost_to_go_at
-from lerobot_formation.core.pac import PathAwareController
-from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.scene import SCENE_PRESETS, sample_scenes, scenes_from_list
+from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.controllers.pac import PACController, PathAwareController
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.world import dynamics
+from lerobot_formation.core.world.formation_graph import FormationGraph
+from lerobot_formation.core.world.geometry import agent_clearances
+from lerobot_formation.core.world.navigation import _SHIFTS, cost_to_go, cost_to_go_at
+from lerobot_formation.core.world.presets import SCENE_PRESETS
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import scenes_from_list
 from lerobot_formation.data.dataset_frames import episode_frames
 from lerobot_formation.envs.env import FormationEnv
 from lerobot_formation.envs.vector_env import FormationVectorEnv

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from lerobot_formation.core.metrics import (
+from lerobot_formation.core.episodes.metrics import (
     ALL_EPISODES_KEYS,
     FLAG_KEYS,
     METRIC_KEYS,
@@ -12,7 +12,7 @@ from lerobot_formation.core.metrics import (
     two_proportion_z,
     wilson_interval,
 )
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
+from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
 
 DT = 0.1
 
@@ -266,14 +266,14 @@ def _contact_records(agent_step, obstacle_step, outcome=COLLISION):
 def test_mover_strikes_counts_a_moving_obstacle_closing_on_a_team_that_was_not(
     agent_step, obstacle_step, struck
 ):
-    from lerobot_formation.core.metrics import mover_strikes
+    from lerobot_formation.core.episodes.metrics import mover_strikes
 
     rec, obstacles, mask = _contact_records(agent_step, obstacle_step)
     assert mover_strikes(rec, obstacles, mask, agent_radius=0.1).tolist() == [struck]
 
 
 def test_mover_strikes_needs_a_collision_and_moving_obstacles_and_summarize_counts_them():
-    from lerobot_formation.core.metrics import STRUCK_KEY, mover_strikes
+    from lerobot_formation.core.episodes.metrics import STRUCK_KEY, mover_strikes
 
     rec, obstacles, mask = _contact_records((0.0, 0.0), (-0.03, 0.0), outcome=TIMEOUT)
     assert not mover_strikes(rec, obstacles, mask, 0.1).any()  # no collision: nothing struck

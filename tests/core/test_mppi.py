@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams, initial_state, rotate_body
-from lerobot_formation.core.geometry import point_clearance
-from lerobot_formation.core.mppi import MPPIConfig, MPPIController, bilinear
-from lerobot_formation.core.rollout import SUCCESS, rollout
-from lerobot_formation.core.scene import sample_scenes, scenes_from_list
+from lerobot_formation.core.controllers.mppi import MPPIConfig, MPPIController, bilinear
+from lerobot_formation.core.episodes.rollout import SUCCESS, rollout
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.world.dynamics import FormationParams, initial_state, rotate_body
+from lerobot_formation.core.world.geometry import point_clearance
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scene_files import scenes_from_list
 
 FAST = MPPIConfig(num_samples=64, horizon=20)
 

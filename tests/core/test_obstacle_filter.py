@@ -5,9 +5,9 @@ order keep their tracks, and the smoothed view stops the ratchet of a noisy barr
 import numpy as np
 import pytest
 
-from lerobot_formation.core.dynamics import rollout_poses
-from lerobot_formation.core.encoding import world_to_body
-from lerobot_formation.core.obstacle_filter import ObstacleFilter
+from lerobot_formation.core.encodings.encoding import world_to_body
+from lerobot_formation.core.perception.obstacle_filter import ObstacleFilter
+from lerobot_formation.core.world.dynamics import rollout_poses
 
 DT = 0.1
 WORLD = np.array([[1.0, 2.0, 0.3], [-1.5, 3.0, 0.5], [0.5, -2.0, 0.4]])
@@ -90,14 +90,14 @@ def test_an_obstacle_observed_to_move_passes_through():
 @pytest.mark.parametrize("sigma", [0.02, 0.05])
 def test_smoothing_stops_the_ratchet_of_a_noisy_barrier(sigma):
     """A team that cannot back up (v >= 0) presses at an obstacle ahead and observes it with fresh
-    Gaussian noise each step (centre and radius, as ``core.conditions`` draws it). On the raw draws
+    Gaussian noise each step (centre and radius, as ``core.perception.conditions`` draws it). On the raw draws
     the CBF filter lets it creep in whenever a draw shows room, and the team ends in contact; on the
     view of the filter told the noise it stays clear over the same draws (margin 0.05 m, level4's
     noise 0.02 m and level5's 0.05 m). At level5's noise the fixed gain 0.3 does not: contact."""
-    from lerobot_formation.core import dynamics
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.geometry import agent_clearances
-    from lerobot_formation.core.safety import cbf_filter
+    from lerobot_formation.core.safety.filters import cbf_filter
+    from lerobot_formation.core.world import dynamics
+    from lerobot_formation.core.world.dynamics import FormationParams
+    from lerobot_formation.core.world.geometry import agent_clearances
 
     params = FormationParams()
     template = np.asarray(params.graph.template)
@@ -131,7 +131,7 @@ def test_smoothing_stops_the_ratchet_of_a_noisy_barrier(sigma):
 def test_told_the_noise_a_standing_teams_estimate_keeps_converging():
     """With the noise stds, the gain is a Kalman gain per track: a standing team's estimate averages
     ever more draws (about 1 / n) down to the gain's floor, far below the fixed gain's 0.42 s."""
-    from lerobot_formation.core.obstacle_filter import MIN_GAIN
+    from lerobot_formation.core.perception.obstacle_filter import MIN_GAIN
 
     sigma = 0.05
     filt = ObstacleFilter(1, 3, DT, obstacle_noise=sigma, pose_noise=0.0)

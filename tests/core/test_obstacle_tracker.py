@@ -4,15 +4,15 @@ and the constant-velocity prediction."""
 import numpy as np
 import pytest
 
-from lerobot_formation.core.encoding import encode_nearest
-from lerobot_formation.core.obstacle_tracker import (
+from lerobot_formation.core.encodings.encoding import encode_nearest
+from lerobot_formation.core.encodings.velocity_encoding import body_velocities
+from lerobot_formation.core.perception.obstacle_tracker import (
     MOVING_SPEED,
     ObstacleTracker,
     kalman_gains,
     predict_obstacles,
 )
-from lerobot_formation.core.safety import decode_nearest
-from lerobot_formation.core.velocity_encoding import body_velocities
+from lerobot_formation.core.safety.filters import decode_nearest
 
 SLOTS, DT, NOISE = 12, 0.1, 0.05
 OBSTACLES = np.array(

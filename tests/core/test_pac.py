@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, PACController, rollout
-from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, rollout
+from lerobot_formation.core.world.sampling import sample_scenes
 
 
 @pytest.mark.slow

@@ -7,20 +7,14 @@ import numpy as np
 import pytest
 from helpers import Spy
 
-from lerobot_formation.core.conditions import Conditions, randomized_conditions
-from lerobot_formation.core.dynamics import FormationParams, rollout_poses
-from lerobot_formation.core.pac import PathAwareController, swept_obstacles
-from lerobot_formation.core.rollout import PACController, Teams, rollout
-from lerobot_formation.core.scene import (
-    FAR,
-    STRUCTURE_PRESETS,
-    distribution_slots,
-    sample_distribution,
-    sample_mixed,
-    sample_scenes,
-    scene_preset,
-    scenes_from_list,
-)
+from lerobot_formation.core.controllers.pac import PACController, PathAwareController, swept_obstacles
+from lerobot_formation.core.episodes.rollout import Teams, rollout
+from lerobot_formation.core.perception.conditions import Conditions, randomized_conditions
+from lerobot_formation.core.world.dynamics import FormationParams, rollout_poses
+from lerobot_formation.core.world.presets import STRUCTURE_PRESETS, distribution_slots, scene_preset
+from lerobot_formation.core.world.sampling import sample_distribution, sample_mixed, sample_scenes
+from lerobot_formation.core.world.scene_files import scenes_from_list
+from lerobot_formation.core.world.scenes import FAR
 
 # One obstacle right of the straight line, 5 m ahead: far beyond a 1 m sensing range at the start.
 BESIDE = {"obstacles": [[2.0, 5.0, 0.5]], "goal": [0.0, 10.0], "start": [0.0, 0.0, np.pi / 2]}

@@ -1,10 +1,10 @@
-"""core.replan_blend: the step a replan makes in [v, omega] is spread over the chunk's first m actions."""
+"""core.safety.replan_blend: the step a replan makes in [v, omega] is spread over the chunk's first m actions."""
 
 import numpy as np
 import pytest
 import torch
 
-from lerobot_formation.core.replan_blend import blend_replan, blend_weights, smooth_chunks
+from lerobot_formation.core.safety.replan_blend import blend_replan, blend_weights, smooth_chunks
 
 
 def _chunks(shape, seed=0):

@@ -3,15 +3,17 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core import navigation
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.encoding import world_to_body
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.pac import PathAwareController
-from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.route_pursuit import RoutePursuitController, pursuit_chunk
-from lerobot_formation.core.safety import decode_nearest
-from lerobot_formation.core.scene import FAR, sample_scenes, scene_preset
+from lerobot_formation.core.controllers.pac import PACController, PathAwareController
+from lerobot_formation.core.controllers.route_pursuit import RoutePursuitController, pursuit_chunk
+from lerobot_formation.core.encodings.encoding import world_to_body
+from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.safety.filters import decode_nearest
+from lerobot_formation.core.world import navigation
+from lerobot_formation.core.world.presets import scene_preset
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scenes import FAR
 
 
 def _scene(rng, n, M=16):
@@ -90,8 +92,8 @@ def test_route_pursuit_takes_the_checkpoints_route_hint():
     """The bench's route pursuit plans on the whole map where its checkpoint observes ``nearest+maproute``."""
     from types import SimpleNamespace
 
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.route_pursuit import make_route_pursuit
+    from lerobot_formation.core.controllers.route_pursuit import make_route_pursuit
+    from lerobot_formation.core.world.dynamics import FormationParams
 
     def bundle(encoding):
         return (SimpleNamespace(config=SimpleNamespace(obstacle_encoding=encoding)), None, None)
@@ -189,7 +191,7 @@ def test_pursuit_chunk_follows_the_hints_polyline():
     """Route pursuit's chunk from the hint's two carrots (body frame): straight down a straight route
     at cruise speed; towards a carrot on the left it turns left, and it is the command route pursuit
     itself sends at the first step."""
-    from lerobot_formation.core.route_pursuit import RoutePursuitConfig, pursuit_command
+    from lerobot_formation.core.controllers.route_pursuit import RoutePursuitConfig, pursuit_command
 
     cfg = RoutePursuitConfig()
     route = np.array([[0.0, 1.0, 0.0, 3.0], [-0.8, 0.6, -2.5, 1.5]])
@@ -219,9 +221,9 @@ def test_pursuit_chunk_is_pursuit_command_rolled_through_the_unicycle():
     the documented steps: aim at the near carrot until within half its starting distance, then the far
     one, the goal within ``r_goal``; ``pursuit_command`` on the aim in the body frame
     (``world_to_body``); one ``dynamics.step_midpoint``."""
-    from lerobot_formation.core.dynamics import step_midpoint
-    from lerobot_formation.core.route_pursuit import RoutePursuitConfig, pursuit_command
-    from lerobot_formation.core.safety import BODY_POSE
+    from lerobot_formation.core.controllers.route_pursuit import RoutePursuitConfig, pursuit_command
+    from lerobot_formation.core.encodings.encoding import BODY_POSE
+    from lerobot_formation.core.world.dynamics import step_midpoint
 
     cfg = RoutePursuitConfig()
     rng = np.random.default_rng(3)

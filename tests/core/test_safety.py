@@ -4,11 +4,8 @@ never keeps a colliding chunk when a safe one exists."""
 import numpy as np
 import pytest
 
-from lerobot_formation.core import dynamics
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.geometry import agent_clearances
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.safety import (
+from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.safety.filters import (
     ESCAPE_PRIMITIVES,
     ESCAPE_TURN_RATES,
     FootprintCheck,
@@ -21,7 +18,10 @@ from lerobot_formation.core.safety import (
     plan_is_safe,
     select_chunk,
 )
-from lerobot_formation.core.scene import FAR
+from lerobot_formation.core.world import dynamics
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.geometry import agent_clearances
+from lerobot_formation.core.world.scenes import FAR
 
 P = FormationParams()
 NO_ESCAPES = np.zeros((0, 2))  # an empty escape lattice: the sampled candidates alone
@@ -331,7 +331,7 @@ def test_filter_with_velocities_avoids_a_crossing_obstacle_the_static_one_hits()
     """An obstacle crossing the team's way at 0.5 m/s (the team drives at 0.6 m/s, followers on the
     real follower law): the filter that takes obstacles as standing lets the team meet it; with the
     obstacle's velocity in the barrier the team waits and never touches it."""
-    from lerobot_formation.core.velocity_encoding import body_velocities
+    from lerobot_formation.core.encodings.velocity_encoding import body_velocities
 
     goal = np.array([[0.0, 20.0]])
     for use_velocity, expect_hit in ((False, True), (True, False)):
@@ -367,7 +367,7 @@ def test_filter_with_velocities_avoids_a_crossing_obstacle_the_static_one_hits()
 def test_commands_in_flight_shift_the_predicted_start():
     """Two commands of 0.5 m/s in flight move the start 0.1 m ahead (and a turn turns it); with a
     rate limit from rest they move it only as far as the limited velocities go."""
-    from lerobot_formation.core.safety import predict_start
+    from lerobot_formation.core.safety.filters import predict_start
 
     flight = np.array([[[0.5, 0.0], [0.5, 0.0]], [[0.0, 1.0], [0.0, 1.0]]])
     executed = np.array([[0.5, 0.0], [0.0, 1.0]])
@@ -408,7 +408,7 @@ def test_rate_limits_in_the_forward_model():
     """Braking from 0.6 m/s with 0.5 m/s^2 takes 1.2 s (0.36 m): a stop chunk that is safe for an
     actuator without limits meets an obstacle 0.25 m ahead when the actuator is rate limited. The
     limited rollout is ``rate_limit`` step by step."""
-    from lerobot_formation.core.safety import ChunkStart
+    from lerobot_formation.core.safety.filters import ChunkStart
 
     commands = np.random.default_rng(0).uniform([0.0, -1.5], [0.6, 1.5], (2, 3, 15, 2))
     previous = np.array([[0.3, 0.0], [0.6, 1.0]])
@@ -436,7 +436,7 @@ def test_filter_chooses_among_reachable_velocities():
     """With a rate limit the filter's box is what one step can reach from the executed velocity: a
     command the limit alone changes is no intervention (returned as commanded), and a barrier asking
     for more braking than reachable gets the hardest reachable braking."""
-    from lerobot_formation.core.safety import ChunkStart
+    from lerobot_formation.core.safety.filters import ChunkStart
 
     start = ChunkStart(np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.6, 0.0]]), 0, 0.5, 2.0)
     far = np.array([[[FAR, FAR, 0.0]]])
@@ -581,7 +581,7 @@ def test_a_per_agent_radius_widens_the_followers_discs_only():
     """One radius per template agent: equal radii give the scalar's numbers; a larger follower radius
     lowers the clearance (and the barrier value h) where a follower is the nearest agent, and leaves it
     where a leader is."""
-    from lerobot_formation.core.footprint import template_clearance
+    from lerobot_formation.core.controllers.footprint import template_clearance
 
     poses = np.array([[[0.0, 0.0, np.pi / 2]]])
     follower_side = np.array([[[0.5, -1.6, 0.3]]])  # behind the right follower (template y = -1)
@@ -640,7 +640,7 @@ def test_halt_lookahead_brakes_as_the_actuator_brakes_and_changes_nothing_where_
     without rate limits the chunk's own clearance, bit for bit. With a 0.5 m/s^2 limit a chunk at
     0.6 m/s that ends 0.2 m short of a wall needs 0.36 m to stop: halted, it reaches the wall. Where
     some candidate passes with its continuation, ``halt_lookahead`` changes nothing."""
-    from lerobot_formation.core.safety import ChunkStart
+    from lerobot_formation.core.safety.filters import ChunkStart
 
     rng = np.random.default_rng(7)
     obstacles = np.array([[[0.5, 2.0, 0.3], [-1.5, 1.0, 0.4]], [[2.0, 2.0, 0.3], [FAR, FAR, 0.0]]])

@@ -1,4 +1,4 @@
-"""``core.safety_layer``: the settings object (defaults, checks, the one mapping to config fields) and
+"""``core.safety.layer``: the settings object (defaults, checks, the one mapping to config fields) and
 the layer's own per-episode state and counts, on numpy arrays alone."""
 
 import dataclasses
@@ -6,8 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.safety_layer import (
+from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.safety.layer import (
     CONFIG_FIELDS,
     LAYER_STAT_KEYS,
     SafetyLayer,

@@ -5,18 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from lerobot_formation.core.formation_graph import FormationGraph
-from lerobot_formation.core.obstacle_grid import environment_state, obstacle_grid
-from lerobot_formation.core.scene import (
-    SamplingReport,
-    SceneConfig,
-    load_scenes,
-    passage_exists,
-    sample_scenes,
-    save_scenes,
-    scene_validity,
-    scenes_from_list,
-)
+from lerobot_formation.core.encodings.obstacle_grid import environment_state, obstacle_grid
+from lerobot_formation.core.world.formation_graph import FormationGraph
+from lerobot_formation.core.world.presets import SceneConfig
+from lerobot_formation.core.world.sampling import SamplingReport, sample_scenes
+from lerobot_formation.core.world.scene_files import load_scenes, save_scenes, scenes_from_list
+from lerobot_formation.core.world.validity import passage_exists, scene_validity
 
 
 def test_scene_is_pure_function_of_seed():

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from datasets_scripts import dagger_scenes
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.levels import get_level
-from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.scene import Scenes, load_scenes, save_scenes, scenes_from_list
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.scene_files import load_scenes, save_scenes, scenes_from_list
+from lerobot_formation.core.world.scenes import Scenes
 
 
 def test_rollout_setting_of_a_level_and_flags():

@@ -13,8 +13,10 @@ import yaml
 from helpers import dataset_file_hashes
 
 from datasets_scripts import generate_pac_dataset as gen
-from lerobot_formation.core.rollout import PACController, rollout
-from lerobot_formation.core.scene import sample_scenes, scenes_from_frames
+from lerobot_formation.core.controllers.pac import PACController
+from lerobot_formation.core.episodes.rollout import rollout
+from lerobot_formation.core.world.sampling import sample_scenes
+from lerobot_formation.core.world.scenes import scenes_from_frames
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.dataset_frames import episode_frames
 from lerobot_formation.data.hub_folder import push_to_folder

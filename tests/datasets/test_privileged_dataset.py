@@ -9,10 +9,10 @@ import pytest
 from helpers import dataset_file_hashes
 
 from datasets_scripts import generate_pac_dataset as gen
-from lerobot_formation.core.conditions import randomized_conditions
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.levels import get_level
-from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.perception.conditions import randomized_conditions
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import sample_scenes
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.dataset_frames import episode_frames
 from lerobot_formation.data.pac_episodes import CONDITION_GROUP, expert_rollout, simulate_batch

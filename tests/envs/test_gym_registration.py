@@ -61,7 +61,7 @@ def test_without_the_import_gymnasium_does_not_find_the_namespace():
 
 def test_importing_the_package_loads_nothing_heavy():
     code = (
-        "import sys, lerobot_formation, lerobot_formation.core.scene\n"
+        "import sys, lerobot_formation, lerobot_formation.core.world.sampling\n"
         "bad = [m for m in ('gymnasium', 'torch', 'lerobot') if m in sys.modules]\n"
         "assert not bad, bad\n"
     )

@@ -7,8 +7,8 @@ from lerobot.processor import PolicyProcessorPipeline
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from plugin_helpers import formation_features, tiny_config
 
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.world.sampling import sample_scenes
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 from lerobot_formation.policy.processor_formation_diffusion import (
     EgocentricObstaclesProcessorStep,

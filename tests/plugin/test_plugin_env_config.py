@@ -12,7 +12,7 @@ from lerobot.envs.factory import make_env
 from lerobot.envs.utils import NEW_ROLLOUT_OPTION, env_to_policy_features, preprocess_observation
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
-from lerobot_formation.core.metrics import FLAG_KEYS, METRIC_KEYS
+from lerobot_formation.core.episodes.metrics import FLAG_KEYS, METRIC_KEYS
 from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.envs.episode_metrics import INFO_KEY
 

@@ -14,9 +14,9 @@ from plugin_helpers import formation_features, save_nearest_checkpoint
 
 from datasets_scripts import generate_pac_dataset as gen
 from lerobot_formation.bench.controllers import PolicyExpert
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.levels import get_level
-from lerobot_formation.core.scene import sample_scenes
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.world.dynamics import FormationParams
+from lerobot_formation.core.world.sampling import sample_scenes
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.pac_episodes import Generator, check_expert, expert_rollout
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy

@@ -10,7 +10,7 @@ import pytest
 import torch
 from plugin_helpers import formation_features, nearest_config, save_nearest_checkpoint
 
-from lerobot_formation.core.obstacle_grid import environment_state, environment_state_dim
+from lerobot_formation.core.encodings.obstacle_grid import environment_state, environment_state_dim
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 from lerobot_formation.policy.replanner import Replanner
 
@@ -84,7 +84,7 @@ def test_safety_settings_are_checked_with_their_value():
 
 def test_the_layer_smooths_its_view_when_it_knows_the_sensing_noise():
     """With a noise std in the config the replanner's view of the obstacles is smoothed over the
-    steps (``core.obstacle_filter``); with exact sensing it is the observation itself."""
+    steps (``core.perception.obstacle_filter``); with exact sensing it is the observation itself."""
     exact = _policy(safety_margin=0.05).replanner
     noisy = _policy(safety_margin=0.05, safety_obstacle_noise=0.02, safety_pose_noise=0.02).replanner
     exact.start(1), noisy.start(1)
@@ -204,8 +204,8 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     ``safety_halt_lookahead`` are what ``select_chunk`` gets, beside the shipped layer's wired
     settings: the escape lattice of ``ESCAPE_SPEEDS`` and the widest of every candidate scored as the
     fallback."""
-    from lerobot_formation.core import safety
-    from lerobot_formation.core.safety_layer import ESCAPE_SPEEDS
+    from lerobot_formation.core.safety import filters as safety
+    from lerobot_formation.core.safety.layer import ESCAPE_SPEEDS
 
     seen = {}
     real = safety.select_chunk
@@ -240,7 +240,7 @@ def test_a_kept_plan_that_fails_its_check_on_a_newer_view_is_replanned_at_once(m
     passes and the chunk runs on. Before a wall 0.6 m ahead nothing is safe (the samples drive on, the
     only manoeuvres here are 0.6 m/s arcs) and the widest, a sample, is kept: it fails the check too,
     so the episode replans at every step."""
-    from lerobot_formation.core import safety_layer
+    from lerobot_formation.core.safety import layer as safety_layer
 
     monkeypatch.setattr(safety_layer, "ESCAPE_SPEEDS", (0.6,))
     torch.manual_seed(0)  # no filter: it would replan where it intervenes
@@ -278,8 +278,8 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
     obstacles; the standard policy and the checkpoint-as-stored controller do not."""
     from lerobot_formation.bench.controllers import make_controller, safety_settings
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.episodes.levels import get_level
+    from lerobot_formation.core.world.dynamics import FormationParams
     from lerobot_formation.policy.checkpoint import load_policy
 
     conditions = get_level("level5").conditions
@@ -320,8 +320,8 @@ def test_bench_guided_controller_guides_and_standard_sampling_is_never_guided(tm
     name; ``diffusion`` (standard sampling) runs unguided even from a guided checkpoint."""
     from lerobot_formation.bench.controllers import make_controller
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
-    from lerobot_formation.core.levels import get_level
+    from lerobot_formation.core.episodes.levels import get_level
+    from lerobot_formation.core.world.dynamics import FormationParams
     from lerobot_formation.policy.checkpoint import load_policy
     from lerobot_formation.policy.configuration_formation_diffusion import TUNED_SAMPLING_GUIDANCE
 

@@ -15,10 +15,10 @@ from plugin_helpers import (
     tiny_config,
 )
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.obstacle_grid import environment_state
-from lerobot_formation.core.replan_blend import smooth_chunks
-from lerobot_formation.core.scene import FAR
+from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.safety.replan_blend import smooth_chunks
+from lerobot_formation.core.world.scenes import FAR
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 
@@ -125,9 +125,9 @@ def test_engine_and_select_action_feed_the_replanner_the_same(tmp_path, k, safet
         EpisodeNoise,
         episode_noise_seeds,
     )
-    from lerobot_formation.core.dynamics import FormationParams, initial_state, step
-    from lerobot_formation.core.observation import midpoint_state
-    from lerobot_formation.core.scene import scenes_from_list
+    from lerobot_formation.core.perception.observation import midpoint_state
+    from lerobot_formation.core.world.dynamics import FormationParams, initial_state, step
+    from lerobot_formation.core.world.scene_files import scenes_from_list
     from lerobot_formation.policy.checkpoint import load_policy
 
     path = save_nearest_checkpoint(
@@ -199,7 +199,7 @@ def test_replan_experiment_settings_are_checked_with_their_value():
 
 def test_replan_blending_starts_a_new_chunk_at_the_executed_action():
     """With blending (an experiment setting) the first action after a replan moves from the last
-    executed action toward the new chunk by 1 - 1/(m+1) of the way (``core.replan_blend``)."""
+    executed action toward the new chunk by 1 - 1/(m+1) of the way (``core.safety.replan_blend``)."""
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
 
     torch.manual_seed(0)
@@ -278,7 +278,7 @@ def _route_proposal_config(**fields) -> dict:
 
 def test_route_proposal_blending_enters_from_the_executed_action():
     """With ``safety_proposal_blend`` m route pursuit's proposal starts from the last executed action
-    (``core.replan_blend``): its first action lies 1 / (m + 1) of the step from it, its actions from the
+    (``core.safety.replan_blend``): its first action lies 1 / (m + 1) of the step from it, its actions from the
     m-th on are unchanged; without a last action (an episode's first chunk), or with a rate-limited
     actuator, it is left as computed."""
     kw = _route_proposal_config()
@@ -324,7 +324,7 @@ def test_follower_margin_is_checked_and_widens_only_the_followers():
     with pytest.raises(ValueError, match="finite.*safety_follower_margin=inf"):
         nearest_config(safety_follower_margin=float("inf"))
     policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_follower_margin=0.03))
-    from lerobot_formation.core.safety_layer import SafetyLayer, SafetySettings, safety_geometry
+    from lerobot_formation.core.safety.layer import SafetyLayer, SafetySettings, safety_geometry
 
     def layer(config) -> SafetyLayer:
         return SafetyLayer(SafetySettings.from_config(config))
@@ -372,8 +372,8 @@ def test_coherence_is_checked_with_its_value():
 def test_progress_grid_reaches_the_scorer(monkeypatch):
     """``SafetyLayer.choose`` scores progress on the shipped layer's grid: ``PROGRESS_RESOLUTION``
     cells, read bilinearly."""
-    from lerobot_formation.core import safety
-    from lerobot_formation.core.safety_layer import PROGRESS_RESOLUTION
+    from lerobot_formation.core.safety import filters as safety
+    from lerobot_formation.core.safety.layer import PROGRESS_RESOLUTION
 
     seen = []
     real = safety.cost_to_go_progress
@@ -394,7 +394,7 @@ def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypat
     continues over the straight chunk that makes more progress; without a previous plan, progress
     decides. Through ``select_action`` every replan after the first hands the scorer the plan it
     replaces, from the current step on (here n_action_steps = 8 of them)."""
-    from lerobot_formation.core import safety
+    from lerobot_formation.core.safety import filters as safety
 
     env = _env_state([])
     straight = np.tile([0.5, 0.0], (1, 1, HORIZON - N_OBS + 1, 1))
@@ -431,7 +431,7 @@ def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
     """A replan after a plan the filter cut short (an intervention marks it used up, as
     here by hand after 3 of its 8 actions) gets no coherence preference: that plan met a barrier. The
     replan after a plan that ran its ``n_action_steps`` does."""
-    from lerobot_formation.core import safety
+    from lerobot_formation.core.safety import filters as safety
 
     env = _env_state([])
     kept_to = []
@@ -474,7 +474,7 @@ def test_a_warm_start_skips_the_first_denoiser_calls_of_every_candidate():
 
 @pytest.mark.parametrize("K", [1, 3])
 def test_chunk_smoothing_smooths_every_sample_from_the_executed_command(monkeypatch, K):
-    """``chunk_smoothing`` n: every sampled chunk is smoothed (``core.replan_blend.smooth_chunks``)
+    """``chunk_smoothing`` n: every sampled chunk is smoothed (``core.safety.replan_blend.smooth_chunks``)
     before best-of-K scores it, with K = 1 too: the first chunk from its own first command, a later one
     entered from the command executed last. Open road: every candidate is safe and the plan kept is one
     of the smoothed samples."""
@@ -550,8 +550,8 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
     """``ReplanExperiment(sampled=False)`` (the "route-pursuit-safe" baseline): the network samples
     nothing; on an open field the kept chunk is route pursuit's proposal (every replan keeps it), and
     with obstacles across the route an escape or the proposal, never a sample. It needs the proposal."""
-    from lerobot_formation.core.route_pursuit import pursuit_chunk
-    from lerobot_formation.core.safety_layer import safety_geometry
+    from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
+    from lerobot_formation.core.safety.layer import safety_geometry
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
 
     kw = _route_proposal_config(num_candidates=4, safety_filter="cbf")
@@ -653,9 +653,9 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
     """K = 1, no filter: with ``sampling_guidance`` the sample itself is moved away from the observed
     obstacle (the footprint's predicted clearance grows) against the same network's sample from the
     same noise without it."""
-    from lerobot_formation.core import safety_layer
-    from lerobot_formation.core.footprint import sequence_clearance
-    from lerobot_formation.core.safety_layer import safety_geometry
+    from lerobot_formation.core.controllers.footprint import sequence_clearance
+    from lerobot_formation.core.safety import layer as safety_layer
+    from lerobot_formation.core.safety.layer import safety_geometry
 
     monkeypatch.setattr(safety_layer, "GUIDANCE_DISTANCE", 0.5)
     template, dt, radius = safety_geometry()
@@ -686,10 +686,10 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
     ``num_inference_steps`` times (``PlanSettings.denoising_steps``), with no best-of-K; it keeps more clearance from an obstacle beside
     the route than route pursuit's own chunk, and equals that chunk where no obstacle is within the
     guidance distance."""
-    from lerobot_formation.core import safety_layer
-    from lerobot_formation.core.footprint import sequence_clearance
-    from lerobot_formation.core.route_pursuit import pursuit_chunk
-    from lerobot_formation.core.safety_layer import safety_geometry
+    from lerobot_formation.core.controllers.footprint import sequence_clearance
+    from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
+    from lerobot_formation.core.safety import layer as safety_layer
+    from lerobot_formation.core.safety.layer import safety_geometry
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
 
     monkeypatch.setattr(safety_layer, "GUIDANCE_DISTANCE", 0.5)

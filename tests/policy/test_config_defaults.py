@@ -175,7 +175,7 @@ def test_an_old_config_without_the_layers_fields_keeps_the_policy_it_was(tmp_pat
 def test_the_bench_controllers_keep_their_names_meaning():
     from lerobot_formation.bench.controllers import make_controller
     from lerobot_formation.bench.settings import ControllerOptions
-    from lerobot_formation.core.dynamics import FormationParams
+    from lerobot_formation.core.world.dynamics import FormationParams
     from lerobot_formation.policy.checkpoint import load_policy
 
     bundle = load_policy(SHIPPED)

@@ -13,7 +13,7 @@ from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_formation.compat.lerobot_compat import global_conditioning, stock_global_conditioning
-from lerobot_formation.core.obstacle_grid import environment_state_dim, get_encoding
+from lerobot_formation.core.encodings.obstacle_grid import environment_state_dim, get_encoding
 from lerobot_formation.envs.env_config import FormationEnvConfig
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy

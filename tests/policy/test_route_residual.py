@@ -8,9 +8,9 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from test_obstacle_tokens import ENCODING, HORIZON, N_OBS, tiny_config
 
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.obstacle_grid import get_encoding
-from lerobot_formation.core.route_pursuit import pursuit_chunk
+from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
+from lerobot_formation.core.encodings.obstacle_grid import get_encoding
+from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 

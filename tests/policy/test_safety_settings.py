@@ -7,7 +7,7 @@ from pathlib import Path
 from lerobot.configs.policies import PreTrainedConfig
 
 from lerobot_formation.bench.level_report import safety_overrides
-from lerobot_formation.core.safety_layer import CONFIG_FIELDS, SafetySettings
+from lerobot_formation.core.safety.layer import CONFIG_FIELDS, SafetySettings
 from lerobot_formation.policy.configuration_formation_diffusion import FormationDiffusionConfig
 from lerobot_formation.policy.replanner import PlanSettings, Replanner
 

@@ -20,12 +20,13 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from lerobot_formation.core.dynamics import FormationParams  # noqa: E402
-from lerobot_formation.core.formation_graph import FormationGraph  # noqa: E402
-from lerobot_formation.core.geometry import agent_clearances  # noqa: E402
-from lerobot_formation.core.metrics import wilson_interval  # noqa: E402
-from lerobot_formation.core.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TIMEOUT, EpisodeRecords  # noqa: E402
-from lerobot_formation.core.scene import UNSEEN_SEED_START, Scenes  # noqa: E402
+from lerobot_formation.core.episodes.metrics import wilson_interval  # noqa: E402
+from lerobot_formation.core.episodes.rollout import COLLISION, OUTCOME_NAMES, SUCCESS, TIMEOUT, EpisodeRecords  # noqa: E402
+from lerobot_formation.core.world.dynamics import FormationParams  # noqa: E402
+from lerobot_formation.core.world.formation_graph import FormationGraph  # noqa: E402
+from lerobot_formation.core.world.geometry import agent_clearances  # noqa: E402
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
+from lerobot_formation.core.world.scenes import Scenes  # noqa: E402
 
 AGENT_COLORS = ("tab:blue", "tab:cyan", "tab:orange", "tab:purple")
 OUTCOME_COLORS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}

@@ -60,10 +60,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams, step_midpoint
-from lerobot_formation.core.footprint import template_clearance
-from lerobot_formation.core.navigation import CostToGo, batch_bounds, cost_to_go, refresh_rows
+from lerobot_formation.core.controllers.footprint import template_clearance
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.world.dynamics import FormationParams, step_midpoint
+from lerobot_formation.core.world.navigation import CostToGo, batch_bounds, cost_to_go, refresh_rows
 
 
 @dataclass(frozen=True)
@@ -125,10 +125,10 @@ def bilinear(ctg: CostToGo, xy: np.ndarray) -> np.ndarray:
 
 
 class MPPIController:
-    """Batched MPPI behind the ``rollout.Controller`` interface, on what the teams perceive.
+    """Batched MPPI behind the ``protocol.Controller`` interface, on what the teams perceive.
 
     ``reset(view)`` computes the cost-to-go fields from the observed static obstacles
-    (``rollout.map_obstacles``), resets the per-episode nominal sequences (indexed by the global
+    (``protocol.map_obstacles``), resets the per-episode nominal sequences (indexed by the global
     episode index) and creates the noise generator ``np.random.default_rng(seed)``.
     ``act(view, idx)`` rebuilds the field of an episode whose ``map_version`` changed (a new obstacle
     sensed; with noise, from that step's noisy snapshot), then plans for the live episodes ``idx`` on
@@ -145,7 +145,7 @@ class MPPIController:
         self.rng: np.random.Generator | None = None
 
     def reset(self, view: Perception) -> None:
-        from lerobot_formation.core.rollout import map_obstacles
+        from lerobot_formation.core.controllers.protocol import map_obstacles
 
         c = self.config
         self.goal = np.asarray(view.goal, dtype=np.float64)
@@ -169,7 +169,7 @@ class MPPIController:
 
     def refresh_map(self, view: Perception, idx: np.ndarray) -> None:
         """Rebuild the fields of the episodes ``idx`` whose observed obstacle set changed."""
-        from lerobot_formation.core.rollout import map_obstacles
+        from lerobot_formation.core.controllers.protocol import map_obstacles
 
         changed = view.map_version != self.version[idx]
         if changed.any():

@@ -52,8 +52,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from lerobot_formation.core.geometry import NO_OBSTACLE
-from lerobot_formation.core.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
+from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, TIMEOUT, EpisodeRecords
+from lerobot_formation.core.world.geometry import NO_OBSTACLE
 
 FLAG_KEYS = ("success", "collision", "timeout")
 STRUCK_KEY = "struck_by_mover"

@@ -18,24 +18,24 @@ empty slots are zeros (present = 0): 2 + 4 max_obstacles values. A scene with mo
 the nearest ones are observed, as a range sensor would. It depends on the midpoint pose, so it is
 recomputed every step.
 
-``nearest+route`` (``core/route_encoding.py``): ``nearest``, then 5 values of PAC's route from the
+``nearest+route`` (``core/encodings/route_encoding.py``): ``nearest``, then 5 values of PAC's route from the
 observed obstacles (the cost-to-go carrots 1 m and 3 m ahead in the body frame, and PAC's path-blocked
 flag): 2 + 4 max_obstacles + 5 values.
 
-``nearest+maproute`` (``core/map_route_encoding.py``): the layout of ``nearest+route``, its route planned
+``nearest+maproute`` (``core/encodings/map_route_encoding.py``): the layout of ``nearest+route``, its route planned
 on every obstacle of the team's map instead of the ``max_obstacles`` nearest.
-``nearest+velocity`` (``core/velocity_encoding.py``): ``nearest``, then each slot's observed obstacle
-velocity [vx_b, vy_b] in the body frame (moving obstacles, ``core.conditions``): 2 + 6 max_obstacles.
+``nearest+velocity`` (``core/encodings/velocity_encoding.py``): ``nearest``, then each slot's observed obstacle
+velocity [vx_b, vy_b] in the body frame (moving obstacles, ``core.perception.conditions``): 2 + 6 max_obstacles.
 
-``nearest+route+velocity`` (``core/route_velocity_encoding.py``): ``nearest+velocity``, then the 5 route
+``nearest+route+velocity`` (``core/encodings/route_velocity_encoding.py``): ``nearest+velocity``, then the 5 route
 values of ``nearest+route``: 2 + 6 max_obstacles + 5 values.
 
-Every encoding takes the obstacles the team perceives (``core.conditions.Perception``); one with
+Every encoding takes the obstacles the team perceives (``core.perception.conditions.Perception``); one with
 ``velocity`` set gets them as (B, M, 5) rows [x, y, r, vx, vy].
 
 Adding an encoding: one new file that defines ``ENCODING = ObstacleEncoding(...)`` (its ``encode``
 and ``names``; ``ObstacleEncoding``, the body frame and the ``nearest`` view are in
-``core/encoding.py``, which the file imports instead of this registry), and one line at the bottom of
+``core/encodings/encoding.py``, which the file imports instead of this registry), and one line at the bottom of
 this file, ``register("package.module:ENCODING", "name")``: the file is imported when the encoding is
 first used.
 """
@@ -46,11 +46,7 @@ import importlib
 
 import numpy as np
 
-from lerobot_formation.core.encoding import (
-    ObstacleEncoding,
-    encode_nearest,
-    nearest_names,
-)
+from lerobot_formation.core.encodings.encoding import ObstacleEncoding, encode_nearest, nearest_names
 
 GRID_SIZE = 7
 
@@ -163,10 +159,10 @@ register(
 )
 register(ObstacleEncoding("nearest", 12, 4, 2, True, encode_nearest, nearest_names))
 # An encoding in its own file: register("package.module:ENCODING", "its-name") here.
-register("lerobot_formation.core.route_encoding:ENCODING", "nearest+route")
-register("lerobot_formation.core.map_route_encoding:ENCODING", "nearest+maproute")
-register("lerobot_formation.core.velocity_encoding:ENCODING", "nearest+velocity")
-register("lerobot_formation.core.route_velocity_encoding:ENCODING", "nearest+route+velocity")
+register("lerobot_formation.core.encodings.route_encoding:ENCODING", "nearest+route")
+register("lerobot_formation.core.encodings.map_route_encoding:ENCODING", "nearest+maproute")
+register("lerobot_formation.core.encodings.velocity_encoding:ENCODING", "nearest+velocity")
+register("lerobot_formation.core.encodings.route_velocity_encoding:ENCODING", "nearest+route+velocity")
 ENCODINGS = tuple(ENCODING_REGISTRY)
 
 
@@ -177,6 +173,6 @@ def egocentric_encodings() -> tuple[str, ...]:
 
 
 def route_encodings() -> tuple[str, ...]:
-    """Names of the encodings that carry the route hint (``core.route_encoding``), which route pursuit
+    """Names of the encodings that carry the route hint (``core.encodings.route_encoding``), which route pursuit
     and the safety layer's route proposal read."""
     return tuple(name for name in ENCODINGS if get_encoding(name).map)

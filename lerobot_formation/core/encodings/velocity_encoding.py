@@ -1,6 +1,6 @@
 """The ``nearest+velocity`` obstacle encoding: ``nearest`` plus each observed obstacle's velocity.
 
-For moving obstacles (``core.conditions``): a snapshot of positions cannot tell a crossing obstacle
+For moving obstacles (``core.perception.conditions``): a snapshot of positions cannot tell a crossing obstacle
 from a static one. Layout (float32): the ``nearest`` encoding (goal [x_b, y_b], then per slot
 [x_b, y_b, r, present], nearest first), then per slot, in the same order, the obstacle's observed
 velocity [vx_b, vy_b] [m/s] in the midpoint's body frame (x right, y along the heading); empty slots
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.encoding import (
+from lerobot_formation.core.encodings.encoding import (
     ObstacleEncoding,
     encode_nearest,
     nearest_names,

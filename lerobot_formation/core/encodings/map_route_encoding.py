@@ -7,7 +7,7 @@ on every obstacle of its map; this hint does too.
 
 Layout: that of ``nearest+route`` (2 + 4 slots + 5 values, the same names): the ``nearest`` encoding,
 then the carrots 1 m and 3 m down PAC's cost-to-go and PAC's path-blocked flag, with the cost-to-go
-built from every obstacle of the team's map (``core.conditions.Perception.map_obstacles``: the
+built from every obstacle of the team's map (``core.perception.conditions.Perception.map_obstacles``: the
 observed static obstacles, moving ones left out) instead of the ``slots`` nearest. With ``slots`` or
 fewer obstacles on the map the two encodings are equal, value for value. A checkpoint trained on
 ``nearest+route`` reads it unchanged (``scripts/derive_checkpoint.py --set
@@ -16,6 +16,6 @@ obstacle_encoding=nearest+maproute``).
 
 from __future__ import annotations
 
-from lerobot_formation.core.route_encoding import route_encoding
+from lerobot_formation.core.encodings.route_encoding import route_encoding
 
 ENCODING = route_encoding("nearest+maproute", whole_map=True)

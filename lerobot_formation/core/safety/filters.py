@@ -43,7 +43,7 @@ safe (h >= 0), so the QP is then always feasible: stopping is the fallback. If t
 inside the margin, the candidate of least violation is taken.
 
 Moving obstacles (``obstacle_velocity``, body-frame velocities v_j of the observed obstacles, from
-the ``nearest+velocity`` encoding or ``core.obstacle_tracker``): ``select_chunk`` checks the pose
+the ``nearest+velocity`` encoding or ``core.perception.obstacle_tracker``): ``select_chunk`` checks the pose
 after each action against the obstacles where they will be then, c_j + v_j t (constant velocity);
 the filter's barrier h_ij = |p_i - c_j(t)| - r_j - ... has dh_ij/dt = n_ij . (p_i' - v_j), so its
 row becomes n_ij . e_y v + n_ij . (-b_iy, b_ix) omega >= -alpha h_ij + n_ij . v_j (an approaching
@@ -66,7 +66,7 @@ when a draw says there is room, and only stops it when a draw says there is none
 obstacle, the team ratchets in until h is about the largest draw of -e, several stds below zero after
 hundreds of steps (under level4 15 of 100 tuning episodes ended in 0.4-16 mm grazes at a standstill
 with a 5 cm margin). So where the sensing noise is known the replanner smooths the obstacles the layer
-sees (``core.obstacle_filter``, a Kalman gain per obstacle): the std of e falls, to 0.1 of the raw
+sees (``core.perception.obstacle_filter``, a Kalman gain per obstacle): the std of e falls, to 0.1 of the raw
 for a team that stands, and ``margin`` should be about three times what is left (a measurement-robust barrier: Dean et al. 2020, "Guaranteeing Safety of
 Learned Perception Modules via Measurement-Robust Control Barrier Functions").
 """
@@ -78,15 +78,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import rate_limit_sequence, rollout_poses
-from lerobot_formation.core.encoding import world_to_body
-from lerobot_formation.core.footprint import sequence_clearance
-from lerobot_formation.core.navigation import cost_to_go_at
-from lerobot_formation.core.replan_blend import blend_replan
-from lerobot_formation.core.scene import FAR
-from lerobot_formation.core.velocity_encoding import body_velocities
-
-BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
+from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.encodings.encoding import BODY_POSE, world_to_body
+from lerobot_formation.core.encodings.velocity_encoding import body_velocities
+from lerobot_formation.core.safety.replan_blend import blend_replan
+from lerobot_formation.core.world.dynamics import rate_limit_sequence, rollout_poses
+from lerobot_formation.core.world.navigation import cost_to_go_at
+from lerobot_formation.core.world.scenes import FAR
 
 
 @dataclass(frozen=True)
@@ -380,7 +378,7 @@ def select_chunk(
     chunks safe only because they barely move) goes round it instead of timing out there.
     ``info["choice"]`` is the kept index (K + j for primitive j). ``blend`` = (last executed action
     (B, 2), whether there is one (B,), m): the primitives are blended into the executed action as the
-    caller blended the sampled chunks (``core.replan_blend``), so what is scored is what will run.
+    caller blended the sampled chunks (``core.safety.replan_blend``), so what is scored is what will run.
     ``blocked_fallback`` (step 4 of the module docstring): "widest" or "stop"; ``info["blocked"]`` says
     where nothing scored was safe (the fallback kept; "escaped" then only says it is a manoeuvre),
     ``info["stopped"]`` where the team stops. ``obstacle_velocity`` (B, M, 2): the obstacles' velocities (None: static);
@@ -388,7 +386,7 @@ def select_chunk(
     from now, as commanded). Either changes only the predicted clearances, never the kept chunk's
     commands. ``continuation``: a function of the candidates' end poses (B, K', 3) (body frame) that
     returns the commands (B, K', C, 2) the team would run after them (e.g. route pursuit's,
-    ``core.route_pursuit.pursuit_chunk``); a candidate is then safe only if its continuation is too
+    ``core.controllers.route_pursuit.pursuit_chunk``); a candidate is then safe only if its continuation is too
     (one that ends nose-in at a wall it cannot turn away from, the leaders unable to back up, is
     not), unless no candidate's continuation is safe: then the chunks alone decide. Progress is then
     measured at the continuation's end, so a chunk that leaves the team facing its way scores the
@@ -405,7 +403,7 @@ def select_chunk(
     and manoeuvres, e.g. a fast arc that a mover strikes later or less deep), not of the sampled
     chunks only.
     ``mover_uncertainty`` [m/s]: with ``obstacle_velocity``, a moving obstacle's predicted radius grows
-    by that much per second ahead (``core.obstacle_tracker.predict_obstacles``), over the chunk and its
+    by that much per second ahead (``core.perception.obstacle_tracker.predict_obstacles``), over the chunk and its
     continuation: a chunk that passes a mover closely late in the horizon, where the constant-velocity
     prediction is least sure, is not safe.
     """

@@ -6,16 +6,16 @@ step; it returns each candidate's smallest agent clearance and its end pose. The
 assumed to sit on their slots: they track them within the formation-error floor (~0.05 m), which
 ``margin`` covers.
 
-The best-of-K scorer that uses them is ``core.safety.select_chunk``.
+The best-of-K scorer that uses them is ``core.safety.filters.select_chunk``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import body_to_world, rollout_poses
-from lerobot_formation.core.geometry import xy_clearance
-from lerobot_formation.core.obstacle_tracker import predict_obstacles
+from lerobot_formation.core.perception.obstacle_tracker import predict_obstacles
+from lerobot_formation.core.world.dynamics import body_to_world, rollout_poses
+from lerobot_formation.core.world.geometry import xy_clearance
 
 __all__ = ["obstacles_along", "rollout_poses", "sequence_clearance", "template_clearance"]
 

@@ -1,7 +1,7 @@
 """Route pursuit: a learning-free baseline that steers the leaders' midpoint down the route hint.
 
 At every control step it computes the ``route_features`` that the default policy observes (the same
-values unless a moving obstacle is observed, see below; ``core/route_encoding.py``: a grid
+values unless a moving obstacle is observed, see below; ``core/encodings/route_encoding.py``: a grid
 cost-to-go over the goal and the ``slots`` nearest obstacles, obstacles inflated by PAC's
 ``path_inflate``) and pursues its near point, the carrot ``NEAR_CELLS`` cells (1 m) down the steepest
 descent from the midpoint (pure pursuit of a moving look-ahead point).
@@ -18,7 +18,7 @@ swing out when the square turns fast), and the last factor slows it down within 
 There is no footprint check and no memory: the cost-to-go's inflation alone keeps the square off
 the obstacles. Deterministic: the same scene and pose give the same command.
 
-It plans only with what the team perceives (``core.conditions.Perception``) and the observed pose: the
+It plans only with what the team perceives (``core.perception.conditions.Perception``) and the observed pose: the
 route on its map (``map_obstacles``: the static observed obstacles as observed when the map last
 changed, PAC's map and the policy's route hint), plus the observed moving obstacles where they are
 now, since nothing else steers it around them (so under moving obstacles its field is rebuilt at every
@@ -32,11 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.conditions import Perception
-from lerobot_formation.core.dynamics import FormationParams
-from lerobot_formation.core.encoding import world_to_body
-from lerobot_formation.core.route_encoding import route_features
-from lerobot_formation.core.safety import BODY_POSE
+from lerobot_formation.core.encodings.encoding import BODY_POSE, world_to_body
+from lerobot_formation.core.encodings.route_encoding import route_features
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.world.dynamics import FormationParams
 
 
 @dataclass(frozen=True)
@@ -79,7 +78,7 @@ def pursuit_command(
 
 
 class RoutePursuitController:
-    """Route pursuit behind the ``rollout.Controller`` interface (``reset(view)``, ``act(view, idx)``)."""
+    """Route pursuit behind the ``protocol.Controller`` interface (``reset(view)``, ``act(view, idx)``)."""
 
     name = "route-pursuit"
 
@@ -129,7 +128,7 @@ def pursuit_chunk(
     body frame of the midpoint now (x right, y ahead; the ``nearest+route`` encoding's values).
 
     The midpoint is rolled out as a unicycle (``dynamics.step_midpoint``) from ``start`` (B, 3), a
-    pose in that frame (None: the midpoint now, ``core.safety.BODY_POSE``; the safety layer's
+    pose in that frame (None: the midpoint now, ``core.encodings.encoding.BODY_POSE``; the safety layer's
     lookahead starts it at each candidate's end); at each step it pursues (``pursuit_command``) the
     near carrot until within half its starting distance of it, then the far one, and the goal within
     ``r_goal`` of it: pure pursuit of the polyline the hint gives, which the safety layer's best-of-K

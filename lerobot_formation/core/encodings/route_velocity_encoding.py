@@ -7,7 +7,7 @@ choices cannot tell why it swerved; this encoding gives the network the velociti
 Layout (float32, 2 + 6 slots + 5 values): the ``nearest`` encoding (goal [x_b, y_b], then per slot
 [x_b, y_b, r, present], nearest first), then per slot in the same order the observed velocity
 [vx_b, vy_b] [m/s] in the midpoint's body frame (as ``nearest+velocity``: zeros for empty slots and
-static obstacles), then the 5 route values of ``nearest+route`` (``core/route_encoding.py``). The
+static obstacles), then the 5 route values of ``nearest+route`` (``core/encodings/route_encoding.py``). The
 safety layer decodes the ``nearest`` part, the velocities after the rows and the route after them.
 """
 
@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.encoding import ObstacleEncoding
-from lerobot_formation.core.route_encoding import ROUTE_NAMES, route_features
-from lerobot_formation.core.velocity_encoding import ENCODING as NEAREST_VELOCITY
+from lerobot_formation.core.encodings.encoding import ObstacleEncoding
+from lerobot_formation.core.encodings.route_encoding import ROUTE_NAMES, route_features
+from lerobot_formation.core.encodings.velocity_encoding import ENCODING as NEAREST_VELOCITY
 
 
 def _encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The ``nearest+route`` obstacle encoding: ``nearest`` plus a route hint computed from what it observes.
 
-Why: PAC (``core/pac.py``) picks its detour side from a grid cost-to-go over the whole obstacle layout
-(``core/navigation.py``), a global decision that a small denoiser conditioned on the 12 nearest obstacles
+Why: PAC (``core/controllers/pac.py``) picks its detour side from a grid cost-to-go over the whole obstacle layout
+(``core/world/navigation.py``), a global decision that a small denoiser conditioned on the 12 nearest obstacles
 must otherwise re-derive from scratch every replan; when it re-derives it differently on consecutive
 replans the team swings between sides and hits the obstacle in between. This encoding gives it the
 same route the expert follows, computed only from the observation's own content (the goal and the
@@ -18,7 +18,7 @@ Layout (2 + 4 slots + 5 values, float32): the ``nearest`` encoding (goal [x_b, y
   steers for the near carrot instead of the goal), else 0.
 
 The cost-to-go (obstacles inflated by PAC's ``path_inflate``) is built on the team's map
-(``core.conditions.Perception.map_obstacles``: the observed static obstacles as observed when the map
+(``core.perception.conditions.Perception.map_obstacles``: the observed static obstacles as observed when the map
 last changed, the same map PAC plans on), from its ``max_obstacles`` obstacles nearest the midpoint.
 It depends only on that map, not on the pose (unless the nearest selection changes), so it is
 computed once per distinct map (``navigation.SceneFields``, cached, the same field PAC uses) and each
@@ -31,17 +31,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.encoding import (
+from lerobot_formation.core.encodings.encoding import (
     ObstacleEncoding,
     encode_nearest,
     nearest_names,
     nearest_order,
     world_to_body,
 )
-from lerobot_formation.core.navigation import SceneFields
-from lerobot_formation.core.pac import PACConfig, path_blocked
+from lerobot_formation.core.world.navigation import (
+    PAC_CARROT_CELLS,
+    PAC_INFLATE,
+    PAC_LOOKAHEAD,
+    PAC_PATH_INFLATE,
+    SceneFields,
+    path_blocked,
+)
 
-NEAR_CELLS = PACConfig.carrot_cells  # 5 cells of 0.2 m: PAC's carrot
+NEAR_CELLS = PAC_CARROT_CELLS  # 5 cells of 0.2 m: PAC's carrot
 FAR_CELLS = 15
 ROUTE_NAMES = ["route_near_bx", "route_near_by", "route_far_bx", "route_far_by", "path_blocked"]
 
@@ -62,7 +68,7 @@ def route_features(
     """The 5 route values (B, 5) float32 of B midpoints (see the module docstring): the carrots on the
     cost-to-go of ``map_obstacles`` (B, M, 3) (None: ``obstacles``), the path check on ``obstacles``.
     The cost-to-go sees the ``slots`` map obstacles nearest the midpoint, or with ``whole_map`` every
-    one of them (``nearest+maproute``, ``core/map_route_encoding.py``)."""
+    one of them (``nearest+maproute``, ``core/encodings/map_route_encoding.py``)."""
     B = len(pose)
     observed = observed_obstacles(obstacles, mask, pose, slots)
     source = obstacles if map_obstacles is None else map_obstacles
@@ -73,18 +79,17 @@ def route_features(
         else observed_obstacles(source, mask, pose, planned)
     )
     goal = np.asarray(goal, np.float64)
-    c = PACConfig()
-    fields = SceneFields.build(mapped, goal, inflate=c.path_inflate)  # PAC's field of the same map
+    fields = SceneFields.build(mapped, goal, inflate=PAC_PATH_INFLATE)  # PAC's field of the same map
     near = fields.carrot(pose[:, :2], NEAR_CELLS)
     far = fields.carrot(near, FAR_CELLS - NEAR_CELLS)
-    blocked = path_blocked(pose[:, :2], goal, observed, c.lookahead, c.inflate)
+    blocked = path_blocked(pose[:, :2], goal, observed, PAC_LOOKAHEAD, PAC_INFLATE)
     body = world_to_body(np.stack([near, far], axis=1), pose)  # (B, 2, 2)
     return np.concatenate([body.reshape(B, 4), blocked[:, None]], axis=1).astype(np.float32)
 
 
 def route_encoding(name: str, whole_map: bool = False) -> ObstacleEncoding:
     """The ``nearest`` rows, then the 5 route values (``route_features``, ``whole_map`` passed on):
-    ``nearest+route`` here, ``nearest+maproute`` (``core/map_route_encoding.py``) on the whole map."""
+    ``nearest+route`` here, ``nearest+maproute`` (``core/encodings/map_route_encoding.py``) on the whole map."""
 
     def encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
         base = encode_nearest(obstacles, mask, goal, pose, slots)

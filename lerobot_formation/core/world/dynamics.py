@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lerobot_formation.core.formation_graph import FormationGraph
+from lerobot_formation.core.world.formation_graph import FormationGraph
 
 
 @dataclass(frozen=True)
@@ -230,7 +230,7 @@ def rate_limit(
         omega_k = omega_{k-1} + clip(omega_cmd - omega_{k-1}, -a_omega dt, a_omega dt),
 
     a_v = ``max_linear_accel`` [m/s^2], a_omega = ``max_angular_accel`` [rad/s^2] (None: that
-    component follows the command at once). ``core.conditions.ConditionedWorld.execute`` applies it
+    component follows the command at once). ``core.perception.conditions.ConditionedWorld.execute`` applies it
     to the clipped command before ``step``, which then moves the team with the result."""
     out = np.array(command, dtype=np.float64)
     for k, accel in enumerate((max_linear_accel, max_angular_accel)):

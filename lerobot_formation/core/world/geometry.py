@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-# Padded obstacle rows sit at (1e6, 1e6) with radius 0 (core.scene.FAR), so a clearance this large
+# Padded obstacle rows sit at (1e6, 1e6) with radius 0 (core.world.scenes.FAR), so a clearance this large
 # means "no obstacle": scenes keep start and goal within 50 m of the origin.
 NO_OBSTACLE = 1.0e5  # [m]
 # xy_clearance takes every obstacle slot at once up to this many point-obstacle pairs (~1 MB a temporary)

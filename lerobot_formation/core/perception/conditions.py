@@ -1,6 +1,6 @@
 """Realistic conditions of an episode: limited sensing, noise, late and inexact commands, rate limits
 and moving obstacles, batched over B teams (numpy only). Every field of ``Conditions`` defaults to off;
-with all of them off ``core.rollout.Teams`` never builds a ``ConditionedWorld`` and every trajectory,
+with all of them off ``core.episodes.rollout.Teams`` never builds a ``ConditionedWorld`` and every trajectory,
 observation and dataset byte is what it was before the conditions existed.
 
 What the robot perceives (``Perception``) is all a controller under test and every observation
@@ -47,15 +47,15 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import (
+from lerobot_formation.core.world.dynamics import (
     FormationParams,
     FormationState,
     agent_positions,
     clip_action,
     rate_limit,
 )
-from lerobot_formation.core.geometry import obstacle_gaps
-from lerobot_formation.core.scene import FAR, Scenes
+from lerobot_formation.core.world.geometry import obstacle_gaps
+from lerobot_formation.core.world.scenes import FAR, Scenes
 
 NOISE_TAG = 0x6E6F6973  # "nois": the per-step noise stream of an episode
 MOTION_TAG = 0x6D6F7665  # "move": which obstacles move, and where to
@@ -463,7 +463,7 @@ def _bounce_off_obstacles(
 
 
 class ConditionedWorld:
-    """The conditions' state of B teams, held by ``core.rollout.Teams`` (which keeps the true scenes
+    """The conditions' state of B teams, held by ``core.episodes.rollout.Teams`` (which keeps the true scenes
     and state): what each team has seen, its noise stream, its command FIFO and executed velocity,
     and its obstacles' velocities.
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 _SHIFTS = [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)]
-# Cells per side of the grid: 600 at 0.2 m covers 120 m, more than scenes can span (core.scene keeps
+# Cells per side of the grid: 600 at 0.2 m covers 120 m, more than scenes can span (core.world.scenes keeps
 # start and goal within MAX_COORDINATE = 50 m of the origin). Beyond it the wavefront would take hours
 # and terabytes (a goal 1e5 m away: 1.8 TiB), so it is refused.
 MAX_GRID_CELLS = 600
@@ -67,7 +67,7 @@ def inflated_cells(
     obstacles: np.ndarray, present: np.ndarray, inflate: float, origin: float, resolution: float, n: int
 ) -> np.ndarray:
     """Grid cells (B, n, n) bool within r + ``inflate`` of an obstacle (B, M, 3) that is ``present``
-    (B, M); the walls of both grid wavefronts (this module's cost-to-go, ``scene.passage_exists``)."""
+    (B, M); the walls of both grid wavefronts (this module's cost-to-go, ``validity.passage_exists``)."""
     axis = origin + resolution * np.arange(n)
     X, Y = np.meshgrid(axis, axis, indexing="ij")  # (n, n)
     walls = np.zeros((len(obstacles), n, n), dtype=bool)
@@ -142,7 +142,7 @@ def _grid(
         raise ValueError(
             f"cost_to_go: goals {np.asarray(goal).min():.4g}..{np.asarray(goal).max():.4g} m need a grid over "
             f"[{lo:.4g}, {hi:.4g}] m, more than {MAX_GRID_CELLS} cells of {resolution:g} m per side; keep goals "
-            "within 50 m of the origin (core.scene.MAX_COORDINATE)"
+            "within 50 m of the origin (core.world.scenes.MAX_COORDINATE)"
         )
     n = grid_size(lo, hi, resolution)
     B = len(goal)
@@ -222,6 +222,32 @@ def cost_to_go_at(
         if (q < (rounds + 1) * step * (1.0 - 1e-9)).all():  # margin: the bound's own rounding
             break
     return bilinear_mix(q.reshape(-1, 4), frac) if bilinear else q
+
+
+# PAC's route (``core.controllers.pac.PACConfig``'s defaults): the route hint
+# (``core.encodings.route_encoding``) plans the same cost-to-go, carrot and path check.
+PAC_INFLATE = (
+    0.75  # [m] obstacle inflation of PAC's field and path check: bar half-width + agent radius + margin
+)
+PAC_LOOKAHEAD = 3.0  # [m] path-blocked check length
+PAC_PATH_INFLATE = 0.9  # [m] obstacle inflation of the cost-to-go: avoids gaps the square can't turn in
+PAC_CARROT_CELLS = 5  # detour target: this many cost-to-go cells (0.2 m) down the gradient
+
+
+def path_blocked(
+    p: np.ndarray, goal: np.ndarray, obstacles: np.ndarray, lookahead: float, inflate: float
+) -> np.ndarray:
+    """PAC's path check (B,) bool: the segment from p (B, 2) toward the goal (B, 2), up to ``lookahead``
+    metres, passes within r + ``inflate`` of an obstacle (B, M, 3) centre (radius 0: an empty slot)."""
+    to_goal = goal - p
+    dist_goal = np.linalg.norm(to_goal, axis=-1)
+    u = to_goal / np.maximum(dist_goal, 1e-9)[:, None]
+    rel = obstacles[..., :2] - p[:, None, :]  # (B, M, 2)
+    t = np.einsum("bmk,bk->bm", rel, u)  # along the segment
+    seg = np.minimum(dist_goal, lookahead)[:, None]
+    closest = np.sqrt(np.maximum(np.sum(rel * rel, -1) - t * t, 0.0))
+    R = obstacles[..., 2] + inflate
+    return ((t > 0) & (t < seg + R) & (closest < R) & (obstacles[..., 2] > 0)).any(axis=1)
 
 
 def batch_bounds(goal: np.ndarray, bounds: tuple[float, float] = (-3.0, 9.0)) -> tuple[float, float]:

@@ -34,8 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import rollout_poses
-from lerobot_formation.core.footprint import obstacles_along
+from lerobot_formation.core.controllers.footprint import obstacles_along
+from lerobot_formation.core.world.dynamics import rollout_poses
 
 
 def clearance_cost_gradient(
@@ -53,7 +53,7 @@ def clearance_cost_gradient(
 
     Args:
         pose: (B, 3) where the sequences start (the midpoint in the body frame, or the actuator's
-            predicted start, ``core.safety.ChunkStart.pose``).
+            predicted start, ``core.safety.filters.ChunkStart.pose``).
         actions: (B, C, T, 2) [v, omega] command sequences, C per start.
         obstacles: (B, M, 3) [x, y, r] in the same frame (an absent slot: far away, radius 0).
         template: (N, 2) the formation's body offsets; ``agent_radius`` [m] one radius, or one per

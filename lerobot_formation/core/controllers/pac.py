@@ -24,11 +24,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import FormationParams, constant_action_poses
-from lerobot_formation.core.footprint import template_clearance
-from lerobot_formation.core.navigation import SceneFields
-from lerobot_formation.core.obstacle_tracker import predict_obstacles
-from lerobot_formation.core.scene import FAR
+from lerobot_formation.core.controllers.footprint import template_clearance
+from lerobot_formation.core.controllers.protocol import map_obstacles
+from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.perception.obstacle_tracker import predict_obstacles
+from lerobot_formation.core.world.dynamics import FormationParams, constant_action_poses, rollout_poses
+from lerobot_formation.core.world.navigation import (
+    PAC_CARROT_CELLS,
+    PAC_INFLATE,
+    PAC_LOOKAHEAD,
+    PAC_PATH_INFLATE,
+    SceneFields,
+    path_blocked,
+)
+from lerobot_formation.core.world.scenes import FAR
 
 
 @dataclass(frozen=True)
@@ -37,12 +46,11 @@ class PACConfig:
     k_omega: float = 2.0  # [1/s] heading gain
     k_rep: float = 0.05  # repulsion gain
     influence: float = 0.5  # [m] repulsion range beyond the inflated radius
-    inflate: float = 0.75  # [m] obstacle inflation: bar half-width + agent radius + margin
-    lookahead: float = 3.0  # [m] path-blocked check length
-    path_inflate: float = (
-        0.9  # [m] obstacle inflation of the cost-to-go: avoids gaps the square can't turn in
-    )
-    carrot_cells: int = 5  # detour target: this many cost-to-go cells (0.2 m) down the gradient
+    # PAC's route, which the route hint plans too (``core.world.navigation``: the values and what they are)
+    inflate: float = PAC_INFLATE  # [m] obstacle inflation: bar half-width + agent radius + margin
+    lookahead: float = PAC_LOOKAHEAD  # [m] path-blocked check length
+    path_inflate: float = PAC_PATH_INFLATE  # [m] obstacle inflation of the cost-to-go
+    carrot_cells: int = PAC_CARROT_CELLS  # detour target: cost-to-go cells down the gradient
     goal_slow_radius: float = 1.0  # [m] slow down inside this distance to the goal
     horizon: int = 8  # footprint prediction steps (x dt)
     safety_margin: float = 0.08  # [m] predicted agent clearance to keep
@@ -53,22 +61,6 @@ class PACConfig:
 
 def wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def path_blocked(
-    p: np.ndarray, goal: np.ndarray, obstacles: np.ndarray, lookahead: float, inflate: float
-) -> np.ndarray:
-    """PAC's path check (B,) bool: the segment from p (B, 2) toward the goal (B, 2), up to ``lookahead``
-    metres, passes within r + ``inflate`` of an obstacle (B, M, 3) centre (radius 0: an empty slot)."""
-    to_goal = goal - p
-    dist_goal = np.linalg.norm(to_goal, axis=-1)
-    u = to_goal / np.maximum(dist_goal, 1e-9)[:, None]
-    rel = obstacles[..., :2] - p[:, None, :]  # (B, M, 2)
-    t = np.einsum("bmk,bk->bm", rel, u)  # along the segment
-    seg = np.minimum(dist_goal, lookahead)[:, None]
-    closest = np.sqrt(np.maximum(np.sum(rel * rel, -1) - t * t, 0.0))
-    R = obstacles[..., 2] + inflate
-    return ((t > 0) & (t < seg + R) & (closest < R) & (obstacles[..., 2] > 0)).any(axis=1)
 
 
 def swept_obstacles(
@@ -218,3 +210,72 @@ class PathAwareController:
         fallback = np.argmax(clear, axis=1)
         pick = np.where(safe.any(axis=1), best, fallback)
         return cand[np.arange(len(pose)), pick]
+
+
+class PACController:
+    """PAC behind the common controller interface, on what the team perceives.
+
+    The cost-to-go (PAC's detour side) is built per team from ``map_obstacles`` of its perception
+    when the episode starts and rebuilt for a team only when its ``map_version`` changes (a new
+    obstacle sensed, or one forgotten): with noise it is the noisy snapshot of that moment, the same
+    map the route hint (``core.encodings.route_encoding``) plans on. The repulsion, the path check and the
+    footprint governor use the current (noisy, moving) observed obstacles at every step.
+
+    Args:
+        predict: [s] lookahead for moving obstacles: each one is also avoided at its positions over
+            the next ``predict`` seconds along its observed velocity (``pac.swept_obstacles``); 0: at
+            its current position only.
+        delay: [control steps] command delay to compensate: PAC acts for the pose its last ``delay``
+            commands (still queued, ``Conditions.action_delay``) will reach, and for the moving
+            obstacles ``delay`` steps ahead; 0: none. The two defaults leave PAC as it was.
+    """
+
+    name = "pac"
+
+    def __init__(
+        self,
+        config: PACConfig | None = None,
+        params: FormationParams | None = None,
+        predict: float = 0.0,
+        delay: int = 0,
+    ):
+        if not isinstance(predict, int | float) or not np.isfinite(predict) or predict < 0:
+            raise ValueError(
+                f"PACController: predict must be a finite number of seconds >= 0, got {predict!r}"
+            )
+        if not isinstance(delay, int | np.integer) or isinstance(delay, bool) or delay < 0:
+            raise ValueError(f"PACController: delay must be an integer number of steps >= 0, got {delay!r}")
+        self.pac = PathAwareController(config, params)
+        self.predict = float(predict)
+        self.delay = int(delay)
+
+    def reset(self, view: Perception) -> None:
+        self.pac.reset(map_obstacles(view), view.goal)
+        self.version = np.array(view.map_version, copy=True)
+        self.sent = np.zeros((len(view), self.delay, 2))  # queued commands, oldest first (delay)
+
+    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
+        idx = np.asarray(idx)
+        changed = view.map_version != self.version[idx]
+        if changed.any():
+            rows = idx[changed]
+            fresh = SceneFields.build(
+                map_obstacles(view[changed]), view.goal[changed], self.pac.config.path_inflate
+            )
+            for i, field in zip(rows, fresh.fields, strict=True):
+                self.pac.ctg.fields[i] = field
+            self.version[rows] = view.map_version[changed]
+        sub = self.pac.select(idx)
+        pose, obstacles = view.pose, view.obstacles
+        dt = self.pac.params.dt
+        if self.delay:  # the pose once the queued commands have run, the moving obstacles then
+            pose = rollout_poses(pose, self.sent[idx][:, None], dt)[:, 0, -1]
+            obstacles = swept_obstacles(obstacles, view.obstacle_velocity, self.delay * dt, 0.0)
+        sub.obstacles = obstacles
+        if self.predict:
+            command = sub.command(pose, view.obstacle_velocity, self.predict)
+        else:
+            command = sub.command(pose)
+        if self.delay:
+            self.sent[idx] = np.concatenate([self.sent[idx][:, 1:], command[:, None]], axis=1)
+        return command

@@ -2,30 +2,30 @@
 step (``SafetyView``) and the layer itself (``SafetyLayer``), NumPy only.
 
 The layer sits between a planner's proposals and the robot. It takes numpy arrays in physical units
-([v, omega] in m/s and rad/s, the body frame of ``core.safety``) and owns, per episode of a batch,
+([v, omega] in m/s and rad/s, the body frame of ``core.safety.filters``) and owns, per episode of a batch,
 what it must remember between steps: the commands in flight and the velocity the actuator model
 executed last, the obstacle tracker (velocities) and the obstacle filter (sensing noise). Its calls:
 
 - ``view(env_state, rows)``: what the layer sees of episodes ``rows`` at this step, from their raw
   egocentric observation (``observed_obstacles`` decodes it): the goal and obstacles of its
   ``nearest`` part; with ``moving_obstacles`` their velocities (the encoding's, else the episode's
-  ``core.obstacle_tracker.ObstacleTracker`` estimates); with a known actuator (``action_delay``,
-  ``max_linear_accel`` / ``max_angular_accel``) the ``core.safety.ChunkStart`` after the commands
+  ``core.perception.obstacle_tracker.ObstacleTracker`` estimates); with a known actuator (``action_delay``,
+  ``max_linear_accel`` / ``max_angular_accel``) the ``core.safety.filters.ChunkStart`` after the commands
   in flight; with a known sensing noise (``obstacle_noise``, ``pose_noise``) the obstacles smoothed
-  over the steps (``core.obstacle_filter``). Call it once per step.
-- ``choose(view, chunks)``: best-of-K (``core.safety.select_chunk``) among candidate chunks
+  over the steps (``core.perception.obstacle_filter``). Call it once per step.
+- ``choose(view, chunks)``: best-of-K (``core.safety.filters.select_chunk``) among candidate chunks
   (B, K, T, 2): with ``route_proposal`` route pursuit's chunk joins them, with ``route_lookahead``
   every candidate is followed by route pursuit in the check, with ``coherence`` the layer prefers
   the safe candidate closest to the plan it replaces; escape manoeuvres of ``ESCAPE_SPEEDS`` where
   nothing is safe, else the widest of every candidate scored; progress on a ``PROGRESS_RESOLUTION``
   grid read bilinearly.
 - ``recheck(view, plans)``: whether the rest of each kept plan still passes best-of-K's check on
-  this step's view (``core.safety.plan_is_safe``).
+  this step's view (``core.safety.filters.plan_is_safe``).
 - ``filter(view, action)``: the filter on every executed action (``filter`` "cbf":
-  ``core.safety.cbf_filter``).
+  ``core.safety.filters.cbf_filter``).
 - ``send(rows, commands)``: the commands sent to episodes ``rows``, for the actuator model.
 - ``clearance_step(view)``: one step of the sampler's clearance guidance (``guidance``,
-  ``core.guidance``) on the view's obstacles.
+  ``core.safety.guidance``) on the view's obstacles.
 
 ``stats`` counts what the layer did since ``reset`` (``LAYER_STAT_KEYS``): the replans where no
 sampled candidate was safe, the escapes and stops kept, route pursuit's proposal kept, the failed
@@ -43,13 +43,14 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from lerobot_formation.core import guidance, safety
-from lerobot_formation.core.dynamics import FormationParams, rate_limit
-from lerobot_formation.core.obstacle_filter import ObstacleFilter
-from lerobot_formation.core.obstacle_grid import get_encoding
-from lerobot_formation.core.obstacle_tracker import ObstacleTracker
-from lerobot_formation.core.replan_blend import blend_replan, smooth_chunks
-from lerobot_formation.core.route_pursuit import pursuit_chunk
+from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
+from lerobot_formation.core.encodings.obstacle_grid import get_encoding
+from lerobot_formation.core.perception.obstacle_filter import ObstacleFilter
+from lerobot_formation.core.perception.obstacle_tracker import ObstacleTracker
+from lerobot_formation.core.safety import filters as safety
+from lerobot_formation.core.safety import guidance
+from lerobot_formation.core.safety.replan_blend import blend_replan, smooth_chunks
+from lerobot_formation.core.world.dynamics import FormationParams, rate_limit
 
 # The shipped layer's settings that are no settings field:
 ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6)  # [m/s] best-of-K's escape manoeuvres, each turn rate
@@ -198,7 +199,7 @@ CONFIG_FIELDS: dict[str, str] = {f.name: f.metadata["config"] for f in fields(Sa
 
 def known_world(conditions, scenes_move: bool = False) -> dict:
     """The settings (name -> value) of the layer's knowledge of a run under ``conditions``
-    (``core.conditions.Conditions`` or None): the actuator's delay and acceleration limits, the
+    (``core.perception.conditions.Conditions`` or None): the actuator's delay and acceleration limits, the
     sensors' noise stds, and whether obstacles move: ``moving_obstacles`` of the conditions, or
     ``scenes_move`` (the scenes give their obstacles' velocities). What a robot's designer knows of
     the world, never its noise draws. Empty when neither conditions nor moving scenes."""
@@ -237,7 +238,7 @@ def action_bounds() -> tuple[tuple[float, float], tuple[float, float]]:
 
 @functools.cache
 def _escape_lattice(speeds: tuple[float, ...]) -> np.ndarray:
-    """``core.safety.escape_primitives`` of a lattice's speeds, built once per lattice."""
+    """``core.safety.filters.escape_primitives`` of a lattice's speeds, built once per lattice."""
     lattice = safety.escape_primitives(speeds)
     lattice.flags.writeable = False
     return lattice
@@ -247,7 +248,7 @@ def _escape_lattice(speeds: tuple[float, ...]) -> np.ndarray:
 class SafetyView:
     """What the safety layer sees of B episodes at one step (module docstring): goal (B, 2),
     obstacles (B, M, 3) and mask (B, M) in the body frame, the obstacles' velocities (B, M, 2) (None:
-    static), where the next command starts (``core.safety.ChunkStart``; None: at once) and the route
+    static), where the next command starts (``core.safety.filters.ChunkStart``; None: at once) and the route
     hint's near and far carrots (B, 4) of a route encoding (None otherwise)."""
 
     goal: np.ndarray
@@ -274,10 +275,10 @@ class SafetyLayer:
     Args:
         settings: what it is told (default: the shipped default's, ``SafetySettings()``).
         blend_steps: m >= 0; where the caller blended its chunks' first m actions from the last
-            executed one (``core.replan_blend``), the escape manoeuvres are blended as they were.
+            executed one (``core.safety.replan_blend``), the escape manoeuvres are blended as they were.
         escape_advantage: None, or [m] a safe manoeuvre is also kept when its progress beats every safe
-            sampled chunk's by that much (``core.safety.select_chunk``).
-        blocked_fallback: "widest" or "stop" where nothing is safe (``core.safety.select_chunk``).
+            sampled chunk's by that much (``core.safety.filters.select_chunk``).
+        blocked_fallback: "widest" or "stop" where nothing is safe (``core.safety.filters.select_chunk``).
     """
 
     def __init__(
@@ -371,7 +372,7 @@ class SafetyLayer:
             velocity = env[:, rows_end : rows_end + 2 * slots].reshape(len(env), slots, 2).astype(np.float64)
             velocity = np.where(mask[..., None], velocity, 0.0)
         route = None
-        if encoding.map:  # the route hint's carrots, after the velocities (core.route_encoding)
+        if encoding.map:  # the route hint's carrots, after the velocities (core.encodings.route_encoding)
             at = rows_end + encoding.trailing_per_slot * slots
             route = env[:, at : at + 4].astype(np.float64)
         return SafetyView(goal, obstacles, mask, velocity, route=route)
@@ -402,7 +403,7 @@ class SafetyLayer:
     # -- best-of-K and its recheck -------------------------------------------------------------------
     def route_proposal(self, view: SafetyView, steps: int) -> np.ndarray:
         """Route pursuit's chunk (B, steps, 2) [m/s, rad/s] from the view's route hint
-        (``core.route_pursuit.pursuit_chunk``)."""
+        (``core.controllers.route_pursuit.pursuit_chunk``)."""
         _, dt, _ = safety_geometry()
         _, high = action_bounds()
         return pursuit_chunk(view.route, view.goal, steps, dt, high[1])
@@ -425,7 +426,7 @@ class SafetyLayer:
         return continuation
 
     def footprint_check(self, view: SafetyView) -> safety.FootprintCheck:
-        """Best-of-K's check (``core.safety.FootprintCheck``) on ``view``: the observed obstacles and
+        """Best-of-K's check (``core.safety.filters.FootprintCheck``) on ``view``: the observed obstacles and
         velocities, the actuator start, route pursuit's lookahead."""
         template, dt, _ = safety_geometry()
         return safety.FootprintCheck(
@@ -441,7 +442,7 @@ class SafetyLayer:
 
     def recheck(self, view: SafetyView, plans: np.ndarray) -> np.ndarray:
         """Whether the rest of each kept plan (B, T, 2) [m/s, rad/s] still passes best-of-K's check on
-        this step's ``view`` (B,) bool (``core.safety.plan_is_safe``); the failures are counted
+        this step's ``view`` (B,) bool (``core.safety.filters.plan_is_safe``); the failures are counted
         (``rechecks_failed``)."""
         safe = safety.plan_is_safe(plans, self.footprint_check(view), self.settings.margin)
         self.stats["rechecks_failed"] += int((~safe).sum())
@@ -456,7 +457,7 @@ class SafetyLayer:
         previous: np.ndarray | None = None,
         keep_to=None,
     ) -> tuple[np.ndarray, dict]:
-        """Best-of-K (``core.safety.select_chunk``): ``seen`` a ``SafetyView`` or a raw egocentric
+        """Best-of-K (``core.safety.filters.select_chunk``): ``seen`` a ``SafetyView`` or a raw egocentric
         observation (B, D) (``observed_obstacles``), chunks (B, K, T, 2) [m/s, rad/s] -> kept chunks
         (B, T, 2), info (``select_chunk``'s, and ``proposal_kept`` (B,)). With ``blend_steps`` and the
         last executed actions (B, 2), the escape manoeuvres are blended into them as the sampled
@@ -522,7 +523,7 @@ class SafetyLayer:
     # -- the filter, the actuator model and the guidance ---------------------------------------------
     def filter(self, seen, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The filter on [v, omega] (B, 2) -> (filtered, changed (B,)); ``seen`` as in ``choose``.
-        "cbf": ``core.safety.cbf_filter``; "none": the actions unchanged. Counts the changes
+        "cbf": ``core.safety.filters.cbf_filter``; "none": the actions unchanged. Counts the changes
         (``filter_interventions``)."""
         action = np.asarray(action, dtype=np.float64)
         s = self.settings
@@ -567,7 +568,7 @@ class SafetyLayer:
     def clearance_step(self, view: SafetyView) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         """One application of the clearance guidance (``guidance``) to commands of the B = len(view)
         episodes: (commands (n, T, 2) [m/s, rad/s] from the current step on, the episode of each row
-        (n,)) -> the commands moved by one step of -eta dJ/da (``core.guidance.clearance_cost_gradient``
+        (n,)) -> the commands moved by one step of -eta dJ/da (``core.safety.guidance.clearance_cost_gradient``
         with ``GUIDANCE_DISTANCE``, on the view's obstacles from the actuator's predicted start), each
         clipped to the action bounds."""
         template, dt, _ = safety_geometry()

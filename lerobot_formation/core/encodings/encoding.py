@@ -1,8 +1,8 @@
 """What every obstacle encoding builds on: the ``ObstacleEncoding`` type, the body frame, and the
 egocentric ``nearest`` view (goal and the nearest obstacles in the midpoint's frame).
 
-The registry of encodings by name is ``core/obstacle_grid.py``; an encoding in its own file (e.g.
-``core/route_encoding.py``) imports this module, never the registry, so the registry may name it by
+The registry of encodings by name is ``core/encodings/obstacle_grid.py``; an encoding in its own file (e.g.
+``core/encodings/route_encoding.py``) imports this module, never the registry, so the registry may name it by
 its "module:attribute" path without an import cycle.
 """
 
@@ -12,6 +12,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+BODY_POSE = np.array([0.0, 0.0, np.pi / 2])  # the midpoint in its own body frame, facing +y
 
 
 def world_to_body(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -78,7 +80,7 @@ class ObstacleEncoding:
         trailing_per_slot: values per obstacle slot after ``trailing`` (e.g. the slots' velocities).
         velocity: ``encode`` takes obstacles (B, M, 5) [x, y, r, vx, vy] (observed velocities).
         map: ``encode`` takes ``map_obstacles`` (B, M, 3), the map snapshot it plans a route on
-            (``core.conditions.Perception.map_obstacles``), as a keyword.
+            (``core.perception.conditions.Perception.map_obstacles``), as a keyword.
     """
 
     name: str

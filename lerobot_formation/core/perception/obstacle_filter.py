@@ -5,11 +5,11 @@ Why. Under sensing noise every step's observation of an obstacle is a fresh draw
 clearance h_obs = h + e jitters. The leaders cannot back up (v >= 0): a barrier on h_obs lets a team
 that waits beside an obstacle in by alpha dt h_obs whenever a draw shows room, and can only stop it
 when a draw shows none. Over hundreds of steps the team ratchets in until h is about the most
-optimistic draw, several stds of e below zero (``core.safety``, "Sensing noise"). Averaging the
+optimistic draw, several stds of e below zero (``core.safety.filters``, "Sensing noise"). Averaging the
 draws shrinks e; the layer's ``safety_margin`` then covers what is left.
 
 The filter. Each step, with the midpoint's motion over the last step from the velocity [v, omega]
-the actuator model executed (``dynamics.rollout_poses`` of one step from ``safety.BODY_POSE``: the
+the actuator model executed (``dynamics.rollout_poses`` of one step from ``encoding.BODY_POSE``: the
 new pose p in the last body frame), a track's estimate x (centre in the last body frame) moves into
 the new frame, x' = world_to_body(x, p).
 The observed obstacles z (the ``nearest`` slots) are matched to the moved tracks by mutual nearest
@@ -41,9 +41,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import rollout_poses
-from lerobot_formation.core.encoding import world_to_body
-from lerobot_formation.core.safety import BODY_POSE
+from lerobot_formation.core.encodings.encoding import BODY_POSE, world_to_body
+from lerobot_formation.core.world.dynamics import rollout_poses
 
 SMOOTHING_GAIN = 0.3  # beta: the fixed gain, when the filter is not told the noise
 ACTUATION_NOISE = 0.05  # a: the actuator's unknown noise, a fraction of each command (Q)

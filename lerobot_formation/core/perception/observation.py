@@ -5,7 +5,7 @@ engine's diffusion controller and the dataset writer (which must all give the po
   [x, y, cos phi, sin phi, x', y', omega], the velocity being the one applied over the last control
   step (zero at the start), as ``dynamics.step`` stores it in ``FormationState.velocity``.
 - ``environment_state`` (``observation.environment_state``), (B, D) float32: the obstacle encoding of
-  ``core/obstacle_grid.py``. A world-frame encoding (grid, grid+list) does not change during an
+  ``core/encodings/obstacle_grid.py``. A world-frame encoding (grid, grid+list) does not change during an
   episode, so a caller may pass the one it computed at the episode's start; an egocentric one
   ("nearest") moves with the team and is computed at every pose.
 """
@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.dynamics import midpoint_velocity
-from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
+from lerobot_formation.core.encodings.obstacle_grid import environment_state, get_encoding
+from lerobot_formation.core.world.dynamics import midpoint_velocity
 
 STATE_DIM = 7
 STATE_NAMES = ["x", "y", "cos_phi", "sin_phi", "x_dot", "y_dot", "omega"]
@@ -56,7 +56,7 @@ def observe(
     encoding computed before for these scenes (the episode's start): returned as it is, not
     recomputed; an egocentric encoding ignores it. ``obstacle_velocity`` (S, M, 2): the observed
     obstacle velocities, for an encoding that observes them (None: static). ``map_obstacles`` (S, M, 3):
-    the map snapshot the route hint plans on (``core.conditions.Perception.map_obstacles``; None:
+    the map snapshot the route hint plans on (``core.perception.conditions.Perception.map_obstacles``; None:
     ``obstacles``, as without conditions).
     """
     B = len(pose)
@@ -99,7 +99,7 @@ def observe(
 def observe_perception(
     view, encoding: str = "grid", max_obstacles: int | None = None
 ) -> dict[str, np.ndarray]:
-    """``observe`` of what B teams perceive: ``view`` is a ``core.conditions.Perception`` (its pose,
+    """``observe`` of what B teams perceive: ``view`` is a ``core.perception.conditions.Perception`` (its pose,
     velocity, observed obstacles, their mask and velocities, the goal and the map snapshot the route
     hint plans on). The one mapping from a perception to an observation: the rollout's teams and the
     engine's diffusion controller both call it."""

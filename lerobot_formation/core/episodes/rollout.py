@@ -4,34 +4,31 @@ bench and the dataset generator.
 ``Teams`` is the one episode path: B teams in their scenes, stepped by one ``dynamics.step`` call,
 then judged by ``step_outcome`` and rewarded by ``step_reward``. ``rollout`` (the engine),
 ``FormationEnv`` (B = 1) and ``FormationVectorEnv`` all step through it; observations come from
-``core.observation``.
+``core.perception.observation``.
 
 An episode ends on success (midpoint within ``goal_tolerance`` of the goal, no collision), on
 collision (any agent disc touching any obstacle; collision wins if both happen in one step), or on
 timeout after ``max_steps`` control steps. Only live episodes are stepped.
 
-Realistic conditions (``core.conditions.Conditions``: sensing range, noise, delay, rate limits,
+Realistic conditions (``core.perception.conditions.Conditions``: sensing range, noise, delay, rate limits,
 moving obstacles) live in a ``ConditionedWorld`` that ``Teams`` builds only when some condition is on
 (or its scenes give obstacle velocities); without one every step is what it was before conditions existed.
 
-Controllers follow one interface (``Controller``) and see only what the robots perceive
-(``core.conditions.Perception``: the observed pose and velocity, the observed obstacles, their mask
-and velocities, the goal, and a map version that changes when the observed obstacle set does):
-``reset(view)`` once with the B teams' first perception, then ``act(view, idx) -> (len(idx), 2)``
-for the live episodes ``idx`` (global indices into the batch), ``view`` holding their rows in that
-order. A controller that derives something from the map (a cost-to-go) rebuilds it for a row when
-that row's ``map_version`` changes.
+Controllers follow one interface (``core.controllers.protocol.Controller``) and see only what the
+robots perceive (``core.perception.conditions.Perception``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Protocol
 
 import numpy as np
 
-from lerobot_formation.core.conditions import ConditionedWorld, Conditions, Perception
-from lerobot_formation.core.dynamics import (
+from lerobot_formation.core.controllers.protocol import Controller
+from lerobot_formation.core.encodings.obstacle_grid import environment_state, get_encoding
+from lerobot_formation.core.perception.conditions import ConditionedWorld, Conditions, Perception
+from lerobot_formation.core.perception.observation import observe, observe_perception
+from lerobot_formation.core.world.dynamics import (
     FormationParams,
     FormationState,
     agent_positions,
@@ -40,105 +37,13 @@ from lerobot_formation.core.dynamics import (
     desired_follower_positions,
     formation_error,
     initial_state,
-    rollout_poses,
     step,
 )
-from lerobot_formation.core.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
-from lerobot_formation.core.navigation import SceneFields
-from lerobot_formation.core.observation import observe, observe_perception
-from lerobot_formation.core.obstacle_grid import environment_state, get_encoding
-from lerobot_formation.core.pac import PACConfig, PathAwareController, swept_obstacles
-from lerobot_formation.core.scene import Scenes
+from lerobot_formation.core.world.geometry import agent_clearances, midpoint_clearance, no_obstacle_as_inf
+from lerobot_formation.core.world.scenes import Scenes
 
 RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
 OUTCOME_NAMES = {RUNNING: "running", SUCCESS: "success", COLLISION: "collision", TIMEOUT: "timeout"}
-
-
-class Controller(Protocol):
-    """A controller under test: it sees only the teams' ``Perception`` (module docstring)."""
-
-    name: str
-
-    def reset(self, view: Perception) -> None: ...
-
-    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray: ...
-
-
-def map_obstacles(view: Perception) -> np.ndarray:
-    """The observed obstacles (B, M, 3) a controller builds its map (cost-to-go) from:
-    ``Perception.map_obstacles``, the static observed obstacles as observed when the map last changed
-    (moving ones are padding: far away, radius 0, avoided locally); the true obstacles without
-    conditions."""
-    return view.map_obstacles
-
-
-class PACController:
-    """PAC behind the common controller interface, on what the team perceives.
-
-    The cost-to-go (PAC's detour side) is built per team from ``map_obstacles`` of its perception
-    when the episode starts and rebuilt for a team only when its ``map_version`` changes (a new
-    obstacle sensed, or one forgotten): with noise it is the noisy snapshot of that moment, the same
-    map the route hint (``core.route_encoding``) plans on. The repulsion, the path check and the
-    footprint governor use the current (noisy, moving) observed obstacles at every step.
-
-    Args:
-        predict: [s] lookahead for moving obstacles: each one is also avoided at its positions over
-            the next ``predict`` seconds along its observed velocity (``pac.swept_obstacles``); 0: at
-            its current position only.
-        delay: [control steps] command delay to compensate: PAC acts for the pose its last ``delay``
-            commands (still queued, ``Conditions.action_delay``) will reach, and for the moving
-            obstacles ``delay`` steps ahead; 0: none. The two defaults leave PAC as it was.
-    """
-
-    name = "pac"
-
-    def __init__(
-        self,
-        config: PACConfig | None = None,
-        params: FormationParams | None = None,
-        predict: float = 0.0,
-        delay: int = 0,
-    ):
-        if not isinstance(predict, int | float) or not np.isfinite(predict) or predict < 0:
-            raise ValueError(
-                f"PACController: predict must be a finite number of seconds >= 0, got {predict!r}"
-            )
-        if not isinstance(delay, int | np.integer) or isinstance(delay, bool) or delay < 0:
-            raise ValueError(f"PACController: delay must be an integer number of steps >= 0, got {delay!r}")
-        self.pac = PathAwareController(config, params)
-        self.predict = float(predict)
-        self.delay = int(delay)
-
-    def reset(self, view: Perception) -> None:
-        self.pac.reset(map_obstacles(view), view.goal)
-        self.version = np.array(view.map_version, copy=True)
-        self.sent = np.zeros((len(view), self.delay, 2))  # queued commands, oldest first (delay)
-
-    def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
-        idx = np.asarray(idx)
-        changed = view.map_version != self.version[idx]
-        if changed.any():
-            rows = idx[changed]
-            fresh = SceneFields.build(
-                map_obstacles(view[changed]), view.goal[changed], self.pac.config.path_inflate
-            )
-            for i, field in zip(rows, fresh.fields, strict=True):
-                self.pac.ctg.fields[i] = field
-            self.version[rows] = view.map_version[changed]
-        sub = self.pac.select(idx)
-        pose, obstacles = view.pose, view.obstacles
-        dt = self.pac.params.dt
-        if self.delay:  # the pose once the queued commands have run, the moving obstacles then
-            pose = rollout_poses(pose, self.sent[idx][:, None], dt)[:, 0, -1]
-            obstacles = swept_obstacles(obstacles, view.obstacle_velocity, self.delay * dt, 0.0)
-        sub.obstacles = obstacles
-        if self.predict:
-            command = sub.command(pose, view.obstacle_velocity, self.predict)
-        else:
-            command = sub.command(pose)
-        if self.delay:
-            self.sent[idx] = np.concatenate([self.sent[idx][:, 1:], command[:, None]], axis=1)
-        return command
 
 
 def step_outcome(
@@ -202,8 +107,8 @@ class Teams:
 
     Args:
         scenes: one scene per team (copied: ``load`` writes into the copy).
-        obstacle_encoding, max_obstacles: what ``observe`` encodes (``core.observation``).
-        conditions: realistic conditions (``core.conditions``); None or all off: none.
+        obstacle_encoding, max_obstacles: what ``observe`` encodes (``core.perception.observation``).
+        conditions: realistic conditions (``core.perception.conditions``); None or all off: none.
 
     Attributes:
         state: the teams' ``FormationState``; ``steps`` (B,) control steps since each team's reset.
@@ -237,7 +142,7 @@ class Teams:
         self._perception: Perception | None = None
 
     def perceive(self) -> Perception:
-        """What the teams perceive now (``core.conditions.Perception``): the truth without conditions.
+        """What the teams perceive now (``core.perception.conditions.Perception``): the truth without conditions.
         The arrays are this step's; a caller must not write into them."""
         if self.world is None:
             return Perception.exact(self.scenes, self.state)
@@ -257,7 +162,7 @@ class Teams:
         return len(self.scenes)
 
     def observe(self) -> dict[str, np.ndarray]:
-        """``core.observation.observe`` of every team (arrays the caller may keep): of what they
+        """``core.perception.observation.observe`` of every team (arrays the caller may keep): of what they
         perceive (``perceive``)."""
         if self.world is not None:
             return observe_perception(self.perceive(), self.encoding, self.max_obstacles)

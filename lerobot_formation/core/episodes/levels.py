@@ -27,8 +27,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from lerobot_formation.core.conditions import Conditions
-from lerobot_formation.core.scene import UNSEEN_SEED_START
+from lerobot_formation.core.perception.conditions import Conditions
+from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 
 TUNING_SEED_START = 5_000_000  # seeds for choosing parameters; the levels' evaluation seeds start lower
 
@@ -111,7 +111,7 @@ def get_level(name: str) -> Level:
 
 def level_env_fields(name: str) -> dict:
     """The env-config field values of level ``name``: ``scene_preset`` (a preset or a mixture of
-    ``core.scene.SCENE_MIXES``; ``random`` is the "paper" preset) and every ``Conditions`` field.
+    ``core.world.presets.SCENE_MIXES``; ``random`` is the "paper" preset) and every ``Conditions`` field.
     ``lerobot-eval`` takes the level's first seed as ``--seed``."""
     level = get_level(name)
     preset = "paper" if level.scenes == "random" else level.scenes
