@@ -2,8 +2,9 @@
 # One entry point for a fresh machine: creates .venv (Python >= 3.12, found by itself), installs the
 # project, then runs a job (scripts/run.sh --help: this text).
 #   scripts/run.sh demo   - the main job on the built-in default (no dataset, GPU or network)
-#   scripts/run.sh test   - lint + the fast test tier (slow tests skipped)
+#   scripts/run.sh test   - lint + the fast test tier (slow tests skipped), on 2 pytest-xdist workers
 #   scripts/run.sh test -m slow - lint + only the slow tier (benchmark-like tests); other args go to pytest
+#                           (-n 0: one process; LEROBOT_FORMATION_TEST_WORKERS=N: N workers)
 #   scripts/run.sh setup  - only create/refresh the environment (one [setup] line per stage, with its
 #                           time and the size of .venv: docs/setup.md)
 # Threads: OMP_NUM_THREADS and MKL_NUM_THREADS default to 1 (the models are tiny; more threads on a
@@ -153,8 +154,11 @@ case "$cmd" in
     setup
     .venv/bin/ruff check .
     .venv/bin/ruff format --check .
-    # the 25 slowest tests after the summary (-rfE: failures and errors in it even under -q)
-    .venv/bin/python -m pytest --durations=25 -rfE "$@"
+    # Two workers (pytest-xdist), each on one thread (OMP_NUM_THREADS above; tests/conftest.py sets
+    # torch's); --dist loadgroup keeps the tests that share a module's fixture on one worker
+    # (tests/conftest.py marks them). The 25 slowest tests after the summary (-rfE: failures and
+    # errors in it even under -q).
+    .venv/bin/python -m pytest -n "${LEROBOT_FORMATION_TEST_WORKERS:-2}" --dist loadgroup --durations=25 -rfE "$@"
     ;;
   -h|--help)
     echo "usage: scripts/run.sh {demo|test|setup} [args]"

@@ -9,6 +9,22 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 
 
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (``scripts/run.sh test`` runs ``-n 2 --dist loadgroup``), the tests that use a
+    module- or session-scoped fixture of their own module go to one worker together (an
+    ``xdist_group`` named after the module), so that fixture (a trained checkpoint, a generated
+    dataset) is built once, not once per worker. Every other test is scheduled on its own."""
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        shared = any(
+            fixturedef.scope in ("module", "session") and fixturedef.baseid == module
+            for fixturedefs in item._fixtureinfo.name2fixturedefs.values()
+            for fixturedef in fixturedefs
+        )
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(name=module))
+
+
 @pytest.fixture(autouse=True)
 def one_torch_thread():
     """Tiny models run fastest on one thread, and a busy 2-core machine makes two threads crawl."""

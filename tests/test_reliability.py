@@ -254,8 +254,8 @@ def test_env_info_clearance_without_obstacles_is_none():
 
 # -- far goals ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("x", [300.0, 1e5])
-def test_far_goal_is_refused_fast(x, tmp_path, capsys):
-    t0 = time.perf_counter()
+def test_far_goal_is_refused(x, tmp_path, capsys):
+    """Refused by each entry point before any work (how fast: benchmarks/bench_refusals.py)."""
     with pytest.raises(ValueError, match=f"is {x:.1f} m from the start .* at most 50 m is supported"):
         scenes_from_list([{"obstacles": [], "goal": [x, 0.0]}])
     with pytest.raises(ValueError, match="more than 600 cells"):
@@ -270,7 +270,6 @@ def test_far_goal_is_refused_fast(x, tmp_path, capsys):
     assert e.value.code == 2
     line = last_error_line(capsys.readouterr().err)
     assert line.startswith(f"error: scenes file {f}: scene 0: goal [{x}, 0.0] is")
-    assert time.perf_counter() - t0 < 5
 
 
 # -- scene files -------------------------------------------------------------------------------------
@@ -769,12 +768,16 @@ def test_second_training_run_into_one_output_dir_refuses(tmp_path):
     )
     try:
         assert first.stdout.readline().strip() == "locked", first.stderr.read()
-        second = subprocess.run(
-            _train_lock_script(tmp_path, ""), env=env, capture_output=True, text=True, timeout=300
-        )
-        assert second.returncode == 1
-        assert last_error_line(second.stderr) == (
-            f"error: --output_dir {tmp_path / 'run'} is in use by another lerobot-train run (pid {first.pid}); "
+        # the second run's start-up in this process (validate() is where lerobot-train takes the lock;
+        # the one-line form of a ConfigError on the command line: test_bad_config_value_...)
+        from lerobot_formation.compat.run_checks import ConfigError
+
+        config: dict = {}
+        exec(_TRAIN_CONFIG, config)
+        with pytest.raises(ConfigError) as e:
+            config["train_config"](str(tmp_path / "data"), str(tmp_path / "run")).validate()
+        assert str(e.value) == (
+            f"--output_dir {tmp_path / 'run'} is in use by another lerobot-train run (pid {first.pid}); "
             f"wait for it to finish or choose another --output_dir (lock file {lock})"
         )
     finally:
@@ -877,12 +880,13 @@ def test_scenes_file_limits_and_top_level_keys(tmp_path, monkeypatch):
         load_scenes(g)
     f = write_scenes(tmp_path / "s.json", [EMPTY_NEAR_GOAL] * 11)
     monkeypatch.setattr(scene_mod, "MAX_SCENES_PER_FILE", 10)
-    t0 = time.perf_counter()
+    checked = []
+    monkeypatch.setattr(scene_mod, "scenes_from_list", lambda *a, **k: checked.append(a))
     with pytest.raises(
         ValueError, match=rf"scenes file {f} holds 11 scenes, more than the 10 a scenes file may hold"
     ):
         load_scenes(f)
-    assert time.perf_counter() - t0 < 1.0  # refused before any scene is checked
+    assert checked == []  # refused before any scene is checked (how fast: benchmarks/bench_refusals.py)
     size = f.stat().st_size
     monkeypatch.setattr(scene_mod, "MAX_SCENES_FILE_BYTES", 100)
     with pytest.raises(

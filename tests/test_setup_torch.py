@@ -60,15 +60,16 @@ def fake_nvidia_smi(tmp_path: Path, works: bool) -> Path:
     return bin_dir
 
 
-def test_an_unreachable_cpu_index_costs_one_line_and_seconds(tmp_path):
-    proc, seconds = run_install(tmp_path, LEROBOT_FORMATION_TORCH_INDEX=CLOSED_PORT_INDEX)
+def test_an_unreachable_cpu_index_costs_one_line(tmp_path):
+    """One note and no pip; that it takes seconds (one try, no retries) is
+    benchmarks/bench_setup_probe.py's figure, not a timed test."""
+    proc, _ = run_install(tmp_path, LEROBOT_FORMATION_TORCH_INDEX=CLOSED_PORT_INDEX)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines() == [
         f"note: the PyTorch CPU index {CLOSED_PORT_INDEX} is unreachable; "
         "installing the CUDA build of torch from PyPI"
     ]
     assert "pip was called" not in proc.stderr
-    assert seconds < 5
 
 
 def test_the_cuda_choice_and_a_working_gpu_skip_the_cpu_index(tmp_path):

@@ -133,13 +133,13 @@ def test_nearest_needs_the_pose():
 
 
 def test_presets_are_deterministic_valid_and_cover_the_ranges():
-    seeds = np.arange(1000, 1040)
+    seeds = np.arange(1000, 1010)  # a scene is drawn from its own seed: ten show determinism
     for cfg in SCENE_PRESETS.values():
         a, b = sample_scenes(seeds, cfg), sample_scenes(seeds, cfg)
         for key in ("obstacles", "mask", "goal", "start"):
             np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
         assert a.obstacles.shape[1] == cfg.max_obstacles
-    wide = sample_scenes(np.arange(200), SCENE_PRESETS["wide"])
+    wide = sample_scenes(np.arange(40), SCENE_PRESETS["wide"])  # 0-11 obstacles of 0.22-0.97 m
     counts = wide.mask.sum(axis=1)
     assert counts.min() <= 2 and counts.max() >= 10
     r = wide.obstacles[..., 2][wide.mask]

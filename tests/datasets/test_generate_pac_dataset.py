@@ -23,7 +23,7 @@ from lerobot_formation.data.hub_folder import push_to_folder
 from lerobot_formation.envs.env import TASK
 
 REPO = "local/formation_test"
-N = 10
+N = 5  # episodes: the split below gives 4 and 1
 
 
 def _generate(root: Path, **kw):
@@ -32,8 +32,10 @@ def _generate(root: Path, **kw):
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
+    """The dataset the tests share, simulated inline (``workers=0``: no worker process to start); the
+    pipelined simulation must write the same bytes (``test_same_seed_gives_byte_identical_files``)."""
     root = tmp_path_factory.mktemp("ds") / "formation_test"
-    _generate(root)
+    _generate(root, workers=0)
     return root
 
 
@@ -111,6 +113,8 @@ def test_diffusion_windows_and_padding(tiny):
 
 
 def test_same_seed_gives_byte_identical_files(tiny, tmp_path):
+    """Another run of the same seed, simulated pipelined in a worker process (the default), writes
+    the inline run's files byte for byte."""
     again = tmp_path / "again"
     _generate(again)
     assert dataset_file_hashes(again) == dataset_file_hashes(tiny)
@@ -120,7 +124,7 @@ def test_fast_writer_equals_add_frame_loop(tiny, tmp_path):
     import pyarrow.parquet as pq
 
     slow = tmp_path / "slow"
-    _generate(slow, fast_write=False)
+    _generate(slow, fast_write=False, workers=0)
     a = pq.read_table(tiny / "data/chunk-000/file-000.parquet")
     b = pq.read_table(slow / "data/chunk-000/file-000.parquet")
     assert a.equals(b)  # same columns and values; only the HF schema fingerprint differs
@@ -143,7 +147,7 @@ def test_interrupted_run_leaves_nothing_and_rerun_works(tmp_path, monkeypatch):
     assert not root.exists()
     assert list(tmp_path.iterdir()) == []  # no temporary folder left behind either
     monkeypatch.setattr(lerobot_writer, "write_episode", real)
-    assert _generate(root)["episodes"] == N
+    assert _generate(root, workers=0)["episodes"] == N
 
 
 def test_existing_destination_needs_overwrite(tiny, capsys):
@@ -193,25 +197,32 @@ def test_hub_folder_card_and_offline_load(tiny, tmp_path, monkeypatch):
     assert out.stdout.strip().splitlines()[-1] == str(N)
 
 
-def test_split_and_merge_with_lerobot_edit_dataset(tiny, tmp_path):
+def _edit_dataset(monkeypatch, *args: str) -> None:
+    """LeRobot's ``lerobot-edit-dataset`` with these arguments: its entry point as the console script
+    calls it (the draccus parse of ``sys.argv``), in this process: a fresh interpreter would only add
+    the seconds of importing LeRobot."""
+    from lerobot.scripts.lerobot_edit_dataset import edit_dataset
+
+    monkeypatch.setattr(sys, "argv", ["lerobot-edit-dataset", *args])
+    edit_dataset()
+
+
+def test_split_and_merge_with_lerobot_edit_dataset(tiny, tmp_path, monkeypatch):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    exe = Path(sys.executable).parent / "lerobot-edit-dataset"
     split_root = tmp_path / "split"
-    subprocess.run(
-        [exe, "--repo_id", REPO, "--root", str(tiny), "--new_root", str(split_root), "--operation.type", "split",
-         "--operation.splits", '{"train": 0.8, "val": 0.2}'],
-        check=True, capture_output=True, timeout=300, env={"HF_HUB_OFFLINE": "1", "PATH": "/usr/bin:/bin"},
+    _edit_dataset(
+        monkeypatch, "--repo_id", REPO, "--root", str(tiny), "--new_root", str(split_root),
+        "--operation.type", "split", "--operation.splits", '{"train": 0.8, "val": 0.2}',
     )  # fmt: skip
     parts = sorted(p for p in split_root.iterdir() if p.is_dir())
     sizes = [LeRobotDataset(f"{REPO}_{p.name}", root=p).meta.total_episodes for p in parts]
     assert sum(sizes) == N and len(sizes) == 2
     merged = tmp_path / "merged"
-    subprocess.run(
-        [exe, "--new_repo_id", "local/merged", "--new_root", str(merged), "--operation.type", "merge",
-         "--operation.repo_ids", str([f"{REPO}_{p.name}" for p in parts]),
-         "--operation.roots", str([str(p) for p in parts])],
-        check=True, capture_output=True, timeout=300, env={"HF_HUB_OFFLINE": "1", "PATH": "/usr/bin:/bin"},
+    _edit_dataset(
+        monkeypatch, "--new_repo_id", "local/merged", "--new_root", str(merged), "--operation.type", "merge",
+        "--operation.repo_ids", str([f"{REPO}_{p.name}" for p in parts]),
+        "--operation.roots", str([str(p) for p in parts]),
     )  # fmt: skip
     m = LeRobotDataset("local/merged", root=merged)
     assert m.meta.total_episodes == N
@@ -228,14 +239,8 @@ def test_shards_are_valid_and_disjoint(tmp_path):
     seeds = []
     for i in range(2):
         root = tmp_path / f"shard{i}"
-        lerobot_writer.generate(root, REPO, 6, num_shards=2, shard_index=i, progress=False)
+        lerobot_writer.generate(root, REPO, 6, num_shards=2, shard_index=i, workers=0, progress=False)
         ds = LeRobotDataset(REPO, root=root)
         assert ds.meta.total_episodes == 3
         seeds.append({int(ds[int(e["dataset_from_index"])]["scene.seed"]) for e in ds.meta.episodes})
     assert not seeds[0] & seeds[1]
-
-
-def test_pipelined_and_inline_simulation_write_the_same_files(tiny, tmp_path):
-    inline = tmp_path / "inline"
-    _generate(inline, workers=0)
-    assert dataset_file_hashes(inline) == dataset_file_hashes(tiny)

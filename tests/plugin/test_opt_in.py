@@ -5,109 +5,104 @@ LeRobot, bit for bit, even once our fast reads are switched on."""
 import json
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
+import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _python(code: str, tmp_path: Path) -> str:
+# One fresh interpreter for the two tests below (an interpreter that imports LeRobot costs seconds):
+# it notes LeRobot's functions, imports the plugin as LeRobot's CLIs do, then builds another project's
+# configs and one of ours, and prints what it saw after each step.
+PROBE = """
+import json, os, sys
+os.environ["HF_HUB_OFFLINE"] = "1"
+import lerobot.scripts.lerobot_eval as lerobot_eval
+import lerobot.envs.factory as env_factory
+from draccus.utils import DecodingError
+from lerobot.configs.default import DatasetConfig
+from lerobot.configs.eval import EvalPipelineConfig
+from lerobot.configs.train import TrainPipelineConfig
+from lerobot.datasets.dataset_reader import DatasetReader
+
+def functions():
+    return {
+        "DatasetConfig.__post_init__": DatasetConfig.__post_init__,
+        "TrainPipelineConfig.validate": TrainPipelineConfig.validate,
+        "EvalPipelineConfig.__post_init__": EvalPipelineConfig.__post_init__,
+        "DecodingError.__str__": DecodingError.__str__,
+        "sys.excepthook": sys.excepthook,
+        "make_env_pre_post_processors": env_factory.make_env_pre_post_processors,
+    }
+
+before = (DatasetReader.get_item, DatasetReader._query_hf_dataset, lerobot_eval.rollout)
+stock = functions()
+env = dict(os.environ)
+import lerobot_env_formation  # noqa: F401  (what LeRobot's CLIs import: the plugin)
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.envs.configs import EnvConfig
+from lerobot.processor import ProcessorStepRegistry
+after = (DatasetReader.get_item, DatasetReader._query_hf_dataset, lerobot_eval.rollout)
+imported = {
+    "same": [a is b for a, b in zip(before, after)],
+    "getstate": "__getstate__" in vars(DatasetReader),
+    "env": dict(os.environ) == env,
+    "policy": "formation_diffusion" in PreTrainedConfig.get_known_choices(),
+    "env_config": "formation" in EnvConfig.get_known_choices(),
+    "step": "formation_egocentric_obstacles" in ProcessorStepRegistry.list(),
+    "patched": [k for k, f in functions().items() if f is not stock[k]],
+}
+from lerobot.envs.configs import PushtEnv
+from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+dataset = DatasetConfig(repo_id="other/arm", root=sys.argv[1])
+train = TrainPipelineConfig(dataset=dataset, env=PushtEnv(), policy=DiffusionConfig(device="cpu"))
+others = [k for k, f in functions().items() if f is not stock[k]]
+from lerobot_formation.envs.env_config import FormationEnvConfig
+FormationEnvConfig()
+ours = [k for k, f in functions().items() if f is not stock[k]]
+print(json.dumps({"imported": imported, "others": others, "ours": ours}))
+"""
+
+
+@pytest.fixture(scope="module")
+def probe(tmp_path_factory) -> dict:
+    tmp = tmp_path_factory.mktemp("opt_in")
     out = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)],
+        [sys.executable, "-c", PROBE, str(tmp / "missing")],
         capture_output=True,
         text=True,
         timeout=300,
-        cwd=tmp_path,
+        cwd=tmp,
     )
     assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_importing_the_plugin_registers_and_patches_nothing(tmp_path):
-    out = _python(
-        """
-        import json, os
-        import lerobot.scripts.lerobot_eval as lerobot_eval
-        from lerobot.datasets.dataset_reader import DatasetReader
-        before = (DatasetReader.get_item, DatasetReader._query_hf_dataset, lerobot_eval.rollout)
-        env = dict(os.environ)
-        import lerobot_env_formation  # what LeRobot's CLIs import: the plugin
-        from lerobot.configs.policies import PreTrainedConfig
-        from lerobot.envs.configs import EnvConfig
-        from lerobot.processor import ProcessorStepRegistry
-        after = (DatasetReader.get_item, DatasetReader._query_hf_dataset, lerobot_eval.rollout)
-        print(json.dumps({
-            "same": [a is b for a, b in zip(before, after)],
-            "getstate": "__getstate__" in vars(DatasetReader),
-            "env": dict(os.environ) == env,
-            "policy": "formation_diffusion" in PreTrainedConfig.get_known_choices(),
-            "env_config": "formation" in EnvConfig.get_known_choices(),
-            "step": "formation_egocentric_obstacles" in ProcessorStepRegistry.list(),
-        }))
-        """,
-        tmp_path,
-    )
-    got = json.loads(out.strip().splitlines()[-1])
-    assert got == {
+def test_importing_the_plugin_registers_and_patches_nothing(probe):
+    assert probe["imported"] == {
         "same": [True, True, True],
         "getstate": False,
         "env": True,
         "policy": True,
         "env_config": True,
         "step": True,
+        "patched": [],
     }
 
 
-def test_other_projects_configs_leave_lerobot_untouched_ours_switch_the_run_checks_on(tmp_path):
+def test_other_projects_configs_leave_lerobot_untouched_ours_switch_the_run_checks_on(probe):
     """Importing the plugin and building another project's configs (even a dataset root that does
     not exist, offline) changes none of the LeRobot functions our run checks wrap; building one of
     our configs wraps only lerobot-train's and lerobot-eval's pipeline configs."""
-    out = _python(
-        f"""
-        import json, os, sys
-        os.environ["HF_HUB_OFFLINE"] = "1"
-        from draccus.utils import DecodingError
-        from lerobot.configs.default import DatasetConfig
-        from lerobot.configs.eval import EvalPipelineConfig
-        from lerobot.configs.train import TrainPipelineConfig
-        import lerobot.envs.factory as env_factory
-
-        def functions():
-            return {{
-                "DatasetConfig.__post_init__": DatasetConfig.__post_init__,
-                "TrainPipelineConfig.validate": TrainPipelineConfig.validate,
-                "EvalPipelineConfig.__post_init__": EvalPipelineConfig.__post_init__,
-                "DecodingError.__str__": DecodingError.__str__,
-                "sys.excepthook": sys.excepthook,
-                "make_env_pre_post_processors": env_factory.make_env_pre_post_processors,
-            }}
-
-        stock = functions()
-        import lerobot_env_formation  # noqa: F401  (the plugin, as LeRobot's CLIs import it)
-        from lerobot.envs.configs import PushtEnv
-        from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-        dataset = DatasetConfig(repo_id="other/arm", root={str(tmp_path / "missing")!r})
-        train = TrainPipelineConfig(dataset=dataset, env=PushtEnv(), policy=DiffusionConfig(device="cpu"))
-        others = [k for k, f in functions().items() if f is not stock[k]]
-        from lerobot_formation.envs.env_config import FormationEnvConfig
-        FormationEnvConfig()
-        ours = [k for k, f in functions().items() if f is not stock[k]]
-        print(json.dumps({{"others": others, "ours": ours}}))
-        """,
-        tmp_path,
-    )
-    got = json.loads(out.strip().splitlines()[-1])
-    assert got == {
-        "others": [],
-        "ours": [
-            "TrainPipelineConfig.validate",
-            "EvalPipelineConfig.__post_init__",
-            "DecodingError.__str__",
-            "sys.excepthook",
-        ],
-    }
+    assert probe["others"] == []
+    assert probe["ours"] == [
+        "TrainPipelineConfig.validate",
+        "EvalPipelineConfig.__post_init__",
+        "DecodingError.__str__",
+        "sys.excepthook",
+    ]
 
 
 WRITE_AND_READ = """
@@ -116,7 +111,7 @@ import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 root, mode = sys.argv[1], sys.argv[2]
-if mode == "write":  # another project's dataset, written with LeRobot's own writer
+if mode == "write":  # another project's dataset, written with LeRobot's own writer, then read stock
     features = {
         "observation.joints": {"dtype": "float32", "shape": (6,), "names": None},
         "observation.gripper": {"dtype": "float32", "shape": (1,), "names": None},
@@ -136,7 +131,6 @@ if mode == "write":  # another project's dataset, written with LeRobot's own wri
             })
         ds.save_episode()
     ds.finalize()
-    sys.exit(0)
 if mode == "plugin":  # our plugin imported and our fast reads switched on, as in a formation run
     import lerobot_env_formation  # noqa: F401
     from lerobot_formation.compat import fast_reads
@@ -161,8 +155,7 @@ def test_another_projects_dataset_reads_as_with_stock_lerobot(tmp_path):
         )
         assert out.returncode == 0, out.stderr[-3000:]
 
-    run("write", "-")
-    run("stock", str(tmp_path / "stock.pt"))
+    run("write", str(tmp_path / "stock.pt"))  # writes, then reads with stock LeRobot (fresh objects)
     run("plugin", str(tmp_path / "plugin.pt"))
     stock = torch.load(tmp_path / "stock.pt", weights_only=False)
     ours = torch.load(tmp_path / "plugin.pt", weights_only=False)

@@ -257,6 +257,10 @@ SMOKES: dict[str, Smoke | str] = {
         lambda c: [["--steps", "21", "--batch", "2", "--repeats", "1"]],
         expect="floor ratio sign() / boundary layer at 1 ms:",
     ),
+    "benchmarks/bench_refusals.py": Smoke(
+        lambda c: [["--scenes", "10", "--repeats", "1"]],
+        expect="refusal / the work it spares: far goal",
+    ),
     "benchmarks/bench_replan_latency.py": Smoke(
         lambda c: [
             ["--quick", "--parts", "abc", "--policy.path", ROUTE, "--paper-config", TINY_CONFIG]
@@ -276,6 +280,10 @@ SMOKES: dict[str, Smoke | str] = {
         ],
         expect="fastest sampler within noise of DDIM 2",
         files=("steps.json",),
+    ),
+    "benchmarks/bench_setup_probe.py": Smoke(
+        lambda c: [["--repeats", "1"]],
+        expect="unreachable index / no probe:",
     ),
     "benchmarks/bench_train_throughput.py": Smoke(
         lambda c: [
