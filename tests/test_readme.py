@@ -350,9 +350,21 @@ def mentioned_paths(doc: Path) -> set[str]:
     return paths
 
 
+@functools.cache
+def repository_names() -> frozenset[str]:
+    """The names of every file and folder in the repository but under .venv/ and outputs/ (walked
+    once: a walk per mentioned name would walk the virtual environment's many files each time)."""
+    names = set()
+    for _, dirs, files in os.walk(REPO):
+        dirs[:] = [d for d in dirs if d not in (".venv", "outputs")]
+        names.update(dirs)
+        names.update(files)
+    return frozenset(names)
+
+
 def path_problem(doc: Path, path: str) -> str | None:
     if "/" not in path:  # a bare module file name: somewhere in the package or the scripts
-        found = [p for p in REPO.rglob(path) if ".venv" not in p.parts and "outputs" not in p.parts]
+        found = path in repository_names()
         return None if found else f"{doc.name}: no file named {path} in the repository"
     for base in (doc.parent, REPO, REPO / "lerobot_formation"):
         if (base / path).exists():

@@ -53,11 +53,11 @@ def test_policy_expert_drives_the_layer_and_the_same_seed_gives_the_same_dataset
         randomize=CEILING,
     )
     a, b = tmp_path / "a", tmp_path / "b"
-    lerobot_writer.generate(a, REPO, 2, **kw)
-    lerobot_writer.generate(b, REPO, 2, **kw)
+    lerobot_writer.generate(a, REPO, 1, **kw)  # one episode: the policy is sampled at every replan
+    lerobot_writer.generate(b, REPO, 1, **kw)
     assert dataset_file_hashes(a) == dataset_file_hashes(b)
     ds = LeRobotDataset(REPO, root=a)
-    assert ds.meta.total_episodes == 2
+    assert ds.meta.total_episodes == 1
     meta = json.loads((a / "meta" / "generation.json").read_text())
     assert meta["expert"] == "policy" and meta["policy"] == f"diffusion-safe of {checkpoint} (K = 10)"
     actions = np.stack([np.asarray(ds[i]["action"]) for i in range(min(len(ds), 40))])
