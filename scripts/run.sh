@@ -152,6 +152,10 @@ case "$cmd" in
     ;;
   test)
     setup
+    # Python writes its bytecode caches (git-ignored __pycache__/) during the tests even where the
+    # environment says not to: the tests start many fresh interpreters, and each would compile the
+    # project's modules (and pytest rewrite every test module) again.
+    unset PYTHONDONTWRITEBYTECODE
     .venv/bin/ruff check .
     .venv/bin/ruff format --check .
     # Two workers (pytest-xdist), each on one thread (OMP_NUM_THREADS above; tests/conftest.py sets

@@ -37,7 +37,7 @@ def test_bench_pac_and_mppi_write_results_tables_and_figures(tmp_path):
 def test_jobs_run_controllers_side_by_side_with_the_numbers_of_one_by_one(tmp_path, capsys):
     """--jobs 2: each controller whole in a forked process; the same episodes, in the order asked for,
     and the records come back for the figures."""
-    common = ["--controllers", "route-pursuit,pac,mppi", "--scenes", "level5:2", "--no-progress"]
+    common = ["--controllers", "route-pursuit,pac,mppi", "--scenes", "level5:1", "--no-progress"]
     assert main([*common, "--out", str(tmp_path / "one"), "--no-figures"]) == 0
     assert main([*common, "--out", str(tmp_path / "two"), "--jobs", "2"]) == 0
     one, two = (

@@ -52,7 +52,7 @@ def _start_generation(root: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "datasets_scripts.generate_pac_dataset", "--episodes", "400"]
     cmd += [
         "--batch-size",
-        "8",
+        "2",  # the first episodes written soon
         "--workers",
         "1",
         "--root",
@@ -81,17 +81,22 @@ def _wait_until_writing(proc: subprocess.Popen, root: Path, timeout: float = 90.
     raise AssertionError("the generation did not start writing in time")
 
 
-def _alive(procs) -> list[int]:
+def _alive(procs, timeout: float = 5.0) -> list[int]:
+    """The pids of ``procs`` still running after up to ``timeout`` s (polled: no fixed sleep)."""
     import psutil
 
-    out = []
-    for p in procs:
-        try:
-            if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
-                out.append(p.pid)
-        except psutil.NoSuchProcess:
-            pass
-    return out
+    deadline = time.monotonic() + timeout
+    while True:
+        out = []
+        for p in procs:
+            try:
+                if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                    out.append(p.pid)
+            except psutil.NoSuchProcess:
+                pass
+        if not out or time.monotonic() > deadline:
+            return out
+        time.sleep(0.1)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals and /proc as on Linux")
@@ -102,7 +107,6 @@ def test_killed_generation_leaves_no_worker_and_a_rerun_no_temporary_folder(tmp_
     workers = _wait_until_writing(proc, root)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 128 + signal.SIGTERM
-    time.sleep(1.0)
     assert _alive(workers) == []
     assert list(tmp_path.iterdir()) == []  # no temporary folder, no destination
     assert "Traceback" not in proc.stderr.read()
@@ -111,7 +115,6 @@ def test_killed_generation_leaves_no_worker_and_a_rerun_no_temporary_folder(tmp_
     workers = _wait_until_writing(proc, root)
     proc.kill()
     proc.wait(30)
-    time.sleep(1.5)
     assert _alive(workers) == []
     stale = list(tmp_path.glob(".ds.tmp-*"))
     assert len(stale) == 1

@@ -13,7 +13,7 @@ from lerobot_formation.bench import controllers, results
 from lerobot_formation.bench.cli import main
 from lerobot_formation.bench.merge import main as merge_main
 
-BASE = ["--scenes", "random:2", "--no-figures", "--no-progress"]
+BASE = ["--scenes", "random:1", "--no-figures", "--no-progress"]  # one scene: these pin the folder
 
 
 def _run(out, *extra: str) -> int:
@@ -64,7 +64,7 @@ def test_resume_keeps_the_finished_controllers_and_runs_the_rest(tmp_path, capsy
     assert "] pac: success" not in printed and "] route-pursuit: success" in printed
     res = _results(out)
     assert res["pac"] == pac  # kept as it was (its wall time too): not run again
-    assert res["route-pursuit"]["n_episodes"] == 2
+    assert res["route-pursuit"]["n_episodes"] == 1
     assert res["meta"]["resumed"] == {"random": ["pac"]} and not res["meta"]["incomplete"]
     # everything finished: nothing runs, nothing is written
     before = (out / "results.json").read_bytes()
@@ -90,7 +90,7 @@ def test_resume_finishes_a_run_that_stopped_on_a_failing_controller(tmp_path, ca
     monkeypatch.setitem(controllers.CONTROLLER_FACTORIES, "route-pursuit", real)
     assert _run(out, "--controllers", "pac,route-pursuit", "--resume") == 0
     res = _results(out)
-    assert res["pac"] == stopped["pac"] and res["route-pursuit"]["n_episodes"] == 2
+    assert res["pac"] == stopped["pac"] and res["route-pursuit"]["n_episodes"] == 1
     assert not res["meta"]["incomplete"] and res["meta"]["error"] is None
 
 
@@ -176,7 +176,7 @@ def test_every_shipped_controller_has_a_summary():
 def test_merge_out_holding_a_run_is_refused_unless_overwrite(tmp_path, capsys):
     shards = [tmp_path / f"s{i}" for i in range(2)]
     for i, shard in enumerate(shards):
-        assert _run(shard, "--controllers", "pac", "--shard", f"{i}/2") == 0
+        assert _run(shard, "--controllers", "pac", "--scenes", "random:2", "--shard", f"{i}/2") == 0
     out = tmp_path / "merged"
     assert merge_main([*map(str, shards), "--out", str(out)]) == 0
     before = (out / "results.json").read_bytes()

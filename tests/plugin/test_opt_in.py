@@ -144,19 +144,30 @@ torch.save(items, sys.argv[3])
 """
 
 
-def test_another_projects_dataset_reads_as_with_stock_lerobot(tmp_path):
+def test_another_projects_dataset_reads_as_with_stock_lerobot(tmp_path, monkeypatch):
+    """Stock: written and read in a fresh interpreter that never imports the plugin; ours: read in
+    this process (the plugin imported, as in every test here) with the fast reads switched on."""
+    from lerobot.datasets.dataset_reader import DatasetReader
+
+    from lerobot_formation.compat import fast_reads
+
     script = tmp_path / "rw.py"
     script.write_text(WRITE_AND_READ)
     root = tmp_path / "other_arm"
-
-    def run(*args):
-        out = subprocess.run(
-            [sys.executable, str(script), str(root), *args], capture_output=True, text=True, timeout=300
-        )
-        assert out.returncode == 0, out.stderr[-3000:]
-
-    run("write", str(tmp_path / "stock.pt"))  # writes, then reads with stock LeRobot (fresh objects)
-    run("plugin", str(tmp_path / "plugin.pt"))
+    out = subprocess.run(
+        [sys.executable, str(script), str(root), "write", str(tmp_path / "stock.pt")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    was_fast = DatasetReader.get_item.__name__ == "_fast_get_item"
+    monkeypatch.setattr(sys, "argv", [str(script), str(root), "plugin", str(tmp_path / "plugin.pt")])
+    try:
+        exec(compile(WRITE_AND_READ, str(script), "exec"), {"__name__": "rw"})
+    finally:
+        if not was_fast:
+            fast_reads.uninstall()
     stock = torch.load(tmp_path / "stock.pt", weights_only=False)
     ours = torch.load(tmp_path / "plugin.pt", weights_only=False)
     assert stock.keys() == ours.keys() and len(stock["windows"]) == 12 + 17 + 22

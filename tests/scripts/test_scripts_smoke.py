@@ -308,6 +308,14 @@ SMOKES: dict[str, Smoke | str] = {
 
 SCRIPTS = discovered()
 
+# flags a script's --help must list (beyond a usage line and a description)
+HELP_FLAGS: dict[str, list[str]] = {
+    "benchmarks/bench_demo_time.py": ["--quick", "--threads N", "--load", "--via-run-sh", "-- DEMO ARGS"],
+    "benchmarks/bench_unet_backends.py": ["--batch", "--repeats", "--threads N", "--policy.path"],
+    "benchmarks/bench_sampling_steps.py": ["--quick", "--threads N", "--steps", "--scenes", "--controller"]
+    + ["--inference-backend", "--out", "--spacings"],
+}
+
 
 def _program(script: str) -> list[str]:
     """The command line that starts ``script``: a shell script by its path (it must be executable)."""
@@ -374,6 +382,8 @@ def test_help(script):
     assert len(paragraphs) > 1 and not paragraphs[1].startswith(("options:", "positional arguments:")), (
         f"{script} --help has no description:\n{out}"
     )
+    for flag in HELP_FLAGS.get(script, []):
+        assert flag in out, f"{script} --help lacks {flag!r}:\n{out}"
 
 
 # --- slow ----------------------------------------------------------------------------------------
