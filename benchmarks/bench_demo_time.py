@@ -1,7 +1,7 @@
 """Wall time of the main job (``scripts/run.sh demo``) beside the previous demo, in one run.
 
 The demo (``lerobot_formation.bench.demo``: PAC, MPPI, the pretrained default with standard sampling and
-with its safety layer on the first 7 unseen scenes of level5, three figures; goal <= 30 s on an idle
+with its safety layer on the first 6 unseen scenes of level5, three figures; goal <= 30 s on an idle
 2-core machine) and the previous demo (the same module with ``demo.PREVIOUS_ARGUMENTS``: PAC, MPPI,
 standard sampling and best-of-10 on 50 unseen paper-layout scenes, the diffusion controllers on 20
 unseen hard scenes, every figure; about 70 s) are run as subprocesses, alternating (previous, new,

@@ -137,7 +137,7 @@ def test_the_demo_runs_the_shipped_default_against_the_baselines():
 
     defaults = demo.default_arguments()
     assert defaults[defaults.index("--controllers") + 1] == "pac,mppi,diffusion,diffusion-safe"
-    assert defaults[defaults.index("--scenes") + 1] == "level5:7"  # the hardest level's first unseen scenes
+    assert defaults[defaults.index("--scenes") + 1] == "level5:6"  # the hardest level's first unseen scenes
     assert "--unseen" not in defaults
     path = Path(defaults[defaults.index("--policy.path") + 1])
     assert (path / "config.json").is_file() and (path / "model.safetensors").is_file()

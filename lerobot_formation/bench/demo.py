@@ -1,11 +1,11 @@
 """The first look (``scripts/run.sh demo``, about 30 s on an idle 2-core CPU once set up): the
 pretrained default, with standard sampling (``diffusion``) and with its safety layer
-(``diffusion-safe``), against the paper's baselines PAC and MPPI on the first 7 scenes of the hardest
-level (``level5:7``: structures sensed within 3 m, noisy, one step late, rate limited, two moving
+(``diffusion-safe``), against the paper's baselines PAC and MPPI on the first 6 scenes of the hardest
+level (``level5:6``: structures sensed within 3 m, noisy, one step late, rate limited, two moving
 obstacles; seeds from 1,000,000 on, which no training dataset uses). It writes results.json,
 tables.md and three figures (the controllers side by side, the default's trajectories, the success
 chart) to outputs/demo, then prints each controller's success on those scenes with its Wilson
-95 % interval. Seven scenes give wide intervals: the README's table has hundreds per level.
+95 % interval. Six scenes give wide intervals: the README's table has hundreds per level.
 
 Extra arguments are passed on to ``lerobot-formation-bench`` (later ones win: ``--scenes level5:100``
 is a larger look, ``--unseen hard:20`` adds a second set for the diffusion controllers).
@@ -29,7 +29,7 @@ from lerobot_formation.core.world.sampling import UNSEEN_SEED_START
 # the repository root's pretrained/ (this file is lerobot_formation/bench/demo.py)
 PRETRAINED = Path(__file__).resolve().parents[2] / "pretrained" / "formation_diffusion_route_v1"
 CONTROLLERS = "pac,mppi,diffusion,diffusion-safe"
-SCENES = "level5:7"
+SCENES = "level5:6"
 # the controllers run two at a time on a machine with two cores or more (the same numbers as one by one)
 JOBS = min(2, os.cpu_count() or 1)
 FOCUS = "diffusion-safe"  # the controller whose own figures the demo draws (the default with its layer)
