@@ -4,7 +4,7 @@ The demo (``lerobot_formation.bench.demo``: PAC, MPPI, the pretrained default wi
 with its safety layer on the first 6 unseen scenes of level5, three figures; goal <= 30 s on an idle
 2-core machine) and the previous demo (the same module with ``demo.PREVIOUS_ARGUMENTS``: PAC, MPPI,
 standard sampling and best-of-10 on 50 unseen paper-layout scenes, the diffusion controllers on 20
-unseen hard scenes, every figure, one controller at a time; about 130 s) are run as subprocesses, alternating (previous, new,
+unseen hard scenes, every figure, one controller at a time; about 100-115 s) are run as subprocesses, alternating (previous, new,
 new, previous, ... so a drift of the host's load falls on both), ``--repeats`` times each; the median
 of each is reported. ``--load-procs N`` starts N CPU-bound neighbours before the timed runs (each spins
 on one core: ``--load matmul``, a 256x256 numpy matmul loop with one BLAS thread, or ``--load busy``,
@@ -55,9 +55,9 @@ from lerobot_formation.threads import ENV_VAR, add_threads_argument, apply_threa
 REPO = Path(__file__).resolve().parents[1]
 GOAL_S = 30.0
 # the previous demo (one controller at a time) on an idle 2-core machine with today's code, once set
-# up: 126.6 and 141.1 s, measured in one run of this benchmark (docs/log.md; 67-69 s with the code of
+# up: 97.5 and 116.4 s, measured in one run of this benchmark (docs/log.md; 67-69 s with the code of
 # issue 62's filing, before per-episode noise draws and physical movers)
-PREVIOUS_IDLE_S = (126.6, 141.1)
+PREVIOUS_IDLE_S = (97.5, 116.4)
 # other processes' share of the CPUs above which a run counts as beside other jobs
 BUSY_SHARE = 0.25
 QUICK_ARGS = ["--controllers", "pac,diffusion", "--scenes", "random:1", "--unseen", "hard:1", "--no-figures"]
