@@ -232,3 +232,25 @@ def test_the_safety_layer_is_one_unit_of_the_core():
     assert not {"policy.checkpoint", "policy.modeling_formation_diffusion"} & imports(
         "bench.layer_controller"
     )
+
+
+# test folders that are not a part of the package: the repository's scripts, the dataset scripts, the
+# shared fixture files
+OUTSIDE_THE_PACKAGE = {"scripts", "datasets", "fixtures"}
+
+
+def test_the_tests_mirror_the_package():
+    """Each folder of tests/ names a subpackage or module of the package (tests/core/<floor>/ a floor of
+    the core), or one of OUTSIDE_THE_PACKAGE; the tests of the repository as a whole sit at the top."""
+    tests = Path(__file__).resolve().parent
+    for folder in sorted(p for p in tests.rglob("*") if p.is_dir() and p.name != "__pycache__"):
+        part = folder.relative_to(tests)
+        if part.parts[0] in OUTSIDE_THE_PACKAGE:
+            continue
+        target = PKG.joinpath(*part.parts)
+        assert target.is_dir() or target.with_suffix(".py").is_file(), (
+            f"tests/{part.as_posix()} names no part of lerobot_formation (move its tests where they belong)"
+        )
+    assert {p.name for p in (tests / "core").iterdir() if p.is_dir() and p.name != "__pycache__"} == set(
+        CORE_FLOORS
+    )

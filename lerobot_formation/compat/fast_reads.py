@@ -15,7 +15,7 @@ or depth feature, no image transforms):
 - ``get_item``: every numeric column is copied once out of the (memory-mapped) Arrow table into a
   tensor (~150 MB for the full PAC dataset), episode bounds into two arrays; a sample is then a few
   tensor gathers. Same keys, values, dtypes and shapes as LeRobot's, bit for bit
-  (``tests/plugin/test_fast_reads.py``); integers come out as int64 and floats as float32, as
+  (``tests/compat/test_fast_reads.py``); integers come out as int64 and floats as float32, as
   ``hf_transform_to_torch``'s ``torch.tensor(python value)`` gives them.
 - ``_query_hf_dataset`` (used by LeRobot's ``get_item`` for readers the fast path does not take,
   e.g. with image features stored in the table or image transforms): the same windowed query on

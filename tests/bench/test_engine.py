@@ -53,7 +53,7 @@ from lerobot_formation.core.world.sampling import UNSEEN_SEED_START, sample_scen
 from lerobot_formation.core.world.scene_files import load_scenes, save_scenes, scenes_from_list
 from lerobot_formation.policy.checkpoint import load_policy, set_inference_steps
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 TINY = REPO / "configs" / "formation_diffusion_tiny.json"
 REPO_ID = "local/formation_engine_test"

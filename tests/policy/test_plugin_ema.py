@@ -173,7 +173,9 @@ def test_ema_identical_on_every_process_under_ddp(tmp_path):
     """Two CPU processes (gloo), each on its own batches: same EMA, one update per optimizer step."""
     here = Path(__file__).resolve().parent
     out = tmp_path / "ddp.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(here), os.environ.get("PYTHONPATH", "")])}
+    # the worker imports plugin_helpers from tests/
+    path = [str(here), str(here.parent), os.environ.get("PYTHONPATH", "")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(path)}
     env.update(OMP_NUM_THREADS="1", HF_HUB_OFFLINE="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
     stalls = []

@@ -13,7 +13,7 @@ from lerobot_formation.core.perception.conditions import Conditions
 from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.core.world.scenes import Scenes
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _script():

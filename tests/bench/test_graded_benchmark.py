@@ -278,7 +278,7 @@ def _ablation():
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "ablation.py"
+    path = Path(__file__).resolve().parents[2] / "scripts" / "ablation.py"
     spec = importlib.util.spec_from_file_location("_test_ablation", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

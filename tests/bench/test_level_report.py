@@ -96,7 +96,7 @@ def test_the_recording_replanner_records_what_the_controller_did():
     from lerobot_formation.core.episodes.rollout import rollout
     from lerobot_formation.core.world.dynamics import FormationParams
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     params = FormationParams()
     options = ControllerOptions(
         policy_path=str(root / "pretrained" / "formation_diffusion_route_v1"), candidates=3
