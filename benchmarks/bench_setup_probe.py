@@ -25,23 +25,28 @@ REPO = Path(__file__).resolve().parents[1]
 CLOSED_PORT_INDEX = "http://127.0.0.1:9/whl/cpu"  # the discard port: nothing listens, refused at once
 
 
-def run_install(folder: Path, **env_vars: str) -> tuple[subprocess.CompletedProcess, float]:
-    """``install_cpu_torch`` alone in ``folder`` (with the pip guard); its result and wall time."""
+def run_install(
+    folder: Path, guard: bool = True, path_dirs: tuple[Path, ...] = (), **env_vars: str
+) -> tuple[subprocess.CompletedProcess, float]:
+    """``install_cpu_torch`` alone in ``folder``; its result and wall time. ``guard``: ``.venv/bin/python``
+    is this interpreter behind a guard that refuses ``-m pip`` (nothing can be installed); ``path_dirs``
+    go first on PATH (e.g. a fake nvidia-smi). Also tests/test_setup_torch.py's harness."""
     venv_bin = folder / ".venv" / "bin"
-    venv_bin.mkdir(parents=True, exist_ok=True)
-    python = venv_bin / "python"
-    python.write_text(
-        '#!/bin/sh\ncase "$*" in *"-m pip"*) echo "pip was called" >&2; exit 97;; esac\n'
-        f'exec "{sys.executable}" "$@"\n'
-    )
-    python.chmod(0o755)
+    if guard:
+        venv_bin.mkdir(parents=True, exist_ok=True)
+        python = venv_bin / "python"
+        python.write_text(
+            '#!/bin/sh\ncase "$*" in *"-m pip"*) echo "pip was called" >&2; exit 97;; esac\n'
+            f'exec "{sys.executable}" "$@"\n'
+        )
+        python.chmod(0o755)
     script = f"set -euo pipefail\nsource <(sed -n '/^TORCH_SPECS=/,/^}}/p' '{REPO}/scripts/run.sh')\ninstall_cpu_torch\n"
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PIP_", "LEROBOT_FORMATION_TORCH"))}
-    # no real nvidia-smi: the machine counts as one without a GPU
-    env["PATH"] = os.pathsep.join(
-        d for d in env["PATH"].split(os.pathsep) if d and not (Path(d) / "nvidia-smi").exists()
-    )
-    env.update(PIP_CONFIG_FILE=os.devnull, PIP_DISABLE_PIP_VERSION_CHECK="1", **env_vars)
+    # no real nvidia-smi (the caller says whether there is a GPU), and no pip configuration of the machine
+    real = [d for d in env["PATH"].split(os.pathsep) if d and not (Path(d) / "nvidia-smi").exists()]
+    env["PATH"] = os.pathsep.join([*map(str, path_dirs), *real])
+    env.update(PIP_CONFIG_FILE=os.devnull, PIP_DISABLE_PIP_VERSION_CHECK="1")
+    env.update(env_vars)
     t0 = time.perf_counter()
     proc = subprocess.run(
         ["bash", "-c", script], cwd=folder, env=env, capture_output=True, text=True, timeout=300

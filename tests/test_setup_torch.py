@@ -12,43 +12,29 @@ import base64
 import functools
 import hashlib
 import http.server
-import os
+import importlib.util
 import subprocess
 import sys
 import threading
-import time
 import zipfile
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-CLOSED_PORT_INDEX = "http://127.0.0.1:9/whl/cpu"  # the discard port: nothing listens, refused at once
 
 
-def run_install(tmp_path: Path, guard: bool = True, path_dirs: tuple[Path, ...] = (), **env_vars: str):
-    venv_bin = tmp_path / ".venv" / "bin"
-    if guard:
-        venv_bin.mkdir(parents=True, exist_ok=True)
-        python = venv_bin / "python"
-        python.write_text(
-            '#!/bin/sh\ncase "$*" in *"-m pip"*) echo "pip was called" >&2; exit 97;; esac\n'
-            f'exec "{sys.executable}" "$@"\n'
-        )
-        python.chmod(0o755)
-    script = f"set -euo pipefail\nsource <(sed -n '/^TORCH_SPECS=/,/^}}/p' '{REPO}/scripts/run.sh')\ninstall_cpu_torch\n"
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PIP_", "LEROBOT_FORMATION_TORCH"))}
-    # No real nvidia-smi (the tests say whether there is a GPU), and the machine's pip configuration
-    # plays no part.
-    real = [d for d in env["PATH"].split(os.pathsep) if d and not (Path(d) / "nvidia-smi").exists()]
-    env["PATH"] = os.pathsep.join([*map(str, path_dirs), *real])
-    env.update(PIP_CONFIG_FILE=os.devnull, PIP_DISABLE_PIP_VERSION_CHECK="1")
-    env.update(env_vars)
-    start = time.monotonic()
-    proc = subprocess.run(
-        ["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
-    )
-    return proc, time.monotonic() - start
+def _setup_probe():
+    """benchmarks/bench_setup_probe.py: its ``run_install`` harness is the one these tests run."""
+    path = REPO / "benchmarks" / "bench_setup_probe.py"
+    spec = importlib.util.spec_from_file_location("bench_setup_probe", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+_probe = _setup_probe()
+run_install, CLOSED_PORT_INDEX = _probe.run_install, _probe.CLOSED_PORT_INDEX
 
 
 def fake_nvidia_smi(tmp_path: Path, works: bool) -> Path:
