@@ -107,7 +107,7 @@ class FormationDiffusionConfig(DiffusionConfig):
             (``core.encodings.obstacle_grid.ENCODING_REGISTRY``: "nearest+route" (default, the shipped policy's:
             the safety layer needs the "nearest" family, route pursuit's proposal a route hint),
             "grid" (the paper's), "grid+list", "nearest", "nearest+maproute", "nearest+velocity",
-            "nearest+route+velocity"). ``lerobot-eval`` and ``lerobot-train`` give the env this encoding
+            "nearest+route+velocity", "nearest+moverroute+velocity"). ``lerobot-eval`` and ``lerobot-train`` give the env this encoding
             when ``--env.obstacle_encoding`` is not given (another given one is an error). Stored in
             every checkpoint, never guessed from the feature's size.
         max_obstacles: obstacle rows of the encoding (None: the encoding's default, 5 for

@@ -163,6 +163,7 @@ register("lerobot_formation.core.encodings.route_encoding:ENCODING", "nearest+ro
 register("lerobot_formation.core.encodings.map_route_encoding:ENCODING", "nearest+maproute")
 register("lerobot_formation.core.encodings.velocity_encoding:ENCODING", "nearest+velocity")
 register("lerobot_formation.core.encodings.route_velocity_encoding:ENCODING", "nearest+route+velocity")
+register("lerobot_formation.core.encodings.mover_route_encoding:ENCODING", "nearest+moverroute+velocity")
 ENCODINGS = tuple(ENCODING_REGISTRY)
 
 

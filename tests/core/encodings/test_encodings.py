@@ -38,6 +38,7 @@ def test_registry_sizes_and_names():
         "nearest+maproute",
         "nearest+velocity",
         "nearest+route+velocity",
+        "nearest+moverroute+velocity",
     }
     for name in ENCODING_REGISTRY:
         enc = get_encoding(name)  # "nearest+route" lives in its own file, imported here
@@ -51,6 +52,7 @@ def test_registry_sizes_and_names():
     assert environment_state_dim("nearest+velocity") == 74
     assert environment_state_dim("nearest+velocity", 3) == 20
     assert environment_state_dim("nearest+route+velocity") == 79
+    assert environment_state_dim("nearest+moverroute+velocity") == 79
     with pytest.raises(ValueError, match="obstacle encoding must be one of"):
         get_encoding("gird")
 
@@ -146,3 +148,41 @@ def test_presets_are_deterministic_valid_and_cover_the_ranges():
     assert r.min() < 0.3 and r.max() > 0.85
     assert (np.abs(wide.goal - 5.0) > 1e-9).any(axis=1).mean() > 0.4  # other goals
     assert (np.abs(wide.start[:, 2] - np.pi / 2) > 1e-9).mean() > 0.4  # other start headings
+
+
+def test_mover_route_is_route_pursuits_route():
+    """``nearest+moverroute+velocity``: the values of ``nearest+route+velocity`` without movers; with a
+    mover observed, route pursuit's own route (its first command, decoded from the hint, is route
+    pursuit's command), which the plain hint (planned on the map, movers left out) is not."""
+    from lerobot_formation.core.controllers.route_pursuit import RoutePursuitController, pursuit_chunk
+    from lerobot_formation.core.perception.conditions import Perception
+
+    rng = np.random.default_rng(5)
+    obstacles, mask, goal, pose = _random_scene(rng, 9)
+    snapshot = obstacles.copy()
+    velocity = np.zeros((1, 16, 2))
+    still = dict(pose=pose, obstacle_velocity=velocity, map_obstacles=snapshot)
+    np.testing.assert_array_equal(
+        environment_state(obstacles, mask, goal, "nearest+moverroute+velocity", **still),
+        environment_state(obstacles, mask, goal, "nearest+route+velocity", **still),
+    )
+    # a mover 1.2 m ahead on the straight way to the goal, absent from the map
+    ahead = pose[0, :2] + 1.2 * (goal[0] - pose[0, :2]) / np.linalg.norm(goal[0] - pose[0, :2])
+    obstacles[0, 9] = [*ahead, 0.5]
+    mask = mask.copy()
+    mask[0, 9] = True
+    velocity[0, 9] = [0.3, -0.2]
+    snapshot[0, 9] = [1e3, 1e3, 0.0]  # movers are padding on the map
+    moved = dict(pose=pose, obstacle_velocity=velocity, map_obstacles=snapshot)
+    enc = get_encoding("nearest+moverroute+velocity")
+    state = environment_state(obstacles, mask, goal, "nearest+moverroute+velocity", **moved)
+    plain = environment_state(obstacles, mask, goal, "nearest+route+velocity", **moved)
+    route, goal_body = enc.route_hint(state)
+    assert not np.allclose(route, enc.route_hint(plain)[0])
+    view = Perception(
+        pose, np.zeros((1, 3)), obstacles, mask, velocity, goal, np.zeros(1, np.int64), snapshot
+    )
+    controller = RoutePursuitController()
+    command = controller.act(view, np.arange(1))
+    first = pursuit_chunk(route, goal_body, 1, 0.1, controller.params.omega_max)[:, 0]
+    np.testing.assert_allclose(first, command, atol=1e-5)
