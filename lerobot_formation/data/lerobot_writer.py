@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +21,9 @@ from lerobot_formation.core.world.scene_files import load_scenes
 from lerobot_formation.data.dataset_frames import ACTION, FPS, MAX_OBSTACLES, dataset_features
 from lerobot_formation.data.pac_episodes import (
     CONDITION_GROUP,
+    EpisodeRecipe,
     ExpertFactory,
     Generator,
-    check_expert,
     seed_stream,
     shard_episodes,
 )
@@ -91,11 +92,14 @@ def generate(
         raise FileExistsError(f"destination {root} already exists; pass --overwrite to replace it")
     if overwrite:
         check_replaceable(root)  # before any work: only a dataset this project wrote is replaced
-    if randomize is not None and conditions is not None and conditions.enabled:
-        raise ValueError("randomized conditions and fixed conditions exclude each other: give one")
-    if randomize is not None and not randomize.enabled:
-        raise ValueError("randomized conditions need a ceiling with some condition on")
-    check_expert(expert, policy_expert)
+    recipe = EpisodeRecipe(  # checked here, before any work; its scene_slots once the scenes are known
+        obstacle_encoding,
+        scene_preset,
+        conditions=conditions,
+        expert=expert,
+        randomize=randomize,
+        policy_expert=policy_expert,
+    )
     distribution_slots(scene_preset)  # a ValueError naming a bad preset, before any work
     n = shard_episodes(episodes, num_shards, shard_index)
     root.parent.mkdir(parents=True, exist_ok=True)
@@ -114,7 +118,7 @@ def generate(
             )
     # scene.obstacles keeps every obstacle of every scene: as many rows as the distribution can need
     scene_slots = distribution_slots(scene_preset) if scenes_file is None else scenes_file.obstacles.shape[1]
-    scene_slots = max(scene_slots, MAX_OBSTACLES, min_scene_slots)
+    recipe = replace(recipe, scene_slots=max(scene_slots, MAX_OBSTACLES, min_scene_slots))
     t0 = time.perf_counter()
     bar = None
     if progress:
@@ -122,18 +126,7 @@ def generate(
 
         bar = tqdm(total=n, desc=f"PAC episodes (shard {shard_index + 1}/{num_shards})", unit="ep")
     # Simulate a little more than needed (PAC keeps ~98 %), but never more than batch_size at once.
-    gen = Generator(
-        params,
-        min(batch_size, int(np.ceil(n * 1.05)) + 2),
-        obstacle_encoding,
-        workers,
-        scene_preset,
-        scene_slots,
-        conditions,
-        expert,
-        randomize,
-        policy_expert,
-    )
+    gen = Generator(params, recipe, batch_size=min(batch_size, int(np.ceil(n * 1.05)) + 2), workers=workers)
     frames_total = 0
     ds = None
     finalized = False
@@ -141,7 +134,7 @@ def generate(
         ds = LeRobotDataset.create(
             repo_id=repo_id,
             fps=FPS,
-            features=dataset_features(obstacle_encoding, scene_slots),
+            features=dataset_features(obstacle_encoding, recipe.scene_slots),
             root=tmp,
             use_videos=False,
         )

@@ -29,6 +29,7 @@ import contextlib
 import os
 import sys
 import time
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -110,44 +111,63 @@ def expert_rollout(
     )
 
 
+@dataclass(frozen=True)
+class EpisodeRecipe:
+    """What a dataset's episodes are made from, beside the team (``FormationParams``) and the seeds:
+    the recipe. ``obstacle_encoding``: what the frames record; ``scene_preset``: the seeds' scenes (a
+    ``core.world.sampling.sample_distribution`` spec) when no scenes are given; ``scene_slots``: the
+    obstacle rows each frame keeps of its scene; ``conditions``: the episodes' fixed conditions (None
+    or all off: none), or ``randomize``: the ceiling of conditions drawn per group of seeds (module
+    docstring; the two exclude each other); ``expert`` (``EXPERTS``) and, for the "policy" expert, the
+    ``policy_expert`` that builds its controllers. Checked once, when made."""
+
+    obstacle_encoding: str = "grid"
+    scene_preset: str = "paper"
+    scene_slots: int = MAX_OBSTACLES
+    conditions: Conditions | None = None
+    expert: str = "pac"
+    randomize: Conditions | None = None
+    policy_expert: ExpertFactory | None = None
+
+    def __post_init__(self) -> None:
+        if self.randomize is not None and self.conditions is not None and self.conditions.enabled:
+            raise ValueError("randomized conditions and fixed conditions exclude each other: give one")
+        if self.randomize is not None and not self.randomize.enabled:
+            raise ValueError("randomized conditions need a ceiling with some condition on")
+        check_expert(self.expert, self.policy_expert)
+
+
 def simulate_batch(
-    seeds: np.ndarray,
-    scenes: Scenes | None,
-    params: FormationParams,
-    obstacle_encoding: str,
-    scene_preset: str = "paper",
-    scene_slots: int = MAX_OBSTACLES,
-    conditions: Conditions | None = None,
-    expert: str = "pac",
-    randomize: Conditions | None = None,
-    policy_expert: ExpertFactory | None = None,
+    seeds: np.ndarray, scenes: Scenes | None, params: FormationParams, recipe: EpisodeRecipe
 ) -> tuple[int, list[dict[str, np.ndarray]]]:
-    """The expert on one batch of scenes (the seeds' scenes of ``scene_preset``, a
-    ``core.world.sampling.sample_distribution`` spec, or the given ones), under ``conditions``, or under
-    randomized conditions up to ``randomize`` drawn per group of seeds (module docstring):
-    (attempted, frames of the successful episodes in seed order). Runs in a worker process when
-    generation is pipelined."""
+    """The ``recipe``'s expert on one batch of scenes (the seeds' scenes of its ``scene_preset``, or
+    the given ones), under its ``conditions``, or under randomized conditions up to its ``randomize``
+    drawn per group of seeds (module docstring): (attempted, frames of the successful episodes in
+    seed order). Runs in a worker process when generation is pipelined."""
     if scenes is None:
-        scenes = sample_distribution(seeds, scene_preset)
-    if randomize is None:
-        groups = [(np.arange(len(scenes)), conditions)]
+        scenes = sample_distribution(seeds, recipe.scene_preset)
+    if recipe.randomize is None:
+        groups = [(np.arange(len(scenes)), recipe.conditions)]
     else:
         keys = np.asarray(seeds) // CONDITION_GROUP
         groups = [
-            (np.flatnonzero(keys == k), randomized_conditions(randomize, int(k))) for k in np.unique(keys)
+            (np.flatnonzero(keys == k), randomized_conditions(recipe.randomize, int(k)))
+            for k in np.unique(keys)
         ]
     kept = []
     for rows, group_conditions in groups:
         part = scenes if len(groups) == 1 else scenes[rows]
-        rec = expert_rollout(part, params, obstacle_encoding, group_conditions, expert, policy_expert)
+        rec = expert_rollout(
+            part, params, recipe.obstacle_encoding, group_conditions, recipe.expert, recipe.policy_expert
+        )
         for b in np.flatnonzero(rec.outcome == SUCCESS):
-            kept.append((rows[b], episode_frames(rec, part, b, obstacle_encoding, scene_slots)))
+            kept.append((rows[b], episode_frames(rec, part, b, recipe.obstacle_encoding, recipe.scene_slots)))
     kept.sort(key=lambda row_frames: row_frames[0])
     return len(scenes), [frames for _, frames in kept]
 
 
 class Generator:
-    """Collects successful expert episodes in seed order, batch by batch.
+    """Collects successful expert episodes in seed order, batch by batch, each made by ``recipe``.
 
     With ``workers > 0`` the batches are simulated in worker processes, ``workers`` batches ahead,
     while the caller writes: on 2 cores simulation and LeRobot's writer then overlap. The episodes
@@ -157,46 +177,20 @@ class Generator:
     def __init__(
         self,
         params: FormationParams,
+        recipe: EpisodeRecipe = EpisodeRecipe(),
         batch_size: int = 256,
-        obstacle_encoding: str = "grid",
-        workers=0,
-        scene_preset: str = "paper",
-        scene_slots: int = MAX_OBSTACLES,
-        conditions: Conditions | None = None,
-        expert: str = "pac",
-        randomize: Conditions | None = None,
-        policy_expert: ExpertFactory | None = None,
+        workers: int = 0,
     ):
-        check_expert(expert, policy_expert)
-        if expert == "policy" and workers:
+        if recipe.expert == "policy" and workers:
             raise ValueError(
                 f"the 'policy' expert runs in the generating process: workers must be 0, got {workers}"
             )
-        self.conditions = conditions
-        self.scene_preset = scene_preset
-        self.scene_slots = scene_slots
         self.params = params
+        self.recipe = recipe
         self.batch_size = batch_size
-        self.obstacle_encoding = obstacle_encoding
         self.workers = workers
-        self.expert = expert
-        self.randomize = randomize
-        self.policy_expert = policy_expert
         self.attempted = 0
         self.succeeded = 0
-
-    @property
-    def _sim_args(self) -> tuple:
-        return (
-            self.params,
-            self.obstacle_encoding,
-            self.scene_preset,
-            self.scene_slots,
-            self.conditions,
-            self.expert,
-            self.randomize,
-            self.policy_expert,
-        )
 
     def _batches(self, seeds_iter, scenes_file: Scenes | None):
         while True:
@@ -224,14 +218,15 @@ class Generator:
                 initargs=(os.getpid(),),
             )
             pending = [
-                pool.submit(simulate_batch, *bt, *self._sim_args) for bt in _take(batches, self.workers)
+                pool.submit(simulate_batch, *bt, self.params, self.recipe)
+                for bt in _take(batches, self.workers)
             ]
 
             def results():
                 while pending:
                     out = pending.pop(0).result()
                     for bt in _take(batches, 1):
-                        pending.append(pool.submit(simulate_batch, *bt, *self._sim_args))
+                        pending.append(pool.submit(simulate_batch, *bt, self.params, self.recipe))
                     yield out
 
         else:
@@ -239,7 +234,7 @@ class Generator:
 
             def results():
                 for bt in batches:
-                    yield simulate_batch(*bt, *self._sim_args)
+                    yield simulate_batch(*bt, self.params, self.recipe)
 
         try:
             for attempted, frames_list in results():

@@ -15,7 +15,7 @@ from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.core.world.sampling import sample_scenes
 from lerobot_formation.data import lerobot_writer
 from lerobot_formation.data.dataset_frames import episode_frames
-from lerobot_formation.data.pac_episodes import CONDITION_GROUP, expert_rollout, simulate_batch
+from lerobot_formation.data.pac_episodes import CONDITION_GROUP, EpisodeRecipe, expert_rollout, simulate_batch
 
 REPO = "local/formation_priv"
 CEILING = get_level("level5").conditions
@@ -26,8 +26,9 @@ def test_randomized_conditions_follow_the_seed_and_vary_across_groups():
     params = FormationParams()
     first = randomized_conditions(CEILING, 15 // CONDITION_GROUP)
     assert first != randomized_conditions(CEILING, 16 // CONDITION_GROUP)
-    both = simulate_batch(np.array([15, 16]), None, params, "nearest", expert="privileged", randomize=CEILING)
-    alone = simulate_batch(np.array([16]), None, params, "nearest", expert="privileged", randomize=CEILING)
+    recipe = EpisodeRecipe("nearest", expert="privileged", randomize=CEILING)
+    both = simulate_batch(np.array([15, 16]), None, params, recipe)
+    alone = simulate_batch(np.array([16]), None, params, recipe)
     assert both[0] == 2 and len(both[1]) == 2 and len(alone[1]) == 1
     for key, value in alone[1][0].items():  # seed 16's episode does not depend on its batch
         np.testing.assert_array_equal(both[1][1][key], value, err_msg=key)
@@ -86,9 +87,11 @@ def test_route_velocity_frames_are_the_route_frames_with_the_movers_velocities()
     level5 = get_level("level5").conditions
     seeds = np.array([16, 17])
     both = simulate_batch(
-        seeds, None, params, "nearest+route+velocity", expert="privileged", conditions=level5
+        seeds, None, params, EpisodeRecipe("nearest+route+velocity", expert="privileged", conditions=level5)
     )
-    route = simulate_batch(seeds, None, params, "nearest+route", expert="privileged", conditions=level5)
+    route = simulate_batch(
+        seeds, None, params, EpisodeRecipe("nearest+route", expert="privileged", conditions=level5)
+    )
     key = "observation.environment_state"
     moving = 0
     for a, b in zip(both[1], route[1], strict=True):

@@ -18,7 +18,7 @@ from lerobot_formation.core.episodes.levels import get_level
 from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.core.world.sampling import sample_scenes
 from lerobot_formation.data import lerobot_writer
-from lerobot_formation.data.pac_episodes import Generator, check_expert, expert_rollout
+from lerobot_formation.data.pac_episodes import EpisodeRecipe, Generator, check_expert, expert_rollout
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 
 REPO = "local/formation_self"
@@ -90,8 +90,10 @@ def test_policy_expert_arguments_are_checked(tmp_path, checkpoint, capsys):
         check_expert("policy")
     with pytest.raises(ValueError, match="policy_expert"):
         check_expert("pac", expert)
+    with pytest.raises(ValueError, match="policy_expert"):  # a recipe is checked when made
+        EpisodeRecipe(expert="policy")
     with pytest.raises(ValueError, match="workers must be 0, got 2"):
-        Generator(FormationParams(), workers=2, expert="policy", policy_expert=expert)
+        Generator(FormationParams(), EpisodeRecipe(expert="policy", policy_expert=expert), workers=2)
     with pytest.raises(ValueError, match="'route-pursuit' runs no checkpoint"):
         PolicyExpert(str(checkpoint), controller="route-pursuit")
     base = ["--episodes", "1", "--root", str(tmp_path / "d"), "--repo-id", REPO]
