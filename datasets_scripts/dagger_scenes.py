@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.controllers.footprint import TeamBody, sequence_clearance
 from lerobot_formation.core.episodes.levels import get_level
 from lerobot_formation.core.episodes.rollout import COLLISION, rollout
 from lerobot_formation.core.perception.conditions import CONDITION_FIELDS, Conditions
@@ -108,10 +108,7 @@ def dagger_scenes(
     obstacles, velocities = branch_obstacles(scenes, rec.obstacle_paths, b, t, params.dt)
     branch = Scenes(obstacles, scenes.mask[b], scenes.goal[b], start, scenes.seeds[b], velocities)
     # keep starts whose formation footprint is clear (a state inside an obstacle cannot be relabelled)
-    tmpl = np.asarray(params.graph.template)
-    clear, _ = sequence_clearance(
-        start, np.zeros((len(b), 1, 1, 2)), branch.obstacles, tmpl, params.dt, params.agent_radius
-    )
+    clear, _ = sequence_clearance(start, np.zeros((len(b), 1, 1, 2)), branch.obstacles, TeamBody.of(params))
     far = np.linalg.norm(start[:, :2] - branch.goal, axis=-1) > 3 * params.goal_tolerance
     keep = (clear[:, 0] >= min_clearance) & far
     if keep.any():  # and a passage must remain from there (the scenes file's own load-time check)

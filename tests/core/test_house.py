@@ -5,7 +5,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.controllers.footprint import TeamBody, sequence_clearance
 from lerobot_formation.core.controllers.pac import PACController, PathAwareController
 from lerobot_formation.core.episodes.rollout import rollout
 from lerobot_formation.core.world import dynamics
@@ -128,9 +128,8 @@ def test_pac_footprint_equals_shared_clearance_of_held_actions():
     pose = np.column_stack([rng.uniform(0, 5, (B, 2)), rng.uniform(-np.pi, np.pi, B)])
     cand = _candidates(rng, B, C, 1)[:, :, 0]  # (B, C, 2)
     got = pac.footprint_clearance(pose, cand)
-    shared, _ = sequence_clearance(
-        pose, np.repeat(cand[:, :, None], T, axis=2), scenes.obstacles, TEMPLATE, dt, radius
-    )
+    body = TeamBody(TEMPLATE, radius, dt)
+    shared, _ = sequence_clearance(pose, np.repeat(cand[:, :, None], T, axis=2), scenes.obstacles, body)
     np.testing.assert_allclose(got, shared, rtol=0, atol=1e-9)
     p = np.repeat(pose[:, None], C, axis=1)  # (B, C, 3)
     loop = np.full((B, C), np.inf)

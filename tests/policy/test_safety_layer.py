@@ -653,12 +653,13 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
     """K = 1, no filter: with ``sampling_guidance`` the sample itself is moved away from the observed
     obstacle (the footprint's predicted clearance grows) against the same network's sample from the
     same noise without it."""
-    from lerobot_formation.core.controllers.footprint import sequence_clearance
+    from lerobot_formation.core.controllers.footprint import TeamBody, sequence_clearance
     from lerobot_formation.core.safety import layer as safety_layer
     from lerobot_formation.core.safety.layer import safety_geometry
 
     monkeypatch.setattr(safety_layer, "GUIDANCE_DISTANCE", 0.5)
     template, dt, radius = safety_geometry()
+    body = TeamBody(template, radius, dt)
     obstacle = [0.0, 1.0, 0.4]  # straight ahead of the midpoint
     env = _env_state([obstacle])
     noise = torch.randn(1, HORIZON, 2, generator=torch.Generator().manual_seed(5))
@@ -674,7 +675,7 @@ def test_guided_sampling_keeps_a_chunk_further_from_the_obstacle_than_the_same_n
 
     def clearance(chunk):
         actions = guided.unnormalize_action(chunk)[None].numpy().astype(np.float64)
-        return float(sequence_clearance(pose, actions, np.array([[obstacle]]), template, dt, radius)[0][0, 0])
+        return float(sequence_clearance(pose, actions, np.array([[obstacle]]), body)[0][0, 0])
 
     assert clearance(guided.replanner.plan) > clearance(unguided) + 0.05
     assert guided.replanner.stats["replans"] == 1 and guided.replanner.stats["filter_interventions"] == 0
@@ -686,7 +687,7 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
     ``num_inference_steps`` times (``PlanSettings.denoising_steps``), with no best-of-K; it keeps more clearance from an obstacle beside
     the route than route pursuit's own chunk, and equals that chunk where no obstacle is within the
     guidance distance."""
-    from lerobot_formation.core.controllers.footprint import sequence_clearance
+    from lerobot_formation.core.controllers.footprint import TeamBody, sequence_clearance
     from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
     from lerobot_formation.core.safety import layer as safety_layer
     from lerobot_formation.core.safety.layer import safety_geometry
@@ -703,6 +704,7 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
     replanner = Replanner.from_config(policy.config, policy_sampler(policy), ReplanExperiment(sampled=False))
     assert not replanner.best_of
     template, dt, radius = safety_geometry()
+    body = TeamBody(template, radius, dt)
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.0, 6.0]])
 
     def plan_and_proposal(obstacles):
@@ -723,10 +725,10 @@ def test_guided_route_pursuit_moves_the_proposal_away_from_the_obstacle_and_neve
 
     obstacle = [0.75, 1.2, 0.3]  # right of the straight route, within 0.5 m of the right-hand agents
     plan, proposal, view = plan_and_proposal([obstacle])
-    body = np.array([[[0.0, 0.0, np.pi / 2]]])[0]
+    midpoint = np.array([[[0.0, 0.0, np.pi / 2]]])[0]
 
     def clearance(actions):
-        return float(sequence_clearance(body, actions[None], view.obstacles, template, dt, radius)[0][0, 0])
+        return float(sequence_clearance(midpoint, actions[None], view.obstacles, body)[0][0, 0])
 
     assert clearance(plan) > clearance(proposal) + 0.02
     assert replanner.stats["replans"] == 1 and replanner.stats["proposals"] == 0

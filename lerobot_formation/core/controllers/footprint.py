@@ -2,7 +2,8 @@
 
 ``sequence_clearance`` rolls B x C action sequences (B, C, T, 2) through the midpoint unicycle and
 places the rigid formation template (all four agents, followers at their square slots) at every
-step; it returns each candidate's smallest agent clearance and its end pose. The followers are
+step; it returns each candidate's smallest agent clearance and its end pose. The team it rolls out
+is a ``TeamBody``: the template, the agents' radius and the control step. The followers are
 assumed to sit on their slots: they track them within the formation-error floor (~0.05 m), which
 ``margin`` covers.
 
@@ -11,13 +12,39 @@ The best-of-K scorer that uses them is ``core.safety.filters.select_chunk``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from lerobot_formation.core.perception.obstacle_tracker import predict_obstacles
-from lerobot_formation.core.world.dynamics import body_to_world, rollout_poses
+from lerobot_formation.core.world.dynamics import FormationParams, body_to_world, rollout_poses
 from lerobot_formation.core.world.geometry import xy_clearance
 
-__all__ = ["obstacles_along", "rollout_poses", "sequence_clearance", "template_clearance"]
+__all__ = ["TeamBody", "obstacles_along", "rollout_poses", "sequence_clearance", "template_clearance"]
+
+
+@dataclass(frozen=True)
+class TeamBody:
+    """The team's body as the footprint checks see it: what a command sequence moves and what must
+    keep clear of the obstacles (``sequence_clearance``, ``core.safety.guidance``, the safety layer's
+    checks).
+
+    Attributes:
+        template: (N, 2) the rigid formation's agent offsets in the midpoint's body frame (the
+            followers on their slots).
+        agent_radius: [m] one radius for every agent, or one per template agent (N,) (e.g. the safety
+            layer's followers with an allowance for how far they lag their slots).
+        dt: [s] the control step: each command of a sequence acts for dt.
+    """
+
+    template: np.ndarray
+    agent_radius: float | np.ndarray
+    dt: float
+
+    @classmethod
+    def of(cls, params: FormationParams) -> TeamBody:
+        """The body of the team ``params`` describes: its graph's template, agent radius and step."""
+        return cls(np.asarray(params.graph.template), params.agent_radius, params.dt)
 
 
 def template_clearance(
@@ -73,14 +100,14 @@ def sequence_clearance(
     pose: np.ndarray,
     actions: np.ndarray,
     obstacles: np.ndarray,
-    template: np.ndarray,
-    dt: float,
-    agent_radius: float | np.ndarray,
+    body: TeamBody,
     obstacle_velocity: np.ndarray | None = None,
     start_step: int = 0,
     mover_uncertainty: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of candidate sequences.
+    """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of the team's ``body`` moved
+    by candidate sequences ``actions`` (B, C, T, 2) [v, omega] from ``pose`` (B, 3), among
+    ``obstacles`` (B, M, 3).
 
     ``obstacle_velocity`` (B, M, 2): the obstacles move at constant velocity, and the pose after
     action k is checked against them at time (``start_step`` + k + 1) dt (``start_step``: the steps
@@ -88,13 +115,13 @@ def sequence_clearance(
     ``mover_uncertainty`` [m/s]: a moving obstacle's predicted radius grows by that much per second
     ahead (``obstacle_tracker.predict_obstacles``).
     """
-    poses = rollout_poses(pose, actions, dt)  # (B, C, T, 3)
+    poses = rollout_poses(pose, actions, body.dt)  # (B, C, T, 3)
     if obstacle_velocity is None:
-        clear = template_clearance(poses, obstacles, template, agent_radius)
+        clear = template_clearance(poses, obstacles, body.template, body.agent_radius)
     else:  # time folded into the batch: step k's poses against the obstacles at step k
         B, C, T, _ = poses.shape
-        moved = obstacles_along(obstacles, obstacle_velocity, T, dt, start_step, mover_uncertainty)
+        moved = obstacles_along(obstacles, obstacle_velocity, T, body.dt, start_step, mover_uncertainty)
         at = np.ascontiguousarray(poses.transpose(0, 2, 1, 3)).reshape(B * T, C, 3)
-        clear = template_clearance(at, moved.reshape(B * T, -1, 3), template, agent_radius)
+        clear = template_clearance(at, moved.reshape(B * T, -1, 3), body.template, body.agent_radius)
         clear = clear.reshape(B, T, C).transpose(0, 2, 1)
     return clear.min(axis=-1), poses[:, :, -1]

@@ -78,7 +78,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.controllers.footprint import TeamBody, sequence_clearance
 from lerobot_formation.core.encodings.encoding import BODY_POSE, world_to_body
 from lerobot_formation.core.encodings.velocity_encoding import body_velocities
 from lerobot_formation.core.safety.replan_blend import blend_replan
@@ -228,14 +228,12 @@ ESCAPE_PRIMITIVES = escape_primitives()
 class FootprintCheck:
     """Best-of-K's check of command sequences (steps 1-2 of the module docstring), one implementation
     for ``select_chunk`` and ``plan_is_safe``: the obstacles (B, M, 3) and their velocities (B, M, 2)
-    (None: static) in the body frame, the rigid template, ``start`` (``ChunkStart``; None: the
+    (None: static) in the body frame, the team's ``body`` (``footprint.TeamBody``), ``start`` (``ChunkStart``; None: the
     commands run from now, as commanded), ``continuation`` (what the team runs after a sequence, from
     its end poses; ``select_chunk``) and ``mover_uncertainty`` (the growth of a mover's radius [m/s])."""
 
     obstacles: np.ndarray
-    template: np.ndarray
-    dt: float
-    agent_radius: float | np.ndarray
+    body: TeamBody
     obstacle_velocity: np.ndarray | None = None
     start: ChunkStart | None = None
     continuation: Callable[[np.ndarray], np.ndarray] | None = None
@@ -253,9 +251,7 @@ class FootprintCheck:
             pose,
             np.zeros((len(pose), 1, 1, 2)),
             self.obstacles,
-            self.template,
-            self.dt,
-            self.agent_radius,
+            self.body,
             self.obstacle_velocity,
             steps - 1,
             self.mover_uncertainty,
@@ -275,11 +271,9 @@ class FootprintCheck:
         is safe."""
         pose, steps = self._origin()
         B, T = len(pose), commands.shape[2]
-        run = commands if self.start is None else self.start.executed(commands, self.dt)
+        run = commands if self.start is None else self.start.executed(commands, self.body.dt)
         obstacles, velocity, u = self.obstacles, self.obstacle_velocity, self.mover_uncertainty
-        clear, end = sequence_clearance(
-            pose, run, obstacles, self.template, self.dt, self.agent_radius, velocity, steps, u
-        )
+        clear, end = sequence_clearance(pose, run, obstacles, self.body, velocity, steps, u)
         if self.continuation is None:
             return clear, None, end
         P = clear.shape[1]
@@ -297,9 +291,7 @@ class FootprintCheck:
             at.reshape(B * W, 3),
             more.reshape(B * W, 1, C, 2),
             np.repeat(obstacles, W, axis=0),
-            self.template,
-            self.dt,
-            self.agent_radius,
+            self.body,
             None if velocity is None else np.repeat(velocity, W, axis=0),
             steps + T,
             u,
@@ -410,9 +402,8 @@ def select_chunk(
     if blocked_fallback not in BLOCKED_FALLBACKS:
         raise ValueError(f"blocked_fallback must be one of {BLOCKED_FALLBACKS}, got {blocked_fallback!r}")
     B, K, T = candidates.shape[:3]
-    check = FootprintCheck(
-        obstacles, template, dt, agent_radius, obstacle_velocity, start, continuation, mover_uncertainty
-    )
+    body = TeamBody(template, agent_radius, dt)  # the team the sequences move
+    check = FootprintCheck(obstacles, body, obstacle_velocity, start, continuation, mover_uncertainty)
     floor = check.floor(margin)
     footprint = check.footprint
     pool = candidates

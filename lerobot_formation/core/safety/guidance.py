@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_formation.core.controllers.footprint import obstacles_along
+from lerobot_formation.core.controllers.footprint import TeamBody, obstacles_along
 from lerobot_formation.core.world.dynamics import rollout_poses
 
 
@@ -42,9 +42,7 @@ def clearance_cost_gradient(
     pose: np.ndarray,
     actions: np.ndarray,
     obstacles: np.ndarray,
-    template: np.ndarray,
-    dt: float,
-    agent_radius: float | np.ndarray,
+    body: TeamBody,
     distance: float,
     obstacle_velocity: np.ndarray | None = None,
     start_step: int = 0,
@@ -56,24 +54,26 @@ def clearance_cost_gradient(
             predicted start, ``core.safety.filters.ChunkStart.pose``).
         actions: (B, C, T, 2) [v, omega] command sequences, C per start.
         obstacles: (B, M, 3) [x, y, r] in the same frame (an absent slot: far away, radius 0).
-        template: (N, 2) the formation's body offsets; ``agent_radius`` [m] one radius, or one per
-            template agent (N,).
-        dt: the control step [s]; ``distance``: delta [m], the clearance below which J grows.
+        body: the team (``footprint.TeamBody``): its template (N, 2) of the agents' body offsets
+            (a_i, b_i), their radius r_agent [m] (one, or one per template agent (N,)) and the
+            control step dt [s].
+        distance: delta [m], the clearance below which J grows.
         obstacle_velocity: (B, M, 2) constant velocities (None: static); pose k is checked against
             the obstacles at time (``start_step`` + k) dt.
     """
     if not distance > 0:
         raise ValueError(f"the guidance distance must be > 0 [m], got {distance!r}")
     B, C, T, _ = actions.shape
+    dt = body.dt
     poses = rollout_poses(pose, actions, dt)  # (B, C, T, 3) after each command
     x, y, phi = poses[..., 0], poses[..., 1], poses[..., 2]
     if obstacle_velocity is None:
         centres = obstacles[:, None, None]  # (B, 1, 1, M, 3)
     else:
         centres = obstacles_along(obstacles, obstacle_velocity, T, dt, start_step)[:, None]  # (B, 1, T, M, 3)
-    template = np.asarray(template, dtype=np.float64)
+    template = np.asarray(body.template, dtype=np.float64)
     N = len(template)
-    radii = np.broadcast_to(np.asarray(agent_radius, dtype=np.float64), (N,)).reshape(N, 1, 1, 1, 1)
+    radii = np.broadcast_to(np.asarray(body.agent_radius, dtype=np.float64), (N,)).reshape(N, 1, 1, 1, 1)
     a, b = template[:, 0].reshape(N, 1, 1, 1), template[:, 1].reshape(N, 1, 1, 1)
     s, c = np.sin(phi), np.cos(phi)
     ax, ay = x + a * s + b * c, y - a * c + b * s  # body_to_world, every agent at once: (N, B, C, T)

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from lerobot_formation.core.controllers.footprint import TeamBody
 from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
 from lerobot_formation.core.encodings.obstacle_grid import get_encoding
 from lerobot_formation.core.perception.obstacle_filter import ObstacleFilter
@@ -279,6 +280,9 @@ class SafetyLayer:
         escape_advantage: None, or [m] a safe manoeuvre is also kept when its progress beats every safe
             sampled chunk's by that much (``core.safety.filters.select_chunk``).
         blocked_fallback: "widest" or "stop" where nothing is safe (``core.safety.filters.select_chunk``).
+
+    Its checks move ``body`` (``core.controllers.footprint.TeamBody``): ``safety_geometry``'s template
+    and step with the layer's ``agent_radii``.
     """
 
     def __init__(
@@ -295,6 +299,8 @@ class SafetyLayer:
         self.blocked_fallback = blocked_fallback
         self.encoding = get_encoding(self.settings.obstacle_encoding)
         self.slots = self.encoding.slots(self.settings.max_obstacles)
+        template, dt, _ = safety_geometry()
+        self.body = TeamBody(template, self.agent_radii, dt)  # the team every check moves
         self.stats = dict.fromkeys(LAYER_STAT_KEYS, 0)
         self.in_flight: np.ndarray | None = None
         self.executed_velocity: np.ndarray | None = None
@@ -428,12 +434,9 @@ class SafetyLayer:
     def footprint_check(self, view: SafetyView) -> safety.FootprintCheck:
         """Best-of-K's check (``core.safety.filters.FootprintCheck``) on ``view``: the observed obstacles and
         velocities, the actuator start, route pursuit's lookahead."""
-        template, dt, _ = safety_geometry()
         return safety.FootprintCheck(
             view.obstacles,
-            template,
-            dt,
-            self.agent_radii,
+            self.body,
             view.velocity,
             view.start,
             self.continuation(view),
@@ -467,7 +470,7 @@ class SafetyLayer:
         everywhere) by the ``coherence`` preference; None: no such preference. Counts the replans
         where no sampled chunk was safe, the escapes, stops and proposals kept."""
         view = self._as_view(seen)
-        template, dt, _ = safety_geometry()
+        body = self.body
         low, high = action_bounds()
         s = self.settings
         blend = None
@@ -495,9 +498,9 @@ class SafetyLayer:
             chunks,
             view.obstacles,
             view.goal,
-            template,
-            dt,
-            self.agent_radii,
+            body.template,
+            body.dt,
+            body.agent_radius,
             s.margin,
             escape_advantage=self.escape_advantage,
             blend=blend,
@@ -530,20 +533,20 @@ class SafetyLayer:
         if s.filter != "cbf":
             return action, np.zeros(len(action), bool)
         view = self._as_view(seen)
-        template, dt, _ = safety_geometry()
+        body = self.body
         low, high = action_bounds()
         out, changed = safety.cbf_filter(
             action,
             view.obstacles,
-            template,
-            self.agent_radii,
+            body.template,
+            body.agent_radius,
             s.margin,
             s.cbf_rate,
             np.asarray(low),
             np.asarray(high),
             obstacle_velocity=view.velocity,
             start=view.start,
-            dt=dt,
+            dt=body.dt,
         )
         self.stats["filter_interventions"] += int(changed.sum())
         return out, changed
@@ -571,7 +574,6 @@ class SafetyLayer:
         (n,)) -> the commands moved by one step of -eta dJ/da (``core.safety.guidance.clearance_cost_gradient``
         with ``GUIDANCE_DISTANCE``, on the view's obstacles from the actuator's predicted start), each
         clipped to the action bounds."""
-        template, dt, _ = safety_geometry()
         pose, steps = safety.chunk_origin(view.start, len(view.goal))
         velocity = view.velocity  # None unless the layer predicts moving obstacles
         low, high = (np.asarray(b) for b in action_bounds())
@@ -582,9 +584,7 @@ class SafetyLayer:
                 pose[at],
                 moved[:, None],
                 view.obstacles[at],
-                template,
-                dt,
-                self.agent_radii,
+                self.body,
                 GUIDANCE_DISTANCE,
                 None if velocity is None else velocity[at],
                 steps,

@@ -4,6 +4,7 @@ never keeps a colliding chunk when a safe one exists."""
 import numpy as np
 import pytest
 
+from lerobot_formation.core.controllers.footprint import TeamBody
 from lerobot_formation.core.encodings.obstacle_grid import environment_state
 from lerobot_formation.core.safety.filters import (
     ESCAPE_PRIMITIVES,
@@ -26,6 +27,7 @@ from lerobot_formation.core.world.scenes import FAR
 P = FormationParams()
 NO_ESCAPES = np.zeros((0, 2))  # an empty escape lattice: the sampled candidates alone
 TEMPLATE = np.asarray(P.graph.template)
+BODY = TeamBody.of(P)  # the team the footprint checks move
 LOW, HIGH = np.array([0.0, -P.omega_max]), np.array([P.v_max, P.omega_max])
 
 
@@ -491,24 +493,23 @@ def test_a_plan_checked_again_fails_once_a_mover_heads_for_its_path():
     on the same sequence (``select_chunk``'s "safe" for it alone)."""
     plan = np.tile([0.3, 0.0], (1, 10, 1))
     obstacles = np.array([[[2.0, 0.2, 0.3], [FAR, FAR, 0.0]]])
-    args = (obstacles, TEMPLATE, P.dt, P.agent_radius)
     crossing = np.array([[[-1.2, 0.0], [0.0, 0.0]]])
-    assert plan_is_safe(plan, FootprintCheck(*args), 0.1)[0]
-    assert not plan_is_safe(plan, FootprintCheck(*args, obstacle_velocity=crossing), 0.1)[0]
+    assert plan_is_safe(plan, FootprintCheck(obstacles, BODY), 0.1)[0]
+    assert not plan_is_safe(plan, FootprintCheck(obstacles, BODY, obstacle_velocity=crossing), 0.1)[0]
     for velocity in (None, crossing):
         _, info = select_chunk(
-            plan[:, None], obstacles, np.array([[0.0, 8.0]]), *args[1:], 0.1, primitives=NO_ESCAPES,
-            obstacle_velocity=velocity,
+            plan[:, None], obstacles, np.array([[0.0, 8.0]]), TEMPLATE, P.dt, P.agent_radius, 0.1,
+            primitives=NO_ESCAPES, obstacle_velocity=velocity,
         )  # fmt: skip
-        check = FootprintCheck(*args, obstacle_velocity=velocity)
+        check = FootprintCheck(obstacles, BODY, obstacle_velocity=velocity)
         assert info["safe"][0, 0] == plan_is_safe(plan, check, 0.1)[0]
     wall = np.array([[[x, 1.45, 0.3] for x in (-1.2, -0.6, 0.0, 0.6, 1.2)]])  # surface at 1.15 m
     ahead = lambda end: np.broadcast_to([0.6, 0.0], end.shape[:2] + (15, 2)).copy()  # noqa: E731
-    wall_args = (wall, TEMPLATE, P.dt, P.agent_radius)
+    wall_args = (wall, BODY)
     assert plan_is_safe(plan, FootprintCheck(*wall_args), 0.05)[0]
     assert not plan_is_safe(plan, FootprintCheck(*wall_args, continuation=ahead), 0.05)[0]
     # batched: each plan its own verdict
-    both = FootprintCheck(np.concatenate([obstacles, obstacles]), TEMPLATE, P.dt, P.agent_radius,
+    both = FootprintCheck(np.concatenate([obstacles, obstacles]), BODY,
                           np.concatenate([np.zeros_like(crossing), crossing]))  # fmt: skip
     np.testing.assert_array_equal(plan_is_safe(np.concatenate([plan, plan]), both, 0.1), [True, False])
 
@@ -525,7 +526,7 @@ def test_the_lookahead_runs_only_after_sequences_that_keep_the_floor():
     def ahead(end):  # (B, P, 3) -> straight on at 0.3 m/s, turning with the heading's sine
         return np.stack(np.broadcast_arrays(0.3, np.sin(end[..., 2:3]) + np.zeros((1, 1, 10))), -1)
 
-    check = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, velocity, continuation=ahead)
+    check = FootprintCheck(obstacles, BODY, velocity, continuation=ahead)
     floor = np.array([[0.05], [0.05]])
     clear, viable, end = check.footprint(commands)
     clear2, viable2, end2 = check.footprint(commands, floor)
@@ -621,7 +622,7 @@ def test_halt_lookahead_keeps_a_chunk_after_which_the_team_may_stop():
     args = (chunks, obstacles, goal, TEMPLATE, P.dt, P.agent_radius, 0.05)
     _, alone = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=down)
     assert alone["safe"][0].all() and alone["choice"][0] == 2  # the right arc: the most progress
-    halted = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, down).halted(chunks, 20)
+    halted = FootprintCheck(obstacles, BODY, down).halted(chunks, 20)
     assert halted[0, 0] >= 0.05 and (halted[0, 1:] < 0.05).all()
     kept, info = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=down, halt_lookahead=20)
     assert info["choice"][0] == 0 and info["safe"][0].tolist() == [True, False, False, False]
@@ -630,7 +631,7 @@ def test_halt_lookahead_keeps_a_chunk_after_which_the_team_may_stop():
     fast = 2 * down
     _, none = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=fast, halt_lookahead=20)
     _, plain = select_chunk(*args, primitives=NO_ESCAPES, obstacle_velocity=fast)
-    assert (FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius, fast).halted(chunks, 20) < 0.05).all()
+    assert (FootprintCheck(obstacles, BODY, fast).halted(chunks, 20) < 0.05).all()
     for key in ("choice", "safe", "clearance", "progress"):
         np.testing.assert_array_equal(none[key], plain[key])
 
@@ -646,7 +647,7 @@ def test_halt_lookahead_brakes_as_the_actuator_brakes_and_changes_nothing_where_
     obstacles = np.array([[[0.5, 2.0, 0.3], [-1.5, 1.0, 0.4]], [[2.0, 2.0, 0.3], [FAR, FAR, 0.0]]])
     commands = np.stack([np.tile([0.4, 0.0], (6, 12, 1)) + rng.normal(0, [0.1, 0.5], (6, 12, 2))] * 2)
     commands[..., 0] = np.clip(commands[..., 0], 0.0, 0.6)
-    check = FootprintCheck(obstacles, TEMPLATE, P.dt, P.agent_radius)
+    check = FootprintCheck(obstacles, BODY)
     np.testing.assert_array_equal(check.halted(commands, 10), check.footprint(commands)[0])
     np.testing.assert_array_equal(
         check.halted(commands[1:], 10, np.array([1])), check.halted(commands, 10)[1:]
@@ -654,7 +655,7 @@ def test_halt_lookahead_brakes_as_the_actuator_brakes_and_changes_nothing_where_
     wall = np.array([[[x, 1.6, 0.3] for x in (-1.5, -0.9, -0.3, 0.3, 0.9, 1.5)]])  # surface at 1.3 m
     run = np.tile([0.6, 0.0], (1, 1, 17, 1))  # 1.02 m ahead at full speed: 0.18 m short of the wall
     rolling = ChunkStart(np.array([[0.0, 0.0, np.pi / 2]]), np.array([[0.6, 0.0]]), 0, 0.5, None)
-    braked = FootprintCheck(wall, TEMPLATE, P.dt, P.agent_radius, start=rolling)
+    braked = FootprintCheck(wall, BODY, start=rolling)
     assert braked.footprint(run)[0][0, 0] >= 0.05 and braked.halted(run, 20)[0, 0] < 0.0
     # a continuation that passes somewhere: the halt is never consulted
     goal = np.array([[0.0, 6.0], [0.0, 6.0]])

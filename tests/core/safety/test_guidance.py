@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from lerobot_formation.core.controllers.footprint import sequence_clearance
+from lerobot_formation.core.controllers.footprint import TeamBody, sequence_clearance
 from lerobot_formation.core.safety.guidance import clearance_cost_gradient
 from lerobot_formation.core.world.dynamics import FormationParams
 
 PARAMS = FormationParams()
-TEMPLATE, DT, RADIUS = np.asarray(PARAMS.graph.template), PARAMS.dt, PARAMS.agent_radius
+BODY = TeamBody.of(PARAMS)
 
 
 def _case(seed=0, B=2, C=3, T=12, M=6):
@@ -23,12 +23,13 @@ def _case(seed=0, B=2, C=3, T=12, M=6):
 def test_gradient_matches_central_differences(moving):
     pose, actions, obstacles, velocity = _case()
     velocity = velocity if moving else None
-    radii = RADIUS + np.array([0.0, 0.0, 0.03, 0.03])  # one radius per agent, as the layer's followers
+    radii = BODY.agent_radius + np.array([0.0, 0.0, 0.03, 0.03])  # one per agent, as the layer's followers
+    body = TeamBody(BODY.template, radii, BODY.dt)
 
     def cost(a):
-        return clearance_cost_gradient(pose, a, obstacles, TEMPLATE, DT, radii, 0.4, velocity, 1)[0]
+        return clearance_cost_gradient(pose, a, obstacles, body, 0.4, velocity, 1)[0]
 
-    J, grad = clearance_cost_gradient(pose, actions, obstacles, TEMPLATE, DT, radii, 0.4, velocity, 1)
+    J, grad = clearance_cost_gradient(pose, actions, obstacles, body, 0.4, velocity, 1)
     assert (J > 0).all()  # the case does intrude
     eps = 1e-6
     numeric = np.zeros_like(grad)
@@ -45,18 +46,18 @@ def test_cost_is_zero_beyond_the_distance_and_a_step_down_the_gradient_clears():
     ahead = np.zeros((1, 1, 15, 2))
     ahead[..., 0] = 0.5  # straight on, 0.75 m in 1.5 s
     far = np.array([[[0.0, 5.0, 0.5]]])
-    J, grad = clearance_cost_gradient(pose, ahead, far, TEMPLATE, DT, RADIUS, 0.3)
+    J, grad = clearance_cost_gradient(pose, ahead, far, BODY, 0.3)
     assert J[0, 0] == 0 and not grad.any()
     near = np.array([[[0.35, 1.2, 0.3]]])  # beside the right leader's path
-    J, grad = clearance_cost_gradient(pose, ahead, near, TEMPLATE, DT, RADIUS, 0.3)
-    before, _ = sequence_clearance(pose, ahead, near, TEMPLATE, DT, RADIUS)
+    J, grad = clearance_cost_gradient(pose, ahead, near, BODY, 0.3)
+    before, _ = sequence_clearance(pose, ahead, near, BODY)
     moved = ahead - 0.5 * grad
-    J2, _ = clearance_cost_gradient(pose, moved, near, TEMPLATE, DT, RADIUS, 0.3)
-    after, _ = sequence_clearance(pose, moved, near, TEMPLATE, DT, RADIUS)
+    J2, _ = clearance_cost_gradient(pose, moved, near, BODY, 0.3)
+    after, _ = sequence_clearance(pose, moved, near, BODY)
     assert J2[0, 0] < J[0, 0] and after[0, 0] > before[0, 0]
 
 
 def test_a_bad_distance_is_refused_with_its_value():
     pose, actions, obstacles, _ = _case()
     with pytest.raises(ValueError, match="guidance distance must be > 0.*-0.1"):
-        clearance_cost_gradient(pose, actions, obstacles, TEMPLATE, DT, RADIUS, -0.1)
+        clearance_cost_gradient(pose, actions, obstacles, BODY, -0.1)
