@@ -15,38 +15,6 @@ step (no cache hit, as route pursuit's).
 
 from __future__ import annotations
 
-import numpy as np
+from lerobot_formation.core.encodings.route_velocity_encoding import route_velocity_encoding
 
-from lerobot_formation.core.encodings.encoding import ObstacleEncoding
-from lerobot_formation.core.encodings.route_encoding import ROUTE_NAMES, route_features
-from lerobot_formation.core.encodings.velocity_encoding import ENCODING as NEAREST_VELOCITY
-
-
-def _encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
-    """``obstacles`` (B, M, 5) [x, y, r, vx, vy]; ``map_obstacles`` (B, M, 3) the team's map."""
-    base = NEAREST_VELOCITY.encode(obstacles, mask, goal, pose, slots)
-    observed = obstacles[..., :3]
-    moving = np.any(obstacles[..., 3:5] != 0, axis=-1)
-    source = observed if map_obstacles is None else map_obstacles
-    plan = np.where(moving[..., None], observed, source)  # as RoutePursuitController.act
-    route = route_features(observed, mask, goal, pose, slots, plan)
-    return np.concatenate([base, route], axis=1)
-
-
-def _names(slots: int) -> list[str]:
-    return NEAREST_VELOCITY.names(slots) + ROUTE_NAMES
-
-
-ENCODING = ObstacleEncoding(
-    "nearest+moverroute+velocity",
-    12,
-    4,
-    2,
-    True,
-    _encode,
-    _names,
-    trailing=5,
-    trailing_per_slot=2,
-    velocity=True,
-    map=True,
-)
+ENCODING = route_velocity_encoding("nearest+moverroute+velocity", movers_on_map=True)

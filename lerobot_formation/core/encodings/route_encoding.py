@@ -38,16 +38,9 @@ from lerobot_formation.core.encodings.encoding import (
     nearest_order,
     world_to_body,
 )
-from lerobot_formation.core.world.navigation import (
-    PAC_CARROT_CELLS,
-    PAC_INFLATE,
-    PAC_LOOKAHEAD,
-    PAC_PATH_INFLATE,
-    SceneFields,
-    path_blocked,
-)
+from lerobot_formation.core.world import navigation
 
-NEAR_CELLS = PAC_CARROT_CELLS  # 5 cells of 0.2 m: PAC's carrot
+NEAR_CELLS = navigation.PAC_CARROT_CELLS  # 5 cells of 0.2 m: PAC's carrot
 FAR_CELLS = 15
 ROUTE_NAMES = ["route_near_bx", "route_near_by", "route_far_bx", "route_far_by", "path_blocked"]
 
@@ -79,10 +72,14 @@ def route_features(
         else observed_obstacles(source, mask, pose, planned)
     )
     goal = np.asarray(goal, np.float64)
-    fields = SceneFields.build(mapped, goal, inflate=PAC_PATH_INFLATE)  # PAC's field of the same map
+    fields = navigation.SceneFields.build(
+        mapped, goal, inflate=navigation.PAC_PATH_INFLATE
+    )  # PAC's field of the same map
     near = fields.carrot(pose[:, :2], NEAR_CELLS)
     far = fields.carrot(near, FAR_CELLS - NEAR_CELLS)
-    blocked = path_blocked(pose[:, :2], goal, observed, PAC_LOOKAHEAD, PAC_INFLATE)
+    blocked = navigation.path_blocked(
+        pose[:, :2], goal, observed, navigation.PAC_LOOKAHEAD, navigation.PAC_INFLATE
+    )
     body = world_to_body(np.stack([near, far], axis=1), pose)  # (B, 2, 2)
     return np.concatenate([body.reshape(B, 4), blocked[:, None]], axis=1).astype(np.float32)
 

@@ -20,27 +20,35 @@ from lerobot_formation.core.encodings.route_encoding import ROUTE_NAMES, route_f
 from lerobot_formation.core.encodings.velocity_encoding import ENCODING as NEAREST_VELOCITY
 
 
-def _encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
-    """``obstacles`` (B, M, 5) [x, y, r, vx, vy]; ``map_obstacles`` (B, M, 3) the map the route plans on."""
-    base = NEAREST_VELOCITY.encode(obstacles, mask, goal, pose, slots)
-    route = route_features(obstacles[..., :3], mask, goal, pose, slots, map_obstacles)
-    return np.concatenate([base, route], axis=1)
+def route_velocity_encoding(name: str, movers_on_map: bool = False) -> ObstacleEncoding:
+    """The ``nearest+velocity`` rows and velocities, then the 5 route values, planned on the team's map,
+    or with ``movers_on_map`` on that map with every observed mover where it is now (an observed
+    velocity that is not zero; ``nearest+moverroute+velocity``, ``core/encodings/mover_route_encoding.py``)."""
+
+    def encode(obstacles, mask, goal, pose, slots, map_obstacles=None) -> np.ndarray:
+        """``obstacles`` (B, M, 5) [x, y, r, vx, vy]; ``map_obstacles`` (B, M, 3) the team's map."""
+        base = NEAREST_VELOCITY.encode(obstacles, mask, goal, pose, slots)
+        observed = obstacles[..., :3]
+        if movers_on_map:  # as RoutePursuitController.act
+            moving = np.any(obstacles[..., 3:5] != 0, axis=-1)
+            source = observed if map_obstacles is None else map_obstacles
+            map_obstacles = np.where(moving[..., None], observed, source)
+        route = route_features(observed, mask, goal, pose, slots, map_obstacles)
+        return np.concatenate([base, route], axis=1)
+
+    return ObstacleEncoding(
+        name,
+        12,
+        4,
+        2,
+        True,
+        encode,
+        lambda slots: NEAREST_VELOCITY.names(slots) + ROUTE_NAMES,
+        trailing=5,
+        trailing_per_slot=2,
+        velocity=True,
+        map=True,
+    )
 
 
-def _names(slots: int) -> list[str]:
-    return NEAREST_VELOCITY.names(slots) + ROUTE_NAMES
-
-
-ENCODING = ObstacleEncoding(
-    "nearest+route+velocity",
-    12,
-    4,
-    2,
-    True,
-    _encode,
-    _names,
-    trailing=5,
-    trailing_per_slot=2,
-    velocity=True,
-    map=True,
-)
+ENCODING = route_velocity_encoding("nearest+route+velocity")
