@@ -49,7 +49,10 @@ OPEN = re.compile(r"^<!-- table:([\w-]+) -->\s*$")
 CLOSE = "<!-- /table:{} -->"
 FENCE = re.compile(r"^\s*(```|~~~)")
 DELIMITER_CELL = re.compile(r"^\s*:?-+:?\s*$")
-VALUES = ("success", "outcomes", "n", "smoothness", "jerk")
+VALUES = ("success", "outcomes", "n", "smoothness", "jerk", "of_solvable", "solvable", "causes")
+# a row's controller that stands for every run: the scenes some controller of the set, or the
+# ceiling's oracle, solved (value "solvable")
+ANY_RUN = "*"
 PENDING = "-"
 
 
@@ -66,6 +69,7 @@ class Cell:
     scene_set: str | None
     controller: str
     value: str
+    ceiling: str | None = None  # the artifact of the oracle's run on the same scenes
 
 
 @dataclass
@@ -75,7 +79,8 @@ class Table:
     rows: list[tuple[str, list[Cell]]] = field(default_factory=list)
 
     def artifacts(self) -> list[str]:
-        return list(dict.fromkeys(c.artifact for _, cells in self.rows for c in cells))
+        names = [name for _, cells in self.rows for c in cells for name in (c.artifact, c.ceiling) if name]
+        return list(dict.fromkeys(names))
 
 
 def read_spec(path: Path) -> dict[str, Table]:
@@ -107,7 +112,12 @@ def read_spec(path: Path) -> dict[str, Table]:
                 if not artifact or not controller:
                     raise PublishError(f"{where}: row {row.get('label')!r} has no artifact or controller")
                 scene_set = col.get("set") or row.get("set") or t.get("set")
-                cells.append(Cell(artifact, scene_set, controller, value))
+                ceiling = col.get("ceiling") or row.get("ceiling") or t.get("ceiling")
+                if value in ("of_solvable", "solvable", "causes") and not ceiling:
+                    raise PublishError(
+                        f"{where}: column {col['header']!r}: value {value!r} needs a ceiling artifact"
+                    )
+                cells.append(Cell(artifact, scene_set, controller, value, ceiling))
             table.rows.append((row["label"], cells))
         tables[name] = table
     return tables
@@ -118,6 +128,33 @@ def percent_interval(successes: int, n: int) -> str:
     end rounded down and the upper end up (so the printed interval holds the computed one)."""
     lo, hi = wilson_interval(successes, n)
     return f"{100 * successes / n:.1f} [{math.floor(100 * lo + 1e-9)}, {math.ceil(100 * hi - 1e-9)}]"
+
+
+def solved_by_some_run(controllers: dict[str, dict]) -> list[bool]:
+    """Per scene of a set (scene-index order): some run of ``controllers`` (the oracle's among them)
+    solved it. The oracle's search is a lower bound on what can be solved, so a scene another
+    controller solved counts as solvable too."""
+    letters = [c.get("outcomes") for c in controllers.values()]
+    if not letters or any(x is None for x in letters) or len({len(x) for x in letters}) != 1:
+        raise PublishError("the solvable scenes need every run's per-episode outcomes, on the same scenes")
+    return [any(x[i] == "s" for x in letters) for i in range(len(letters[0]))]
+
+
+def ceiling_text(c: dict | None, value: str, controllers: dict[str, dict]) -> str:
+    """A cell of the values that read the set's solvable scenes (``solved_by_some_run``)."""
+    solved = solved_by_some_run(controllers)
+    k = sum(solved)
+    if value == "solvable":
+        return percent_interval(k, len(solved))
+    if value == "of_solvable":
+        return f"{100 * c['successes'] / k:.1f}" if k else PENDING
+    left = {i: cause for i, cause in (c.get("unsolved") or {}).items() if not solved[int(i)]}
+    if not left:
+        return "none"
+    counts: dict[str, int] = {}
+    for cause in left.values():
+        counts[cause] = counts.get(cause, 0) + 1
+    return "; ".join(f"{n} {cause}" for cause, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
 def cell_text(c: dict, value: str) -> str:
@@ -131,6 +168,19 @@ def cell_text(c: dict, value: str) -> str:
         return str(c["n"])
     mean = c.get(value)
     return PENDING if mean is None else f"{mean:.3g}"
+
+
+def _same_scenes(
+    table: str, cell: Cell, artifact: dict, ceiling: dict, scene_set: str, results_dir: str
+) -> dict:
+    """The controllers of the ceiling artifact's run on the same scene set (spec and seed) as the cell's."""
+    mine, theirs = artifact["sets"][scene_set], ceiling["sets"].get(scene_set)
+    if theirs is None or (theirs["spec"], theirs["seed"]) != (mine["spec"], mine["seed"]):
+        raise PublishError(
+            f"table {table}: {results_dir}/{cell.ceiling}.json did not run the scenes of "
+            f"{results_dir}/{cell.artifact}.json's set {scene_set!r} ({mine['spec']}, seed {mine['seed']})"
+        )
+    return theirs["controllers"]
 
 
 def render(
@@ -150,13 +200,31 @@ def render(
                 texts.append(PENDING)
                 continue
             scene_set = cell.scene_set or artifact["main"]
-            controllers = artifact["sets"].get(scene_set, {}).get("controllers", {})
-            if cell.controller not in controllers:
+            controllers = dict(artifact["sets"].get(scene_set, {}).get("controllers", {}))
+            if cell.ceiling:
+                ceiling = artifacts.get(cell.ceiling)
+                if ceiling is None:
+                    texts.append(PENDING)
+                    continue
+                controllers.update(_same_scenes(table.name, cell, artifact, ceiling, scene_set, results_dir))
+            if cell.controller != ANY_RUN and cell.controller not in controllers:
                 raise PublishError(
                     f"table {table.name}: {results_dir}/{cell.artifact}.json has no controller "
                     f"{cell.controller!r} in its scene set {scene_set!r} (it has {sorted(controllers)})"
                 )
-            texts.append(cell_text(controllers[cell.controller], cell.value))
+            entry = controllers.get(cell.controller)
+            if cell.controller == ANY_RUN:  # the solvable scenes: their share, and all of them
+                value = {"success": "solvable", "solvable": "solvable", "of_solvable": "of_solvable"}
+                if cell.value not in value:
+                    texts.append(PENDING)
+                    continue
+                k = sum(solved_by_some_run(controllers))
+                entry = {"successes": k, "n": len(solved_by_some_run(controllers))}
+                texts.append(ceiling_text(entry, value[cell.value], controllers))
+            elif cell.value in ("of_solvable", "solvable", "causes"):
+                texts.append(ceiling_text(entry, cell.value, controllers))
+            else:
+                texts.append(cell_text(entry, cell.value))
         lines.append("| " + " | ".join([label, *texts]) + " |")
     measured: dict[tuple[str, str], list[str]] = {}
     for name in table.artifacts():

@@ -18,7 +18,8 @@ Per controller: the episode count, the counts of successes, collisions and timeo
 collisions a mover struck, where the run counted them), the means over successful episodes of
 ``control_smoothness`` and ``jerk`` (null where no episode succeeded), and ``outcomes``, one letter per
 episode in scene-index order (``s`` success, ``c`` collision, ``t`` timeout), so two artifacts on the
-same scenes can be compared episode by episode. Rates and intervals are not stored: the publisher
+same scenes can be compared episode by episode; the oracle's entry also has ``unsolved``, the cause of
+each scene it left by scene index (``core.episodes.oracle.CAUSES``). Rates and intervals are not stored: the publisher
 computes them from the counts.
 """
 
@@ -30,6 +31,8 @@ import platform
 import shlex
 import sys
 from pathlib import Path
+
+from lerobot_formation.core.episodes.oracle import ORACLE_KEY, SOLVED
 
 FORMAT = "lerobot-formation-results"
 VERSION = 1
@@ -92,6 +95,11 @@ def _controller(entry: dict) -> dict:
         out[key] = value.get("mean") if isinstance(value, dict) else None
     if outcomes is not None:
         out["outcomes"] = outcomes
+        causes = {
+            str(e["scene_index"]): e[ORACLE_KEY] for e in ordered if e.get(ORACLE_KEY, SOLVED) != SOLVED
+        }
+        if any(ORACLE_KEY in e for e in ordered):  # the oracle's: why it left each scene it left
+            out["unsolved"] = causes
     return out
 
 

@@ -145,6 +145,12 @@ def _run_controller(name: str, work: tuple) -> tuple[str, dict, object]:
     rec = evaluate(ctrl, scenes, params, progress=progress, desc=f"{name} ({label})", conditions=conditions)
     entry = controller_results(rec, scenes, indices)
     entry["wall_time_s"] = time.perf_counter() - t0
+    notes = getattr(
+        ctrl, "episode_notes", None
+    )  # what a controller says of each episode (the oracle's causes)
+    if notes is not None:
+        for episode, note in zip(entry["episodes"], notes(), strict=True):
+            episode.update(note)
     if getattr(ctrl, "stats", None):  # the safety layer's interventions
         entry["safety"] = {**ctrl.stats, **safety_rates(ctrl.stats)}
     entry["scenes"] = label

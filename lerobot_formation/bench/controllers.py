@@ -150,6 +150,8 @@ CONTROLLER_FACTORIES: dict[str, Callable | str] = {
     "route-pursuit-safe": _layer_alone("cbf", best_of_k=True),
     # the baseline of "diffusion-guided": route pursuit's chunk moved by the same clearance guidance
     "route-pursuit-guided": _layer_alone("none", best_of_k=False),
+    # a reference, never a default: a search on the true simulator, each level's ceiling
+    "oracle": "lerobot_formation.core.episodes.oracle:make_oracle",
 }
 # One line per controller for the command lines' --help (``controller_summary``); a controller
 # registered without one is listed by its factory.
@@ -166,6 +168,7 @@ CONTROLLER_SUMMARIES: dict[str, str] = {
     "diffusion-policy": "the checkpoint's config as stored (its own K, filter, guidance)",
     "route-pursuit-safe": "diffusion-safe's safety layer around route pursuit, no network",
     "route-pursuit-guided": "route pursuit moved by diffusion-guided's clearance guidance",
+    "oracle": "a reference: a search on the true simulator (the map, the movers' future, the noise)",
 }
 # The safety layer's baselines: a Replanner around route pursuit, no checkpoint (``_layer_alone``)
 LAYER_BASELINES = ("route-pursuit-safe", "route-pursuit-guided")

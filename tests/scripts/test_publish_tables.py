@@ -199,3 +199,75 @@ def test_every_published_table_has_its_artifacts():
     )
     if missing:
         pytest.skip(f"results/ holds no artifact yet for {missing}: those tables are published empty")
+
+
+def _artifact(controllers: dict, spec: str = "level5:4", seed: int = 1_000_000) -> dict:
+    def entry(letters, extra=None):
+        return {
+            "n": len(letters),
+            "successes": letters.count("s"),
+            "collisions": letters.count("c"),
+            "timeouts": letters.count("t"),
+            "outcomes": letters,
+            **(extra or {}),
+        }
+
+    sets = {
+        "level5": {"spec": spec, "seed": seed, "controllers": {k: entry(*v) for k, v in controllers.items()}}
+    }
+    return {
+        "format": "lerobot-formation-results",
+        "version": 1,
+        "command": "lerobot-formation-bench ...",
+        "date": "2026-12-07",
+        "host": "test",
+        "device": "cpu",
+        "main": "level5",
+        "sets": sets,
+    }
+
+
+def test_the_ceiling_reads_every_runs_solved_scenes(tmp_path, capsys):
+    """A ceiling column: the scenes some run solved (the oracle's or any controller's), each controller's
+    successes as a share of them, and the causes the oracle gave for the scenes nobody solved; an
+    oracle run on other scenes is refused."""
+    spec = """
+[tables.ceiling]
+label = "controller"
+rows = [
+    { controller = "pac", label = "PAC" },
+    { controller = "oracle", label = "oracle" },
+    { controller = "*", label = "solvable" },
+]
+columns = [
+    { header = "success", artifact = "lvl", ceiling = "lvl_oracle", value = "success" },
+    { header = "of solvable", artifact = "lvl", ceiling = "lvl_oracle", value = "of_solvable" },
+    { header = "solvable", artifact = "lvl", ceiling = "lvl_oracle", value = "solvable" },
+]
+
+[tables.causes]
+rows = [{ controller = "oracle", label = "oracle" }]
+columns = [{ header = "left", artifact = "lvl", ceiling = "lvl_oracle", value = "causes" }]
+"""
+    root = tmp_path
+    (root / "results").mkdir()
+    (root / "results" / "tables.toml").write_text(spec)
+    (root / "README.md").write_text(
+        "<!-- table:ceiling -->\n<!-- /table:ceiling -->\n\n<!-- table:causes -->\n<!-- /table:causes -->\n"
+    )
+    # scene 1: PAC only (the oracle's lower bound misses it); scene 3: nobody
+    (root / "results" / "lvl.json").write_text(json.dumps(_artifact({"pac": ("sssc",)})))
+    unsolved = {"1": "out of time", "3": "struck by a mover"}
+    oracle = _artifact({"oracle": ("stsc", {"unsolved": unsolved})})
+    (root / "results" / "lvl_oracle.json").write_text(json.dumps(oracle))
+    code, out, err = _run(root, capsys=capsys)
+    assert code == 0, err
+    readme = (root / "README.md").read_text()
+    assert "| PAC | 75.0 [" in readme and " | 100.0 | 75.0 [" in readme
+    assert "| oracle | 50.0 [" in readme and " | 66.7 | 75.0 [" in readme
+    assert "| solvable | 75.0 [" in readme and " | 100.0 | 75.0 [" in readme
+    assert "| oracle | 1 struck by a mover |" in readme  # scene 1 was solved by PAC: not a cause
+    oracle["sets"]["level5"]["seed"] = 5_000_000
+    (root / "results" / "lvl_oracle.json").write_text(json.dumps(oracle))
+    code, out, err = _run(root, capsys=capsys)
+    assert code == 2 and "did not run the scenes of" in err

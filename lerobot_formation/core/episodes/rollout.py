@@ -20,6 +20,7 @@ robots perceive (``core.perception.conditions.Perception``).
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -223,6 +224,31 @@ class Teams:
             self.world.keep(rows)
             self._perception = None
 
+    def take(self, rows: np.ndarray) -> Teams:
+        """``Teams.gather([(self, rows)])``: a new ``Teams`` of the teams ``rows`` (repeats allowed)."""
+        return Teams.gather([(self, np.asarray(rows))])
+
+    @staticmethod
+    def gather(parts: list[tuple[Teams, np.ndarray]]) -> Teams:
+        """A new ``Teams`` of the teams ``rows`` of each (teams, rows) part (index arrays, repeats
+        allowed; the parts share params, encoding and obstacle rows), in that order: each team a copy
+        with its own noise stream where it stands, which steps exactly as its original would (the
+        oracle's search branches teams this way, ``core.episodes.oracle``)."""
+        first = parts[0][0]
+        out = copy.copy(first)
+        out.state = FormationState(
+            *(np.concatenate(arrays) for arrays in zip(*(t.state[r].arrays() for t, r in parts), strict=True))
+        )
+        out.scenes = Scenes.concat([t.scenes[r] for t, r in parts])
+        out.steps = np.concatenate([t.steps[r] for t, r in parts])
+        out._world_state = (
+            None if first._world_state is None else np.concatenate([t._world_state[r] for t, r in parts])
+        )
+        out._perception = None
+        if first.world is not None:
+            out.world = type(first.world).gather([(t.world, r) for t, r in parts])
+        return out
+
     def load(self, idx: np.ndarray, new: Scenes) -> None:
         """Put scenes ``new`` into the slots ``idx`` (padded to this batch's obstacle rows) and reset
         their teams: the vector env's autoreset."""
@@ -395,6 +421,9 @@ def rollout(
     if privileged is None:  # a controller marked privileged (the bench's pac-privileged) says so itself
         privileged = bool(getattr(controller, "privileged", False))
     view = teams.truth if privileged else teams.perceive
+    plan_episodes = getattr(controller, "plan_episodes", None)
+    if plan_episodes is not None:  # an offline planner (the oracle) is told the episodes before they start
+        plan_episodes(scenes, conditions, T)
     controller.reset(view())
     rec.put(slice(None), 0, frame_record(teams.state, scenes.obstacles, params))
     live = np.arange(B)  # the teams' episodes (global indices)

@@ -41,6 +41,8 @@ other teams of its batch, nor on which noises are on. Motion directions come fro
 
 from __future__ import annotations
 
+import copy
+
 import math
 import typing
 from dataclasses import dataclass, field, fields
@@ -514,24 +516,37 @@ class ConditionedWorld:
         self.sense(idx, scenes.obstacles, state, np.zeros(len(idx), dtype=np.int64))
         self.draw(idx)
 
+    # the arrays with one row per team (``rngs`` too, a list)
+    PER_TEAM = (
+        "seen",
+        "seen_step",
+        "map_version",
+        "map_obstacles",
+        "map_taken",
+        "queue",
+        "executed",
+        "velocity",
+        "bounds",
+        "zones",
+        "noise",
+        "real",
+    )
+
     def keep(self, rows) -> None:
         """Keep only the teams ``rows`` (an index or mask), in that order."""
-        for name in (
-            "seen",
-            "seen_step",
-            "map_version",
-            "map_obstacles",
-            "map_taken",
-            "queue",
-            "executed",
-            "velocity",
-            "bounds",
-            "zones",
-            "noise",
-            "real",
-        ):
+        for name in self.PER_TEAM:
             setattr(self, name, getattr(self, name)[rows])
         self.rngs = [self.rngs[i] for i in np.arange(len(self.rngs))[rows]]
+
+    @classmethod
+    def gather(cls, parts: list[tuple[ConditionedWorld, np.ndarray]]) -> ConditionedWorld:
+        """A new world of the teams ``rows`` of each (world, rows) part (index arrays, repeats allowed),
+        in that order, every noise stream copied where it stands (the worlds share their conditions)."""
+        out = copy.copy(parts[0][0])
+        for name in cls.PER_TEAM:
+            setattr(out, name, np.concatenate([getattr(world, name)[rows] for world, rows in parts]))
+        out.rngs = [copy.deepcopy(world.rngs[i]) for world, rows in parts for i in rows]
+        return out
 
     # -- per step ---------------------------------------------------------------------------------
     def sense(self, idx, obstacles: np.ndarray, state: FormationState, steps: np.ndarray) -> None:
