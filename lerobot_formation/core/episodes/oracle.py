@@ -20,13 +20,14 @@ Each round pops, per scene, the ``expand`` open nodes of least
 steps each of them once with every primitive through the level's world (the followers' law, delay,
 action noise, rate limits, the movers) and opens the children that did not collide. t is the node's
 time [s], ctg the cost-to-go of its midpoint p to the goal on the static obstacles
-(``navigation.cost_to_go``, inflated by one of ``inflates``: progress around walls), c its smallest agent
+(``navigation.cost_to_go``, inflated as one of ``passes`` says: progress around walls), c its smallest agent
 clearance to any obstacle, movers included (``clearance_margin`` c_0 [m], ``clearance_weight`` w_c
 [s/m]). A node whose cell of (x, y, heading, speed) (``cell``, ``headings``, ``SPEED_BIN``; with
 moving obstacles also ``time_bin``) was expanded before is dropped, so a search stuck before a gap
 the square cannot pass goes back to older, other nodes instead of trying the same place again. A
 scene is solved when a child reaches the goal; the search of a scene ends unsolved when its open
-list empties, its nodes run out of time, or after ``max_rounds`` rounds. It is a lower bound on what
+list empties, its nodes run out of time, or after its pass's rounds; a scene a pass leaves goes to
+the next, on another inflation. It is a lower bound on what
 can be solved (finer primitives or more rounds may solve more), so the ceiling it gives is
 conservative; the scenes it leaves are listed with their cause (``CAUSES``).
 """
@@ -67,7 +68,6 @@ class OracleConfig:
     """The search's budget and scoring (module docstring)."""
 
     expand: int = 8  # open nodes expanded per scene and round
-    max_rounds: int = 400  # rounds per scene
     segment: int = 5  # control steps a primitive is held (0.5 s)
     speeds: tuple[float, ...] = (0.5, 1.0)  # fractions of v_max (and standing still)
     turns: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)  # fractions of omega_max
@@ -76,7 +76,9 @@ class OracleConfig:
         1.0,
     )  # route pursuit down the static cost-to-go (fractions of v_max)
     weight: float = 2.0  # > 1: greedier than A*, fewer rounds
-    inflates: tuple[float, ...] = (0.65, 0.5, 0.8)  # [m] the cost-to-go's obstacle inflation, in turn
+    # the searches, in turn, each of the scenes the ones before left: (the cost-to-go's obstacle
+    # inflation [m], the rounds a scene may take)
+    passes: tuple[tuple[float, int], ...] = ((0.65, 1000), (0.5, 300), (0.8, 300))
     clearance_margin: float = 0.3  # [m] c_0
     clearance_weight: float = 10.0  # [s/m] w_c
     cell: float = 0.25  # [m] one expansion per cell ...
@@ -85,7 +87,7 @@ class OracleConfig:
     pinned_s: float = 3.0  # [s] a search whose branches all collide this early was pinned
 
     def __post_init__(self) -> None:
-        for name in ("expand", "max_rounds", "segment", "headings"):
+        for name in ("expand", "segment", "headings"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"OracleConfig.{name} must be >= 1, got {getattr(self, name)}")
         if not self.speeds or not all(0 < s <= 1 for s in self.speeds):
@@ -96,8 +98,10 @@ class OracleConfig:
             )
         if not self.turns or not all(-1 <= w <= 1 for w in self.turns):
             raise ValueError(f"OracleConfig.turns must be fractions in [-1, 1], got {self.turns}")
-        if not self.inflates or not all(np.isfinite(x) and x >= 0 for x in self.inflates):
-            raise ValueError(f"OracleConfig.inflates must be numbers >= 0, got {self.inflates}")
+        if not self.passes or not all(np.isfinite(x) and x >= 0 and int(r) >= 1 for x, r in self.passes):
+            raise ValueError(
+                f"OracleConfig.passes must be (inflation >= 0, rounds >= 1) pairs, got {self.passes}"
+            )
         for name in (
             "weight",
             "clearance_margin",
@@ -277,8 +281,10 @@ def _search(
     max_steps: int,
     config: OracleConfig,
     inflate: float,
+    max_rounds: int,
 ) -> OraclePlans:
-    """The best-first search of every scene on the cost-to-go inflated by ``inflate`` (module docstring)."""
+    """The best-first search of every scene on the cost-to-go inflated by ``inflate``, at most
+    ``max_rounds`` rounds a scene (module docstring)."""
     S, L = len(scenes), config.segment
     U = config.primitives(params)
     routes = np.array(config.route_speeds) * params.v_max  # the route primitives' speeds, after U
@@ -325,9 +331,9 @@ def _search(
                 pop.append(node)
                 taken += 1
             rounds[s] += 1
-            if taken == 0 or rounds[s] > config.max_rounds:
+            if taken == 0 or rounds[s] > max_rounds:
                 live.discard(s)
-                if rounds[s] > config.max_rounds:
+                if rounds[s] > max_rounds:
                     cause[s] = CAUSES[4]
                 elif late[s]:
                     cause[s] = CAUSES[3]
@@ -402,18 +408,18 @@ def oracle_plans(
     config: OracleConfig | None = None,
 ) -> OraclePlans:
     """The oracle's plans of ``scenes`` under ``conditions`` (module docstring): a search on the
-    cost-to-go of each of ``config.inflates`` in turn, each of the scenes the ones before left (a gap
+    cost-to-go of each of ``config.passes`` in turn, each of the scenes the ones before left (a gap
     the square passes only just looks closed on a field inflated too much, and a trap looks open on
     one inflated too little)."""
     params = params or FormationParams()
     config = config or OracleConfig()
     T = max_steps or params.max_steps
-    plans = _search(scenes, params, conditions, T, config, config.inflates[0])
-    for inflate in config.inflates[1:]:
+    plans = _search(scenes, params, conditions, T, config, *config.passes[0])
+    for inflate, max_rounds in config.passes[1:]:
         left = np.flatnonzero(~plans.solved)
         if not len(left):
             break
-        again = _search(scenes[left], params, conditions, T, config, inflate)
+        again = _search(scenes[left], params, conditions, T, config, inflate, max_rounds)
         plans.rounds[left] += again.rounds
         now = left[again.solved]
         plans.commands[now], plans.steps[now] = again.commands[again.solved], again.steps[again.solved]
