@@ -7,7 +7,9 @@ that changes when the observed obstacle set does): ``reset(view)`` once with the
 perception, then ``act(view, idx) -> (len(idx), 2)`` for the live episodes ``idx`` (global indices
 into the batch), ``view`` holding their rows in that order. A controller that derives something from
 the map (a cost-to-go) rebuilds it for a row when that row's ``map_version`` changes
-(``map_obstacles``).
+(``map_obstacles``). A reference that plans offline on the true episodes (the oracle,
+``core.episodes.oracle``) also has ``plan_episodes(scenes, conditions, max_steps)``, which
+``core.episodes.rollout`` calls before ``reset``; no controller under test has it.
 """
 
 from __future__ import annotations
