@@ -49,7 +49,8 @@ OPEN = re.compile(r"^<!-- table:([\w-]+) -->\s*$")
 CLOSE = "<!-- /table:{} -->"
 FENCE = re.compile(r"^\s*(```|~~~)")
 DELIMITER_CELL = re.compile(r"^\s*:?-+:?\s*$")
-VALUES = ("success", "outcomes", "n", "smoothness", "jerk", "of_solvable", "solvable", "causes")
+VALUES = ("success", "outcomes", "n", "smoothness", "jerk", "of_solvable", "solvable", "causes", "misses")
+CEILING_VALUES = ("of_solvable", "solvable", "causes", "misses")  # the values that need a ceiling artifact
 # a row's controller that stands for every run: the scenes some controller of the set, or the
 # ceiling's oracle, solved (value "solvable")
 ANY_RUN = "*"
@@ -104,7 +105,7 @@ def read_spec(path: Path) -> dict[str, Table]:
         for row in t["rows"]:
             cells = []
             for col in t["columns"]:
-                value = col.get("value", "success")
+                value = col.get("value") or row.get("value") or t.get("value") or "success"
                 if value not in VALUES:
                     raise PublishError(f"{where}: column {col['header']!r}: value {value!r} not in {VALUES}")
                 artifact = col.get("artifact") or row.get("artifact") or t.get("artifact")
@@ -113,7 +114,7 @@ def read_spec(path: Path) -> dict[str, Table]:
                     raise PublishError(f"{where}: row {row.get('label')!r} has no artifact or controller")
                 scene_set = col.get("set") or row.get("set") or t.get("set")
                 ceiling = col.get("ceiling") or row.get("ceiling") or t.get("ceiling")
-                if value in ("of_solvable", "solvable", "causes") and not ceiling:
+                if value in CEILING_VALUES and not ceiling:
                     raise PublishError(
                         f"{where}: column {col['header']!r}: value {value!r} needs a ceiling artifact"
                     )
@@ -148,7 +149,10 @@ def ceiling_text(c: dict | None, value: str, controllers: dict[str, dict]) -> st
         return percent_interval(k, len(solved))
     if value == "of_solvable":
         return f"{100 * c['successes'] / k:.1f}" if k else PENDING
-    left = {i: cause for i, cause in (c.get("unsolved") or {}).items() if not solved[int(i)]}
+    # "causes": the oracle's causes of the scenes no run solved; "misses": of those some controller solved
+    left = {
+        i: cause for i, cause in (c.get("unsolved") or {}).items() if solved[int(i)] == (value == "misses")
+    }
     if not left:
         return "none"
     counts: dict[str, int] = {}
@@ -221,7 +225,7 @@ def render(
                 k = sum(solved_by_some_run(controllers))
                 entry = {"successes": k, "n": len(solved_by_some_run(controllers))}
                 texts.append(ceiling_text(entry, value[cell.value], controllers))
-            elif cell.value in ("of_solvable", "solvable", "causes"):
+            elif cell.value in CEILING_VALUES:
                 texts.append(ceiling_text(entry, cell.value, controllers))
             else:
                 texts.append(cell_text(entry, cell.value))

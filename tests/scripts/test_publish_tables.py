@@ -246,8 +246,11 @@ columns = [
 ]
 
 [tables.causes]
-rows = [{ controller = "oracle", label = "oracle" }]
-columns = [{ header = "left", artifact = "lvl", ceiling = "lvl_oracle", value = "causes" }]
+rows = [
+    { controller = "oracle", label = "oracle", value = "causes" },
+    { controller = "oracle", label = "misses", value = "misses" },
+]
+columns = [{ header = "left", artifact = "lvl", ceiling = "lvl_oracle" }]
 """
     root = tmp_path
     (root / "results").mkdir()
@@ -266,7 +269,8 @@ columns = [{ header = "left", artifact = "lvl", ceiling = "lvl_oracle", value = 
     assert "| PAC | 75.0 [" in readme and " | 100.0 | 75.0 [" in readme
     assert "| oracle | 50.0 [" in readme and " | 66.7 | 75.0 [" in readme
     assert "| solvable | 75.0 [" in readme and " | 100.0 | 75.0 [" in readme
-    assert "| oracle | 1 struck by a mover |" in readme  # scene 1 was solved by PAC: not a cause
+    assert "| oracle | 1 struck by a mover |" in readme  # scene 1 was solved by PAC: not a cause ...
+    assert "| misses | 1 out of time |" in readme  # ... but the oracle's miss
     oracle["sets"]["level5"]["seed"] = 5_000_000
     (root / "results" / "lvl_oracle.json").write_text(json.dumps(oracle))
     code, out, err = _run(root, capsys=capsys)
