@@ -120,7 +120,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         choices=EXPERTS,
         help="who drives: 'pac' on what the team perceives, or 'privileged': PAC on the true world "
         "(every obstacle, its velocity, moving ones predicted, the action delay compensated) while the "
-        "frames hold what the team perceived (docs/conditions.md); 'policy': the checkpoint at "
+        "frames hold what the team perceived (docs/conditions.md); 'oracle': the plans of a search on the "
+        "true simulator (core/episodes/oracle.py, seconds a scene), the frames what the team perceived; 'policy': the checkpoint at "
         "--policy.path with its safety layer (best-of-10 + CBF, told the conditions), on what the team "
         "perceives (self-imitation; needs --workers 0)",
     )

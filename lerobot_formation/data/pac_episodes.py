@@ -6,7 +6,10 @@ The expert (``EXPERTS``): "pac" drives on what the team perceives (``core.percep
 "privileged" acts on the true world (``rollout(privileged=True)``: every obstacle where it is, with
 its velocity), avoids the moving obstacles over the next ``EXPERT_PREDICT`` seconds and compensates
 the action delay (``PACController(predict=, delay=)``), while the frames still hold what the team
-perceived. Without conditions both are PAC on the true scene. "policy" is a controller the caller
+perceived. Without conditions both are PAC on the true scene. "oracle" plans each episode on the
+true simulator before it starts (``core.episodes.oracle``: a search that knows the movers' future and
+the noise) and sends its plan; its episodes are the scenes it solved, its frames what the team
+perceived and the plan's commands (held 0.5 s each, or route pursuit down the static cost-to-go). "policy" is a controller the caller
 builds (``policy_expert``, an ``ExpertFactory``: this layer imports no policy), e.g. a diffusion
 checkpoint with its whole safety layer (``bench.controllers.PolicyExpert``, the bench's
 "diffusion-safe", told each episode's conditions): the demonstrations of self-imitation, the layer's
@@ -36,6 +39,7 @@ import numpy as np
 
 from lerobot_formation.core.controllers.pac import PACController
 from lerobot_formation.core.controllers.protocol import Controller
+from lerobot_formation.core.episodes.oracle import OracleController
 from lerobot_formation.core.episodes.rollout import SUCCESS, EpisodeRecords, rollout
 from lerobot_formation.core.perception.conditions import Conditions, randomized_conditions
 from lerobot_formation.core.world.dynamics import FormationParams
@@ -43,7 +47,7 @@ from lerobot_formation.core.world.sampling import sample_distribution
 from lerobot_formation.core.world.scenes import Scenes
 from lerobot_formation.data.dataset_frames import MAX_OBSTACLES, episode_frames
 
-EXPERTS = ("pac", "privileged", "policy")
+EXPERTS = ("pac", "privileged", "oracle", "policy")
 EXPERT_PREDICT = 1.5  # [s] the privileged expert's lookahead for moving obstacles
 CONDITION_GROUP = 16  # consecutive seeds sharing one draw of randomized conditions
 
@@ -94,9 +98,11 @@ def expert_rollout(
     conditions the records hold what the team observed (``EpisodeRecords.observations``)."""
     check_expert(expert, policy_expert)
     on = conditions is not None and conditions.enabled
-    privileged = expert == "privileged"
+    privileged = expert in ("privileged", "oracle")
     if expert == "policy":
         controller = policy_expert(params, conditions if on else None)
+    elif expert == "oracle":
+        controller = OracleController(params=params)
     elif privileged:
         controller = privileged_expert(params, conditions)
     else:

@@ -103,3 +103,18 @@ def test_route_velocity_frames_are_the_route_frames_with_the_movers_velocities()
         assert speeds.max() <= level5.obstacle_speed + 1e-6
         moving += int((speeds > 0.1).any(axis=1).sum())
     assert moving > 0  # some frames observed a mover
+
+
+def test_the_oracle_expert_records_its_plans():
+    """``expert="oracle"``: the episodes the oracle solved, their actions its plan as sent."""
+    from lerobot_formation.core.episodes.oracle import OracleController
+
+    params = FormationParams()
+    recipe = EpisodeRecipe("nearest", expert="oracle")
+    attempted, frames = simulate_batch(np.array([3, 4]), None, params, recipe)
+    assert attempted == 2 and len(frames) == 2
+    oracle = OracleController(params=params)
+    oracle.plan_episodes(sample_scenes([3, 4]), None, params.max_steps)
+    for b, episode in enumerate(frames):
+        n = len(episode["action"])
+        np.testing.assert_allclose(episode["action"], oracle.plans.commands[b, :n], atol=1e-6)
