@@ -9,9 +9,12 @@ copies of the episode's own teams (``rollout.Teams.gather``) therefore ends the 
 ``rollout`` before the episodes start) and acts from its plan.
 
 The search (weighted A* over time, all scenes at once). A node is the whole episode state after a
-sequence of primitive commands, each held for ``segment`` control steps,
+sequence of primitives, each ``segment`` control steps long: a constant command of
 
-    U = {(0, 0)}  U  {(s v_max, w omega_max) : s in speeds, w in turns}.
+    U = {(0, 0)}  U  {(s v_max, w omega_max) : s in speeds, w in turns},
+
+or route pursuit's law (``core.controllers.route_pursuit.pursuit_command``) down the static
+cost-to-go at r v_max, r in ``route_speeds``, a command at every step.
 
 Each round pops, per scene, the ``expand`` open nodes of least
 
@@ -23,13 +26,14 @@ time [s], ctg the cost-to-go of its midpoint p to the goal on the static obstacl
 (``navigation.cost_to_go``, inflated as one of ``passes`` says: progress around walls), c its smallest agent
 clearance to any obstacle, movers included (``clearance_margin`` c_0 [m], ``clearance_weight`` w_c
 [s/m]). A node whose cell of (x, y, heading, speed) (``cell``, ``headings``, ``SPEED_BIN``; with
-moving obstacles also ``time_bin``) was expanded before is dropped, so a search stuck before a gap
-the square cannot pass goes back to older, other nodes instead of trying the same place again. A
+moving obstacles also ``time_bin``; in the last pass also the turn rate: under rate limits a team
+turning fast is not one going straight) was expanded before is dropped, so a search stuck before a
+gap the square cannot pass goes back to older, other nodes instead of trying the same place again. A
 scene is solved when a child reaches the goal; the search of a scene ends unsolved when its open
 list empties, its nodes run out of time, or after its pass's rounds; a scene a pass leaves goes to
-the next, on another inflation. It is a lower bound on what
-can be solved (finer primitives or more rounds may solve more), so the ceiling it gives is
-conservative; the scenes it leaves are listed with their cause (``CAUSES``).
+the next, on another inflation. It is a lower bound on what can be solved (finer primitives or more
+rounds may solve more), so the ceiling it gives is conservative; the scenes it leaves are listed
+with their cause (``CAUSES``).
 """
 
 from __future__ import annotations
@@ -77,8 +81,13 @@ class OracleConfig:
     )  # route pursuit down the static cost-to-go (fractions of v_max)
     weight: float = 2.0  # > 1: greedier than A*, fewer rounds
     # the searches, in turn, each of the scenes the ones before left: (the cost-to-go's obstacle
-    # inflation [m], the rounds a scene may take)
-    passes: tuple[tuple[float, int], ...] = ((0.65, 1000), (0.5, 300), (0.8, 300))
+    # inflation [m], the rounds a scene may take, the cells' turn-rate bin [rad/s] or 0: none)
+    passes: tuple[tuple[float, int, float], ...] = (
+        (0.65, 1000, 0.0),
+        (0.5, 300, 0.0),
+        (0.8, 300, 0.0),
+        (0.65, 300, 0.5),
+    )
     clearance_margin: float = 0.3  # [m] c_0
     clearance_weight: float = 10.0  # [s/m] w_c
     cell: float = 0.25  # [m] one expansion per cell ...
@@ -98,9 +107,12 @@ class OracleConfig:
             )
         if not self.turns or not all(-1 <= w <= 1 for w in self.turns):
             raise ValueError(f"OracleConfig.turns must be fractions in [-1, 1], got {self.turns}")
-        if not self.passes or not all(np.isfinite(x) and x >= 0 and int(r) >= 1 for x, r in self.passes):
+        if not self.passes or not all(
+            len(p) == 3 and np.isfinite(p[0]) and p[0] >= 0 and int(p[1]) >= 1 and p[2] >= 0
+            for p in self.passes
+        ):
             raise ValueError(
-                f"OracleConfig.passes must be (inflation >= 0, rounds >= 1) pairs, got {self.passes}"
+                f"OracleConfig.passes must be (inflation >= 0, rounds >= 1, turn bin >= 0) triples, got {self.passes}"
             )
         for name in (
             "weight",
@@ -282,9 +294,11 @@ def _search(
     config: OracleConfig,
     inflate: float,
     max_rounds: int,
+    turn_bin: float,
 ) -> OraclePlans:
     """The best-first search of every scene on the cost-to-go inflated by ``inflate``, at most
-    ``max_rounds`` rounds a scene (module docstring)."""
+    ``max_rounds`` rounds a scene, cells split by turn rate in bins of ``turn_bin`` (0: not) (module
+    docstring)."""
     S, L = len(scenes), config.segment
     U = config.primitives(params)
     routes = np.array(config.route_speeds) * params.v_max  # the route primitives' speeds, after U
@@ -320,6 +334,7 @@ def _search(
                     int(np.floor(y / config.cell)),
                     int(np.floor(np.mod(phi, 2 * np.pi) / (2 * np.pi / config.headings))),
                     int(np.hypot(v[0], v[1]) // SPEED_BIN),
+                    int(v[2] // turn_bin) if turn_bin else 0,
                     int(nodes.step[node] * params.dt // config.time_bin) if movers else 0,
                 )
                 if key in closed[s]:
@@ -415,11 +430,11 @@ def oracle_plans(
     config = config or OracleConfig()
     T = max_steps or params.max_steps
     plans = _search(scenes, params, conditions, T, config, *config.passes[0])
-    for inflate, max_rounds in config.passes[1:]:
+    for inflate, max_rounds, turn_bin in config.passes[1:]:
         left = np.flatnonzero(~plans.solved)
         if not len(left):
             break
-        again = _search(scenes[left], params, conditions, T, config, inflate, max_rounds)
+        again = _search(scenes[left], params, conditions, T, config, inflate, max_rounds, turn_bin)
         plans.rounds[left] += again.rounds
         now = left[again.solved]
         plans.commands[now], plans.steps[now] = again.commands[again.solved], again.steps[again.solved]

@@ -65,7 +65,7 @@ def test_known_future_is_the_worlds():
 def test_oracle_plans_replay_to_what_it_found(conditions):
     """``rollout`` replays each plan to the outcome the search found: solved scenes succeed, the others
     do not and carry a cause."""
-    controller = OracleController(OracleConfig(passes=((0.65, 80),)))
+    controller = OracleController(OracleConfig(passes=((0.65, 80, 0.0),)))
     rec = rollout(_scenes(2), controller, conditions=conditions)
     plans = controller.plans
     np.testing.assert_array_equal(rec.outcome == SUCCESS, plans.solved)
