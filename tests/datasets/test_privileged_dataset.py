@@ -59,7 +59,7 @@ def test_same_seed_same_privileged_randomized_dataset(tmp_path):
 @pytest.mark.parametrize(
     ("argv", "match"),
     [
-        (["--expert", "oracle"], "invalid choice"),
+        (["--expert", "sage"], "invalid choice"),
         (["--conditions-randomize", "level3"], "has no conditions to randomize"),
         (["--conditions-randomize", "level9"], "unknown level"),
         (["--conditions-randomize", "level5", "--env.pose_noise", "0.1"], "excludes --env.* flags"),
