@@ -42,7 +42,6 @@ other teams of its batch, nor on which noises are on. Motion directions come fro
 from __future__ import annotations
 
 import copy
-
 import math
 import typing
 from dataclasses import dataclass, field, fields
