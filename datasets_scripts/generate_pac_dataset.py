@@ -292,7 +292,12 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     return 0
 
 
-EXPERT_NAMES = {"pac": "PAC", "privileged": "the privileged expert", "policy": "the policy with its layer"}
+EXPERT_NAMES = {
+    "pac": "PAC",
+    "privileged": "the privileged expert",
+    "oracle": "the oracle",
+    "policy": "the policy with its layer",
+}
 
 
 def expert_name(summary: dict) -> str:
