@@ -148,7 +148,8 @@ def ceiling_text(c: dict | None, value: str, controllers: dict[str, dict]) -> st
     if value == "solvable":
         return percent_interval(k, len(solved))
     if value == "of_solvable":
-        return f"{100 * c['successes'] / k:.1f}" if k else PENDING
+        successes = k if c is None else c["successes"]  # None: the solvable scenes themselves
+        return f"{100 * successes / k:.1f}" if k else PENDING
     # "causes": the oracle's causes of the scenes no run solved; "misses": of those some controller solved
     left = {
         i: cause for i, cause in (c.get("unsolved") or {}).items() if solved[int(i)] == (value == "misses")
@@ -222,9 +223,7 @@ def render(
                 if cell.value not in value:
                     texts.append(PENDING)
                     continue
-                k = sum(solved_by_some_run(controllers))
-                entry = {"successes": k, "n": len(solved_by_some_run(controllers))}
-                texts.append(ceiling_text(entry, value[cell.value], controllers))
+                texts.append(ceiling_text(None, value[cell.value], controllers))
             elif cell.value in CEILING_VALUES:
                 texts.append(ceiling_text(entry, cell.value, controllers))
             else:

@@ -77,6 +77,18 @@ def pursuit_command(
     return np.stack([v, omega], axis=-1)
 
 
+def route_command(
+    target_body: np.ndarray, pose: np.ndarray, goal: np.ndarray, config: RoutePursuitConfig, omega_max: float
+) -> np.ndarray:
+    """[v, omega] (B, 2) toward body-frame targets (B, 2) (the carrot), or within ``r_goal`` of the goal
+    (B, 2) the goal itself, from midpoint poses (B, 3) (``pursuit_command``)."""
+    target = np.array(target_body, dtype=np.float64)
+    d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
+    near = d_goal < config.r_goal
+    target[near] = world_to_body(goal, pose)[near]
+    return pursuit_command(target, d_goal, config, omega_max)
+
+
 class RoutePursuitController:
     """Route pursuit behind the ``protocol.Controller`` interface (``reset(view)``, ``act(view, idx)``)."""
 
@@ -96,12 +108,8 @@ class RoutePursuitController:
         moving = np.any(view.obstacle_velocity != 0, axis=-1)
         plan = np.where(moving[..., None], obstacles, view.map_obstacles)
         features = route_features(obstacles, mask, goal, pose, self.config.slots, plan, self.config.whole_map)
-        target = features[:, :2].astype(np.float64)  # the 1 m carrot, body frame
-        goal_body = world_to_body(goal, pose)
-        d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
-        near = d_goal < self.config.r_goal
-        target[near] = goal_body[near]
-        return pursuit_command(target, d_goal, self.config, self.params.omega_max)
+        # the 1 m carrot, body frame
+        return route_command(features[:, :2], pose, goal, self.config, self.params.omega_max)
 
 
 def make_route_pursuit(

@@ -43,12 +43,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_formation.core.controllers.route_pursuit import RoutePursuitConfig, pursuit_command
+from lerobot_formation.core.controllers.route_pursuit import RoutePursuitConfig, route_command
 from lerobot_formation.core.encodings.encoding import world_to_body
 from lerobot_formation.core.encodings.route_encoding import NEAR_CELLS
 from lerobot_formation.core.episodes.rollout import COLLISION, SUCCESS, Teams
 from lerobot_formation.core.perception.conditions import ConditionedWorld, Conditions, Perception
 from lerobot_formation.core.world.dynamics import FormationParams, agent_positions
+from lerobot_formation.core.world.geometry import obstacle_gaps
 from lerobot_formation.core.world.navigation import SceneFields
 from lerobot_formation.core.world.scenes import FAR, Scenes
 
@@ -225,9 +226,7 @@ def _struck_by_mover(teams: Teams, rows: np.ndarray) -> np.ndarray:
     """(len(rows),) bool: the obstacle nearest an agent of each team ``rows`` moves."""
     if teams.world is None or len(rows) == 0:
         return np.zeros(len(rows), dtype=bool)
-    pos = agent_positions(teams.state[rows])  # (R, N, 2)
-    obs = teams.scenes.obstacles[rows]  # (R, M, 3)
-    gap = np.linalg.norm(pos[:, :, None] - obs[:, None, :, :2], axis=-1) - obs[:, None, :, 2]
+    gap = obstacle_gaps(agent_positions(teams.state[rows]), teams.scenes.obstacles[rows])  # (R, N, M)
     gap = np.where(teams.scenes.mask[rows][:, None], gap, np.inf).min(axis=1)  # (R, M)
     nearest = np.argmin(gap, axis=1)
     return np.any(teams.world.velocity[rows, nearest] != 0, axis=-1)
@@ -256,11 +255,13 @@ class _Nodes:
 
     def gather(self, ids: np.ndarray) -> Teams:
         """The episode states of the nodes ``ids``, copied, in that order."""
-        batch, row = np.array(self.batch)[ids], np.array(self.row)[ids]
+        batch = np.array([self.batch[i] for i in ids])
+        row = np.array([self.row[i] for i in ids])
         order = np.argsort(batch, kind="stable")
         parts = [(self.batches[b], row[order][batch[order] == b]) for b in np.unique(batch)]
-        teams = Teams.gather(parts)
-        return teams.take(np.argsort(order, kind="stable"))
+        teams = Teams.gather(parts)  # the copies, grouped by batch ...
+        teams.keep(np.argsort(order, kind="stable"))  # ... put back in the order asked
+        return teams
 
     def commands(self, node: int) -> np.ndarray:
         """(steps, 2) the commands from the root to ``node``."""
@@ -275,13 +276,10 @@ def _route_commands(
     pose: np.ndarray, goal: np.ndarray, fields: SceneFields, speed: np.ndarray, params: FormationParams
 ) -> np.ndarray:
     """Route pursuit's command (R, 2) from midpoint poses (R, 3) to goals (R, 2) down each row's static
-    cost-to-go ``fields`` (R rows) at ``speed`` (R,) [m/s] (``core.controllers.route_pursuit.pursuit_command``:
+    cost-to-go ``fields`` (R rows) at ``speed`` (R,) [m/s] (``core.controllers.route_pursuit.route_command``:
     its carrot, gains and slowing near the goal)."""
     target = world_to_body(fields.carrot(pose[:, :2], NEAR_CELLS), pose)
-    d_goal = np.hypot(goal[:, 0] - pose[:, 0], goal[:, 1] - pose[:, 1])
-    near = d_goal < ROUTE.r_goal
-    target[near] = world_to_body(goal, pose)[near]
-    command = pursuit_command(target, d_goal, ROUTE, params.omega_max)
+    command = route_command(target, pose, goal, ROUTE, params.omega_max)
     command[:, 0] *= speed / ROUTE.v_max
     return command
 
@@ -362,7 +360,7 @@ def _search(
         parent = np.repeat(pop, P)
         move = np.tile(np.arange(P), len(pop))
         child = nodes.gather(parent)
-        scene = np.array(nodes.scene)[parent]
+        scene = np.repeat([nodes.scene[i] for i in pop], P)
         dead, done = np.zeros(len(parent), dtype=bool), np.zeros(len(parent), dtype=bool)
         by_mover = np.zeros(len(parent), dtype=bool)
         follow = move >= len(U)
@@ -384,7 +382,7 @@ def _search(
             by_mover[hit] = _struck_by_mover(child, np.flatnonzero(hit))
             dead |= hit
             done |= (transition.outcome == SUCCESS) & ~dead
-        step = np.array(nodes.step)[parent] + L
+        step = np.repeat([nodes.step[i] for i in pop], P) + L
         for s in np.unique(scene[dead]):
             rows = dead & (scene == s)
             struck[s] = by_mover[rows].mean()
