@@ -34,7 +34,7 @@ The two success rates are compared with a pooled two-proportion z-test (``within
 its conditions, the engine as the bench's ``--scenes levelK:N`` and the stock run as ``lerobot-eval
 --env.level=K --seed=<the level's first seed>`` (docs/benchmark.md). With a safety layer both are told
 the level's actuator and moving obstacles (``bench.controllers.safety_settings``; the stock run as
-``--policy.safety_*`` flags)::
+``--policy.safety_world.*`` flags)::
 
     python benchmarks/bench_eval_speed.py --policy.path pretrained/formation_diffusion_route_v1 \
         --level level5 --episodes 200 --stock 50:sync --threads 1
@@ -46,6 +46,7 @@ ratio of the best stock time to the engine's.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
@@ -92,6 +93,24 @@ def parse_stock(spec: str) -> list[tuple[str, int | None, bool | None]]:
     return out
 
 
+def _flat_fields(fields: dict) -> dict:
+    """Policy config fields with a nested dataclass (``safety_world``) as its dotted fields."""
+    flat = {}
+    for name, value in fields.items():
+        if dataclasses.is_dataclass(value):
+            flat.update({f"{name}.{k}": v for k, v in dataclasses.asdict(value).items()})
+        else:
+            flat[name] = value
+    return flat
+
+
+def _cli_value(value) -> str:
+    """A config value as draccus parses it on the command line (true / false, null)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return "null" if value is None else str(value)
+
+
 def stock_command(
     args: argparse.Namespace,
     batch: int | None,
@@ -122,8 +141,8 @@ def stock_command(
     ]
     cmd += [f"--policy.num_candidates={args.candidates}", f"--policy.safety_filter={args.safety_filter}"]
     if args.candidates != 1 or args.safety_filter != "none":
-        for field, value in (safety_fields or {}).items():
-            cmd.append(f"--policy.{field}={str(value).lower() if isinstance(value, bool) else value}")
+        for field, value in _flat_fields(safety_fields or {}).items():
+            cmd.append(f"--policy.{field}={_cli_value(value)}")
     if batch is not None:
         cmd += [f"--eval.batch_size={batch}", f"--eval.use_async_envs={'true' if use_async else 'false'}"]
     return cmd

@@ -3,20 +3,16 @@ and how long the team had already been that close.
 
     python scripts/collision_report.py --policy.path pretrained/formation_diffusion_route_v1 \
         --level level4 --scenes 100 [--seed 5000000] [--controller diffusion-safe] \
-        [--safety-margin 0.11] [--follower-margin 0.03] [--layer-ignores-noise] [--layer-ignores-motion] \
-        [--route-proposal on|off] [--route-lookahead N] [--coherence W] [--proposal-blend M] \
-        [--halt-lookahead N] [--trace EPISODE ...] [--trace-steps N]
+        [--safety-margin 0.11] [--horizon N] [--chunk-smoothing N] [--mover-uncertainty U] \
+        [--layer-ignores-noise] [--layer-ignores-motion] [--trace EPISODE ...] [--trace-steps N]
 
 The controller is the bench's (``bench.controllers.make_controller``, the safety layer told the
-level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's margin
-(``--follower-margin`` its ``safety_follower_margin``),
-``--layer-ignores-noise`` does not tell the layer the sensing noise (no smoothing),
-``--layer-ignores-motion`` does not tell it that obstacles move; ``--route-proposal`` and
-``--route-lookahead`` replace the checkpoint's ``safety_route_proposal`` / ``safety_route_lookahead``,
-``--coherence`` its ``safety_coherence``, ``--proposal-blend`` its ``safety_proposal_blend``,
-``--chunk-smoothing`` its ``chunk_smoothing``, ``--halt-lookahead`` its ``safety_halt_lookahead`` (0 or
-off: without it); these flags are ``bench.level_report``'s,
-shared with ``scripts/jerk_sources.py``. One
+level's conditions as the bench tells it); ``--safety-margin`` replaces the checkpoint's
+``safety_margin``, ``--horizon`` its ``safety_horizon`` (0: the chunk alone), ``--chunk-smoothing``
+its ``chunk_smoothing``, ``--mover-uncertainty`` its ``safety_mover_uncertainty``;
+``--layer-ignores-noise`` does not tell the layer the level's sensing noise (no smoothing),
+``--layer-ignores-motion`` does not tell it that obstacles move (its ``safety_world``); these flags
+are ``bench.level_report``'s, shared with ``scripts/jerk_sources.py``. One
 line per collision: the episode, the step, the agent (0-1 leaders, 2-3 followers) and how deep it
 is in [mm], the followers' distance from their template slots, the midpoint's speed, the smallest
 agent clearance over the 10 and 30 steps before, and the obstacle's rank among the midpoint's

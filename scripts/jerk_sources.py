@@ -1,7 +1,7 @@
 """Where a diffusion controller's jerk comes from: the steps next to each kind of replan or filter event.
 
     python scripts/jerk_sources.py --policy.path pretrained/formation_diffusion_route_v1 --level level3 \
-        --scenes 100 [--seed 5000000] [--proposal-blend M] [--coherence W] [other safety overrides]
+        --scenes 100 [--seed 5000000] [--chunk-smoothing N] [--horizon N] [other safety overrides]
 
 The jerk (``core.episodes.metrics``, SPEC) at step t is the third difference of the midpoint position over
 positions t .. t+3, i.e. v_{t+2} - 2 v_{t+1} + v_t of the commands t, t+1 and t+2: a command that
@@ -10,7 +10,7 @@ successful episode is put in the class of the first event, in this order, at its
 
 - ``filter``: the CBF filter changed the command;
 - ``escape``: a replan kept an escape manoeuvre (nothing sampled was safe);
-- ``proposal``: a replan kept route pursuit's proposal (``safety_route_proposal``);
+- ``proposal``: a replan kept route pursuit's proposal (``core.safety.layer.ROUTE_PROPOSAL``);
 - ``replan after a cut``: a replan the filter caused (the plan was cut short);
 - ``replan``: a scheduled replan that kept one of the model's samples;
 - ``none``: none of these (the chunk running on).
@@ -19,8 +19,8 @@ One line per class: its share of the steps, its mean jerk and its share of all j
 successful episodes' steps), then the summary line of ``bench.level_report`` (success, collisions,
 timeouts; the mean over episodes of their jerk and smoothness), as ``scripts/collision_report.py``
 prints it. The events are recorded by ``bench.level_report.recording_replanner``, a ``Replanner``
-subclass that the bench's controller runs instead of its own; nothing else changes. The safety overrides (``--proposal-blend``,
-``--coherence``, ``--route-proposal``, ...) are ``scripts/collision_report.py``'s
+subclass that the bench's controller runs instead of its own; nothing else changes. The safety overrides (``--chunk-smoothing``,
+``--horizon``, ``--safety-margin``, ...) are ``scripts/collision_report.py``'s
 (``bench.level_report.add_arguments``).
 """
 

@@ -11,7 +11,7 @@ collisions (with "(k struck)": k of them a moving obstacle struck a team that wa
 it, ``core.episodes.metrics.mover_strikes``) / timeouts, the means of control smoothness and jerk (successful episodes), the mean of
 the episodes' minimum clearance and, for controllers with a safety layer, the filter's
 interventions per 100 steps and the share of replans where no candidate was safe (and, with
-``safety_route_proposal``, the share where route pursuit's proposal was kept). ``--compact``
+a route hint, the share where route pursuit's proposal was kept). ``--compact``
 prints the README's form instead: one row per level, one column per controller (success % [Wilson],
 collisions (struck)/timeouts (scenes)).
 """

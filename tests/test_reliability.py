@@ -806,7 +806,7 @@ def test_second_training_run_into_one_output_dir_refuses(tmp_path):
         ("num_inference_steps", -1, r"num_inference_steps must be null .* got -1"),
         ("num_inference_steps", 101, r"num_inference_steps must be null .* got 101"),
         ("safety_margin", float("nan"), r"config values must be finite numbers, got safety_margin=nan"),
-        ("cbf_rate", float("inf"), r"config values must be finite numbers, got cbf_rate=inf"),
+        ("safety_mover_uncertainty", float("inf"), r"finite numbers, got safety_mover_uncertainty=inf"),
         ("ema_power", float("nan"), r"got ema_power=nan"),
         ("optimizer_lr", float("nan"), r"got optimizer_lr=nan"),
     ],

@@ -11,9 +11,9 @@ the policy's ``Replanner`` with the checkpoint's config and, for K and the filte
 (the shipped checkpoint's: its safety layer on, best-of-10 and the filter), as ``lerobot-eval
 --policy.path`` runs it: not told the run's conditions.
 The controllers with a safety layer (best-of-K or the filter) also know the run's world from its
-conditions (``ControllerOptions.conditions``, ``safety_settings``): the actuator's delay and rate
-limits, its sensors' noise stds, and whether obstacles move; what a robot's designer knows of it,
-never its noise draws. "route-pursuit-safe" runs the safety layer with no network and no checkpoint
+conditions (``ControllerOptions.conditions``, ``safety_settings``: the config's ``safety_world``):
+the actuator's delay and rate limits, its sensors' noise stds, and whether obstacles move; what a
+robot's designer knows of it, never its noise draws. "route-pursuit-safe" runs the safety layer with no network and no checkpoint
 (``bench.layer_controller``; the shipped default's settings, ``core.safety.layer.SafetySettings()``):
 the candidates are route pursuit's chunk and the escapes (the baseline of the layer's rows);
 "route-pursuit-guided" runs route pursuit's chunk moved by the same settings' clearance guidance,
@@ -34,12 +34,13 @@ from lerobot_formation.core.world.dynamics import FormationParams
 
 
 def safety_settings(conditions: Conditions | None, scenes_move: bool = False) -> dict:
-    """The policy config fields of the safety layer's knowledge of a run under ``conditions``
-    (``core.safety.layer.known_world``): the actuator's delay and acceleration limits, the sensors'
-    noise stds, and whether obstacles move (then it predicts the observed ones at their velocities):
-    ``moving_obstacles`` of the conditions, or ``scenes_move`` (the scenes give their obstacles'
-    ``velocities``, as a scenes file may). Empty when neither conditions nor moving scenes."""
-    return SafetySettings.config_fields(**known_world(conditions, scenes_move))
+    """The policy config field of the safety layer's knowledge of a run under ``conditions``:
+    ``{"safety_world": core.safety.layer.known_world(conditions, scenes_move)}`` (the actuator's delay
+    and acceleration limits, the sensors' noise stds, and whether obstacles move: ``moving_obstacles``
+    of the conditions, or ``scenes_move``, the scenes give their obstacles' ``velocities`` as a scenes
+    file may). Empty when neither conditions nor moving scenes (the config's own world stays)."""
+    world = known_world(conditions, scenes_move)
+    return {} if world is None else SafetySettings.config_fields(world=world)
 
 
 def _diffusion(safety_filter: str | None, best_of_k: bool | None, guided: bool | None = None):
@@ -87,26 +88,19 @@ def _layer_alone(safety_filter: str, best_of_k: bool):
     (``bench.layer_controller.SafetyLayerController``): the shipped default's settings
     (``SafetySettings()``, ``PlanSettings()``) with the filter ``safety_filter``, K = --candidates
     (``best_of_k``) or 1 (then the proposal moved by the clearance guidance), told the run's world
-    (``known_world``); ``options.overrides`` (policy config fields) of the layer's settings and of the
-    plan's apply, the others (a network's) have nothing to act on."""
+    (``safety_settings``); ``options.overrides`` (policy config fields) of the layer's settings and
+    of the plan's apply, the others (a network's) have nothing to act on."""
 
     def factory(name: str, params: FormationParams, options: ControllerOptions, bundle=None):
         from lerobot_formation.bench.layer_controller import SafetyLayerController
         from lerobot_formation.policy.replanner import PlanSettings
 
-        overrides = options.overrides
-        safety = SafetySettings(
-            **{
-                "filter": safety_filter,
-                **known_world(options.conditions, options.scenes_move),
-                **SafetySettings.from_config_fields(overrides),
-            }
-        )
-        plan_fields = {f.name for f in dataclasses.fields(PlanSettings)}
+        fields = {**safety_settings(options.conditions, options.scenes_move), **options.overrides}
+        safety = SafetySettings(**{"filter": safety_filter, **SafetySettings.from_config_fields(fields)})
         plan = PlanSettings(
             **{
                 "num_candidates": options.candidates if best_of_k else 1,
-                **{k: v for k, v in overrides.items() if k in plan_fields},
+                **PlanSettings.from_config_fields(options.overrides),
             }
         )
         return SafetyLayerController(safety, plan, options.experiment, params, name)

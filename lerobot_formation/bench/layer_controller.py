@@ -4,9 +4,9 @@
 around a ``core.safety.layer.SafetyLayer``: at a replan the candidates are route pursuit's chunk
 from the observed route hint and, where it is not safe, the escape manoeuvres, under the same check,
 recheck and filter as the learned planner's ("route-pursuit-safe", the baseline of the layer's
-rows); with K = 1 and the layer's guidance, route pursuit's chunk moved by the clearance guidance
+rows); with K = 1 and the plan's guidance, route pursuit's chunk moved by the clearance guidance
 ("route-pursuit-guided", the baseline of guided sampling). It observes as the engine's diffusion
-controller does (``core.perception.observation.observe_perception`` with the settings' encoding) and keeps its
+controller does (``core.perception.observation.observe_perception`` with the plan's encoding) and keeps its
 plan in the same normalised units, so it acts as that controller with a checkpoint of the same
 settings would, bit for bit.
 """
@@ -63,8 +63,8 @@ class SafetyLayerController:
         self.replanner.reset(len(view))
 
     def act(self, view: Perception, idx: np.ndarray) -> np.ndarray:
-        s = self.replanner.layer.settings
-        env = observe_perception(view, s.obstacle_encoding, s.max_obstacles)["environment_state"]
+        ps = self.replanner.settings
+        env = observe_perception(view, ps.obstacle_encoding, ps.max_obstacles)["environment_state"]
         rows = torch.from_numpy(np.asarray(idx))
         action = self.replanner.act(torch.from_numpy(np.ascontiguousarray(env)), _no_history, rows)
         return unnormalize_action(action).numpy().astype(np.float64)

@@ -11,12 +11,12 @@ so a script passes them on by name.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from lerobot_formation.core.episodes.levels import TUNING_SEED_START
-from lerobot_formation.core.safety.layer import SafetySettings
+from lerobot_formation.core.safety.layer import KnownWorld, SafetySettings, known_world
 
 
 @dataclass
@@ -155,59 +155,45 @@ def recording_replanner(base, max_steps: int):
 
 SAFETY_FLAGS = (
     "safety_margin",
-    "follower_margin",
-    "layer_ignores_noise",
-    "layer_ignores_motion",
-    "route_proposal",
-    "route_lookahead",
-    "coherence",
-    "proposal_blend",
+    "horizon",
     "chunk_smoothing",
     "mover_uncertainty",
-    "halt_lookahead",
+    "layer_ignores_noise",
+    "layer_ignores_motion",
 )
 
 
 def safety_overrides(
     safety_margin: float | None = None,
-    follower_margin: float | None = None,
-    layer_ignores_noise: bool = False,
-    layer_ignores_motion: bool = False,
-    route_proposal: bool | None = None,
-    route_lookahead: int | None = None,
-    coherence: float | None = None,
-    proposal_blend: int | None = None,
+    horizon: int | None = None,
     chunk_smoothing: int | None = None,
     mover_uncertainty: float | None = None,
-    halt_lookahead: int | None = None,
+    layer_ignores_noise: bool = False,
+    layer_ignores_motion: bool = False,
+    world: KnownWorld | None = None,
 ) -> dict:
     """Policy config fields replacing the checkpoint's safety settings (None / False: the checkpoint's),
     through the one mapping of the layer's settings to config fields
-    (``core.safety.layer.SafetySettings.config_fields``): ``safety_margin`` (the settings' ``margin``);
-    ``follower_margin`` (0: no follower allowance); ``layer_ignores_noise``: the layer is not told
-    the sensing noise (no smoothing); ``layer_ignores_motion``: not told that obstacles move;
-    ``route_proposal``, ``route_lookahead`` (off and 0: neither route pursuit's proposal nor its
-    lookahead), ``coherence`` (0: progress alone), ``proposal_blend`` (0: the proposal as computed),
-    ``chunk_smoothing`` (0: the samples as drawn; it acts with K = 1 too), ``mover_uncertainty`` (0:
-    a mover's prediction as exact), ``halt_lookahead`` (0: no braking check). The settings' docs are
-    ``SafetySettings``'."""
-    given = {
-        "margin": safety_margin,
-        "follower_margin": follower_margin,
-        "route_proposal": route_proposal,
-        "route_lookahead": route_lookahead,
-        "coherence": coherence,
-        "proposal_blend": proposal_blend,
-        "chunk_smoothing": chunk_smoothing,
-        "mover_uncertainty": mover_uncertainty,
-        "halt_lookahead": halt_lookahead,
-    }
+    (``core.safety.layer.SafetySettings.config_fields``): ``safety_margin`` (the settings' ``margin``),
+    ``horizon`` (``safety_horizon``; 0: the chunk alone), ``mover_uncertainty`` (0: a mover's
+    prediction as exact); ``chunk_smoothing`` (the sampler's, 0: the samples as drawn; it acts with
+    K = 1 too). ``layer_ignores_noise`` / ``layer_ignores_motion``: the layer is told ``world`` (what
+    the bench tells it of the level, ``core.safety.layer.known_world``; None: nothing) without the
+    sensing noise (no smoothing) / without the obstacles' motion (``safety_world``). The settings'
+    docs are ``SafetySettings``' and ``KnownWorld``'s."""
+    given = {"margin": safety_margin, "horizon": horizon, "mover_uncertainty": mover_uncertainty}
     settings = {name: value for name, value in given.items() if value is not None}
-    if layer_ignores_noise:
-        settings.update(obstacle_noise=0.0, pose_noise=0.0)
-    if layer_ignores_motion:
-        settings["moving_obstacles"] = False
-    return SafetySettings.config_fields(**settings)
+    if layer_ignores_noise or layer_ignores_motion:
+        told = world or KnownWorld()
+        if layer_ignores_noise:
+            told = replace(told, obstacle_noise=0.0, pose_noise=0.0)
+        if layer_ignores_motion:
+            told = replace(told, moving_obstacles=False)
+        settings["world"] = told
+    out = SafetySettings.config_fields(**settings)
+    if chunk_smoothing is not None:
+        out["chunk_smoothing"] = chunk_smoothing
+    return out
 
 
 RUN_FLAGS = ("level", "scenes", "seed", "policy_path", "candidates", "max_steps", *SAFETY_FLAGS)
@@ -217,27 +203,20 @@ def run_flags(controller_name: str, wrap_replanner=None, **flags) -> LevelRun:
     """``run_level`` with its settings as the flags of ``add_arguments`` hold them (their destinations,
     ``RUN_FLAGS``): ``level`` and ``scenes``, ``run_level``'s keywords by name (its defaults where a
     flag is left out; an unknown name is refused by name), the safety overrides (``SAFETY_FLAGS``) as
-    ``safety_overrides``' keywords."""
+    ``safety_overrides``' keywords, with the world the bench tells the layer of the level."""
+    from lerobot_formation.core.episodes.levels import get_level
+
     safety = {k: flags.pop(k) for k in SAFETY_FLAGS if k in flags}
+    level = flags.pop("level")
+    world = known_world(get_level(level).conditions)
     return run_level(
         controller_name,
-        flags.pop("level"),
+        level,
         flags.pop("scenes"),
-        overrides=safety_overrides(**safety),
+        overrides=safety_overrides(**safety, world=world),
         wrap_replanner=wrap_replanner,
         **flags,
     )
-
-
-def _on_off(text: str):
-    """An on/off flag's value: True, False, or the text itself (argparse's ``choices`` then refuses it
-    by name)."""
-    return {"on": True, "off": False}.get(text, text)
-
-
-def _add_on_off(ap: argparse.ArgumentParser, flag: str, help: str | None = None) -> None:
-    """An on/off flag (``_on_off``), None when not given (the checkpoint's setting)."""
-    ap.add_argument(flag, type=_on_off, choices=(True, False), default=None, metavar="{on,off}", help=help)
 
 
 def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) -> None:
@@ -250,27 +229,12 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
     ap.add_argument("--scenes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=TUNING_SEED_START, help="first scene seed (tuning seeds)")
     ap.add_argument("--candidates", type=int, default=10)
-    ap.add_argument("--safety-margin", type=float, default=None)
+    ap.add_argument("--safety-margin", type=float, default=None, help="the layer's clearance [m]")
     ap.add_argument(
-        "--follower-margin",
-        type=float,
-        default=None,
-        help="the followers' clearance on top of the margin [m]",
-    )
-    ap.add_argument("--layer-ignores-noise", action="store_true")
-    ap.add_argument("--layer-ignores-motion", action="store_true")
-    _add_on_off(ap, "--route-proposal")
-    ap.add_argument(
-        "--route-lookahead", type=int, default=None, help="steps of route pursuit after each chunk"
-    )
-    ap.add_argument(
-        "--coherence", type=float, default=None, help="best-of-K's weight on keeping to the plan [m]"
-    )
-    ap.add_argument(
-        "--proposal-blend",
+        "--horizon",
         type=int,
         default=None,
-        help="steps over which route pursuit's proposal is blended in",
+        help="steps the layer looks past every chunk: route pursuit, braking where obstacles move (0: none)",
     )
     ap.add_argument(
         "--chunk-smoothing",
@@ -285,9 +249,9 @@ def add_arguments(ap: argparse.ArgumentParser, policy_required: bool = False) ->
         help="growth of a moving obstacle's predicted radius per second ahead [m/s]",
     )
     ap.add_argument(
-        "--halt-lookahead",
-        type=int,
-        default=None,
-        help="steps a team braking after a chunk must stay clear of movers, where no lookahead passes (0: off)",
+        "--layer-ignores-noise", action="store_true", help="the layer is not told the level's sensing noise"
+    )
+    ap.add_argument(
+        "--layer-ignores-motion", action="store_true", help="the layer is not told that obstacles move"
     )
     ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the env's)")

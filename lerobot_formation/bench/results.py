@@ -47,7 +47,7 @@ def safety_rates(stats: dict) -> dict:
     (``policy.replanner.STAT_KEYS``): the share of steps whose action the CBF filter changed
     (``filter_intervention_rate``; x 100: per 100 steps), and the shares of replans where best-of-K
     found no safe candidate, kept an escape manoeuvre, stopped, or kept route pursuit's proposal
-    (``proposal_rate``; ``safety_route_proposal``); the share of steps where a kept chunk failed its
+    (``proposal_rate``; with a route hint); the share of steps where a kept chunk failed its
     check on the newer view and the episode replanned (``recheck_rate``; ``safety_recheck``)."""
     replans = max(stats["replans"], 1)
     return {
@@ -86,7 +86,7 @@ def safety_table(results: dict, label: str, order: tuple[str, ...] = ()) -> str:
         "",
         "Filter interventions: actions the CBF filter changed; the percentages are of best-of-K's "
         "replans (an escape manoeuvre is kept only when no sampled chunk is safe; the route proposal is "
-        "route pursuit's chunk, scored beside the sampled ones with ``safety_route_proposal``; a failed "
+        "route pursuit's chunk, scored beside the sampled ones where the policy observes a route hint; a failed "
         "recheck: a kept chunk that no longer passed the check on a newer view, replanned at once, "
         "``safety_recheck``).",
         "",

@@ -12,6 +12,15 @@ a temporary file and renamed into position. Either way:
 - a retired field (``RETIRED_FIELDS``) is dropped when it holds the value the code now hard-wires;
   any other value is refused, one line naming the field, its value and the wired one (the setting is
   gone, or an experiment setting of ``scripts/ablation.py``, i.e. ``policy.replanner.ReplanExperiment``);
+- a safety-layer setting that is fixed now (``FIXED_LAYER_FIELDS``: ``cbf_rate``,
+  ``safety_follower_margin``, ``safety_route_proposal``, ``safety_proposal_blend``,
+  ``safety_coherence``; ``core.safety.layer``'s constants) is dropped; where its value, or the value
+  a config without it ran with, is not the wired one, one warning line names the field, that value
+  and the wired one (the checkpoint loads: a K = 1 policy never used them);
+- the six flat fields of what the layer knows of the world (``WORLD_FIELDS``:
+  ``safety_moving_obstacles``, ``safety_action_delay``, ...) move into ``safety_world``, their values
+  kept; ``safety_route_lookahead`` and ``safety_halt_lookahead`` become ``safety_horizon`` (where
+  they differ, the route lookahead's value, and a warning naming both);
 - a config without a field whose default now turns part of the shipped safety layer on
   (``FIELDS_BEFORE``) was written before that field existed, and ran without it: it gets the value
   it ran with (a K = 1 checkpoint stays K = 1);
@@ -27,23 +36,33 @@ from __future__ import annotations
 import json
 import os
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 from lerobot_formation.compat.run_checks import (  # noqa: F401  (re-exported)
     FIELDS_BEFORE,
+    FIXED_LAYER_FIELDS,
+    LOOKAHEAD_FIELDS,
     RETIRED_FIELDS,
+    WORLD_FIELDS,
     OldCheckpointError,
     drop_retired_fields,
 )
 from lerobot_formation.core.encodings.obstacle_grid import ENCODINGS, environment_state_dim
+from lerobot_formation.core.safety.layer import KnownWorld
 
 OBS_ENV_STATE = "observation.environment_state"  # lerobot.utils.constants.OBS_ENV_STATE (no torch here)
 
 
 def upgrade_policy_config(raw: dict, where: str = "config.json") -> dict:
-    """The policy config dict ``raw`` without retired fields, with ``obstacle_encoding`` (see the
-    module docstring); ``raw`` itself is left as it is."""
+    """The policy config dict ``raw`` without retired fields, with ``obstacle_encoding`` and every field
+    of ``safety_world`` (as LeRobot writes a config; see the module docstring); ``raw`` itself is left
+    as it is."""
     out = drop_retired_fields(raw, where)
+    try:
+        out["safety_world"] = asdict(KnownWorld(**(out.get("safety_world") or {})))
+    except (TypeError, ValueError) as e:
+        raise OldCheckpointError(f"{where}: {e}") from None
     if out.get("obstacle_encoding") is None:
         env = (out.get("input_features") or {}).get(OBS_ENV_STATE) or {}
         size = tuple(env.get("shape") or ())

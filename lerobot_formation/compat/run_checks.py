@@ -10,9 +10,13 @@
   when the policy config module is imported): every local one that ``PreTrainedConfig.from_pretrained``
   loads is read through ``drop_retired_fields`` (the file is left as it is): a retired field
   (``RETIRED_FIELDS``) is dropped where it holds the value the code now hard-wires, any other value is
-  one line naming the field, its value and the wired one; a field whose default now turns part of the
-  shipped safety layer on (``FIELDS_BEFORE``) is, where the file lacks it (it predates the field),
-  the value it ran with. ``compat.old_checkpoints`` rewrites such a folder in place.
+  one line naming the field, its value and the wired one; a safety-layer setting that is now fixed
+  (``FIXED_LAYER_FIELDS``) is dropped, with one warning line where the value it held (or, lacking
+  it, ran with) is not the wired one; the six flat fields of what the layer knows of the world
+  (``WORLD_FIELDS``) move into ``safety_world``, and the two lookaheads (``LOOKAHEAD_FIELDS``)
+  become ``safety_horizon``; a field whose default now turns part of the shipped safety layer on
+  (``FIELDS_BEFORE``) is, where the file lacks it (it predates the field), the value it ran with.
+  ``compat.old_checkpoints`` rewrites such a folder in place.
 - The env config meets the policy config (``hand_env_its_policy``): ``lerobot-train`` and
   ``lerobot-eval``'s pipeline configs hand ``FormationEnvConfig`` the run's policy config: an env
   whose obstacle encoding the user did not give takes the policy's (a given one that differs is an
@@ -51,11 +55,14 @@ class ConfigError(ValueError):
     value and what to do."""
 
 
-def config_error_in_chain(exc: BaseException | None) -> ConfigError | None:
-    """The first ``ConfigError`` in ``exc`` and its causes / contexts, or None."""
+def config_error_in_chain(exc: BaseException | None) -> ValueError | None:
+    """The first ``ConfigError`` in ``exc`` and its causes / contexts, or None. An error of a config
+    value raised in the numpy core (which imports nothing of this module), e.g. by a nested settings
+    dataclass that draccus builds before our config (``core.safety.layer.KnownWorld``), counts as
+    one where its class says so (``config_error = True``)."""
     seen = set()
     while exc is not None and id(exc) not in seen:
-        if isinstance(exc, ConfigError):
+        if isinstance(exc, ConfigError) or getattr(type(exc), "config_error", False):
             return exc
         seen.add(id(exc))
         exc = exc.__cause__ or exc.__context__
@@ -366,19 +373,38 @@ FIELDS_BEFORE = {
     "num_candidates": 1,
     "safety_filter": "none",
     "safety_margin": 0.1,
-    "safety_follower_margin": 0.0,
-    "cbf_rate": 2.0,
+    "safety_horizon": 0,
     "safety_mover_uncertainty": 0.0,
-    "safety_route_proposal": False,
-    "safety_route_lookahead": 0,
-    "safety_halt_lookahead": 0,
-    "safety_proposal_blend": 0,
-    "safety_coherence": 0.0,
     "warm_start_step": 0,
     "chunk_smoothing": 0,
     "sampling_guidance": 0.0,
     "inference_backend": "eager",
 }
+
+# The safety layer's settings that are fixed now (core.safety.layer's constants CBF_RATE,
+# FOLLOWER_MARGIN, ROUTE_PROPOSAL, PROPOSAL_BLEND, COHERENCE): field -> (the wired value, the value a
+# config.json written before the field ran with). Dropped; another value is one warning line, not a
+# refusal (a K = 1 checkpoint never used them).
+FIXED_LAYER_FIELDS = {
+    "cbf_rate": (4.0, 2.0),
+    "safety_follower_margin": (0.03, 0.0),
+    "safety_route_proposal": (True, False),
+    "safety_proposal_blend": (4, 0),
+    "safety_coherence": (1.0, 0.0),
+}
+# What the layer knows of the world, once six flat fields: field -> its name in ``safety_world``
+WORLD_FIELDS = {
+    "safety_moving_obstacles": "moving_obstacles",
+    "safety_action_delay": "action_delay",
+    "safety_max_linear_accel": "max_linear_accel",
+    "safety_max_angular_accel": "max_angular_accel",
+    "safety_obstacle_noise": "obstacle_noise",
+    "safety_pose_noise": "pose_noise",
+}
+# The route and the halt lookahead, now one ``safety_horizon`` (each 0 in a config.json before it)
+LOOKAHEAD_FIELDS = ("safety_route_lookahead", "safety_halt_lookahead")
+# A config.json that has one of these was written after the fields above were folded in.
+CURRENT_LAYER_FIELDS = ("safety_horizon", "safety_world")
 
 
 class OldCheckpointError(ConfigError):
@@ -390,9 +416,46 @@ def _as_json(value):
     return list(value) if isinstance(value, tuple) else value
 
 
+def _warn(line: str) -> None:
+    logging.getLogger("lerobot_formation").warning(line)
+
+
+def _fold_layer_fields(out: dict, where: str) -> None:
+    """The safety layer's fields of an earlier version folded into the current ones, in ``out``
+    (the module docstring): ``WORLD_FIELDS`` into ``safety_world``, ``LOOKAHEAD_FIELDS`` into
+    ``safety_horizon`` (where they differ, the route lookahead's value and a warning naming both),
+    ``FIXED_LAYER_FIELDS`` dropped (a warning where the value is not the wired one)."""
+    current = any(key in out for key in CURRENT_LAYER_FIELDS)
+    flat = {name: out.pop(key) for key, name in WORLD_FIELDS.items() if key in out}
+    if flat:
+        out["safety_world"] = {**flat, **(out.get("safety_world") or {})}
+    lookaheads = {key: out.pop(key) for key in LOOKAHEAD_FIELDS if key in out}
+    if lookaheads and "safety_horizon" not in out:
+        route, halt = (lookaheads.get(key, 0) for key in LOOKAHEAD_FIELDS)
+        if route != halt:
+            _warn(
+                f"{where}: safety_route_lookahead={json.dumps(route)} and safety_halt_lookahead="
+                f"{json.dumps(halt)} are one safety_horizon now; it takes the route lookahead's "
+                f"{json.dumps(route)}"
+            )
+        out["safety_horizon"] = route
+    for key, (wired, before) in FIXED_LAYER_FIELDS.items():
+        given = key in out
+        if not given and current:
+            continue
+        value = out.pop(key, before)
+        if value != wired:
+            ran = "" if given else " (the file predates the field: it ran with that)"
+            _warn(
+                f"{where}: {key}={json.dumps(value)}{ran} is not run any more: the layer's setting is now "
+                f"fixed at {json.dumps(wired)}"
+            )
+
+
 def drop_retired_fields(raw: dict, where: str = "config.json") -> dict:
-    """The policy config dict ``raw`` without retired fields and with ``FIELDS_BEFORE`` where it lacks
-    them (the module docstring); ``raw`` itself is left as it is.
+    """The policy config dict ``raw`` without retired fields, with the safety layer's fields of an
+    earlier version folded into the current ones (``_fold_layer_fields``) and with ``FIELDS_BEFORE``
+    where it lacks them (the module docstring); ``raw`` itself is left as it is.
 
     Raises:
         OldCheckpointError: a retired field holds another value than the one the code runs.
@@ -412,6 +475,7 @@ def drop_retired_fields(raw: dict, where: str = "config.json") -> dict:
                 f"now runs with ({json.dumps(wired)}); {gone}"
             )
         del out[key]
+    _fold_layer_fields(out, where)
     for key, before in FIELDS_BEFORE.items():
         out.setdefault(key, before)
     return out

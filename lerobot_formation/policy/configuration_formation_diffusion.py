@@ -19,6 +19,7 @@ from lerobot_formation.core.encodings.obstacle_grid import (
     route_encodings,
 )
 from lerobot_formation.core.perception.observation import STATE_DIM
+from lerobot_formation.core.safety.layer import KnownWorld
 from lerobot_formation.core.world.dynamics import FormationParams
 from lerobot_formation.policy.obstacle_tokens import TOKEN_HEADS, token_layout
 
@@ -134,79 +135,49 @@ class FormationDiffusionConfig(DiffusionConfig):
         num_candidates: K action chunks drawn per replan in one batched call; with K > 1 the safety
             layer keeps the best (``core.safety.filters.select_chunk``: no predicted collision of the whole
             formation's footprint, then cost-to-go progress toward the goal on a 0.4 m grid read
-            bilinearly; the escape manoeuvres of ``core.safety.layer.ESCAPE_SPEEDS`` where no sample is
-            safe, else the widest of every candidate scored), and at every step checks the rest of
-            the kept chunk again on the newest view (``core.safety.filters.plan_is_safe``), replanning at
-            once where it fails. 10 (default, the shipped policy's); 1: the standard policy.
+            bilinearly, less ``core.safety.layer.COHERENCE`` m per unit of deviation from the plan it
+            replaces unless the filter cut that plan short; with a route encoding route pursuit's
+            chunk, blended in from the command being executed, competes too; the escape manoeuvres of
+            ``core.safety.layer.ESCAPE_SPEEDS`` where no candidate is safe, else the widest of every
+            candidate scored), and at every step checks the rest of the kept chunk again on the newest
+            view (``core.safety.filters.plan_is_safe``), replanning at once where it fails. 10
+            (default, the shipped policy's); 1: the standard policy.
         safety_filter: "none", or "cbf" (default): every executed action passes a control-barrier-
-            function filter on [v, omega] for all four agents (``core.safety.filters.cbf_filter``); an episode
-            whose action it changed replans at its next step. Needs an egocentric encoding ("nearest")
+            function filter on [v, omega] for all four agents (``core.safety.filters.cbf_filter``, dh/dt
+            >= -alpha h with alpha ``core.safety.layer.CBF_RATE``); an episode whose action it
+            changed replans at its next step. Needs an egocentric encoding ("nearest")
             and ``fixed_action_bounds``; it uses only the observed obstacles.
         safety_margin: clearance [m] the safety layer keeps between every agent disc and every
-            obstacle (followers lag their square slots by up to ~0.1 m). Default 0.05.
-        safety_follower_margin: clearance [m] the safety layer keeps for the two followers on top of
-            ``safety_margin`` (the layer places them on their square slots; they lag them, most in
-            turns and under noise). Default 0.03; 0: the same margin for all four agents. Not used
-            where the layer predicts moving obstacles (``safety_moving_obstacles``): the team then
-            needs its room to get out of a mover's way.
-        cbf_rate: the barrier's decay rate alpha [1/s]: dh/dt >= -alpha h. Default 4.
-        safety_moving_obstacles: the safety layer predicts every observed obstacle at constant
-            velocity (best-of-K checks a chunk against where the obstacles will be, the filter's
-            barrier counts their approach): the velocities the "nearest+velocity" encoding observes,
-            else those the safety layer's tracker estimates from the observation history
-            (``core.perception.obstacle_tracker``). Off by default (obstacles stand still).
-        safety_mover_uncertainty: u >= 0 [m/s]. With ``safety_moving_obstacles``, best-of-K grows a
-            moving obstacle's predicted radius by u t at t seconds ahead (over the chunk and its route
-            lookahead; ``core.perception.obstacle_tracker.predict_obstacles``): its constant-velocity prediction
-            drifts with the velocity estimate's error and with every bounce, so a chunk that passes a
-            mover closely late in the horizon is not safe. Default 0.1; 0: the prediction as exact.
-        safety_action_delay: control steps between sending a command and its execution, a known
-            property of the robot (the env's ``action_delay``): best-of-K and the filter start from
-            the pose predicted after the commands already sent. 0 (default): at once.
-        safety_max_linear_accel: the robot's limit on dv/dt [m/s^2] (the env's ``max_linear_accel``):
-            best-of-K rolls chunks out rate limited (``dynamics.rate_limit``) and the filter chooses
-            among the velocities reachable in one step. None (default): no limit.
-        safety_max_angular_accel: the same on domega/dt [rad/s^2] (the env's ``max_angular_accel``).
-        safety_obstacle_noise: std [m] of the noise on the observed obstacles' centres and radii, a
-            known property of the robot's sensing (the env's ``obstacle_noise``). With either noise
-            field > 0 the layer smooths the obstacles it sees over the steps
-            (``core.perception.obstacle_filter``: a Kalman gain per obstacle from the two noise stds; a
-            standing team's estimate keeps averaging): a barrier on raw noisy clearances lets a team that
-            cannot back up creep into the obstacle it waits beside. 0 (default): exact observations.
-        safety_pose_noise: the same for the observed midpoint pose [m, rad] (the env's ``pose_noise``).
-        safety_route_proposal: best-of-K also scores route pursuit's chunk
-            (``core.controllers.route_pursuit.pursuit_chunk``, from the route hint the policy observes; needs
-            a route encoding, "nearest+route", "nearest+maproute" or "nearest+route+velocity") beside the K sampled
-            ones, and keeps it when it is safe and makes the most
-            progress (the ``proposals`` count says how often). True (default).
-        safety_route_lookahead: n >= 0 steps. With n > 0 best-of-K follows every candidate with n
-            steps of route pursuit from its end pose (``pursuit_chunk``; needs a route encoding),
-            checks the footprint over both (a chunk that ends facing a wall the team cannot turn away
-            from, the leaders unable to back up, is not safe, unless no candidate's continuation is)
-            and measures cost-to-go progress at the continuation's end (so the heading a chunk leaves
-            counts). Default 20; 0: the chunk alone.
-        safety_halt_lookahead: n >= 0 steps. With n > 0, where no candidate passes with its route
-            lookahead, best-of-K prefers the candidates after which the team, braking to a standstill
-            (rate limited) and standing for the rest of n steps, keeps the margin
-            (``core.safety.filters.FootprintCheck.halted``): a stop is the team's last resort, and a place
-            where a standing team is struck by a mover it could have left is not one to stop in
-            (the leaders cannot back up). Used only where the layer predicts moving obstacles
-            (``safety_moving_obstacles``): standing obstacles come no closer to a standing team, and
-            the levels without movers keep the layer they were measured with. Default 20; 0: the
-            chunk alone decides there.
-        safety_proposal_blend: m >= 0 steps. With m > 0 route pursuit's proposal
-            (``safety_route_proposal``) enters from the command being executed: its first m actions
-            are blended from the last executed one (``core.safety.replan_blend``) before it is scored, as the
-            continuous controller it comes from would move (a proposal computed from the hint alone
-            starts with a step in [v, omega]). Not with a rate-limited actuator
-            (``safety_max_linear_accel`` / ``safety_max_angular_accel``), which ramps that step by
-            itself, nor without the proposal (``safety_route_proposal=false`` turns both off).
-            Default 4; 0: the proposal as computed.
-        safety_coherence: w >= 0 [m]. With w > 0 best-of-K prefers, among the safe candidates, the
-            one closest to the rest of the plan it replaces: a candidate whose first
-            ``n_action_steps`` commands deviate from it by d (root mean square, in action ranges)
-            scores w d less progress (``core.safety.filters.select_chunk``); not after a plan the filter cut
-            short (it met a barrier). Default 1; 0: progress alone.
+            obstacle (followers lag their square slots by up to ~0.1 m; the layer keeps them
+            ``core.safety.layer.FOLLOWER_MARGIN`` more where it predicts no moving obstacles).
+            Default 0.05.
+        safety_horizon: n >= 0 steps the safety layer looks past every candidate chunk. Best-of-K
+            follows every candidate with n steps of route pursuit from its end pose (``pursuit_chunk``,
+            with a route encoding), checks the footprint over both (a chunk that ends facing a wall
+            the team cannot turn away from, the leaders unable to back up, is not safe, unless no
+            candidate's continuation is) and measures cost-to-go progress at the continuation's end
+            (so the heading a chunk leaves counts). Where no candidate passes so and the layer
+            predicts moving obstacles (``safety_world.moving_obstacles``), it prefers the candidates
+            after which the team, braking to a standstill (rate limited) and standing for the rest of
+            n steps, keeps the margin (``core.safety.filters.FootprintCheck.halted``): a place where
+            a standing team is struck by a mover it could have left is not one to stop in. Default
+            20; 0: the chunk alone.
+        safety_mover_uncertainty: u >= 0 [m/s]. Where the layer predicts moving obstacles, best-of-K
+            grows a moving obstacle's predicted radius by u t at t seconds ahead (over the chunk and
+            its horizon; ``core.perception.obstacle_tracker.predict_obstacles``): its constant-velocity
+            prediction drifts with the velocity estimate's error and with every bounce, so a chunk
+            that passes a mover closely late in the horizon is not safe. Default 0.1; 0: the
+            prediction as exact.
+        safety_world: what the safety layer is told of the robot and its world, not tuned settings
+            (``core.safety.layer.KnownWorld``, whose docstring describes each field):
+            ``moving_obstacles`` (predict the observed obstacles at constant velocity),
+            ``action_delay`` [control steps], ``max_linear_accel`` [m/s^2] / ``max_angular_accel``
+            [rad/s^2] (None: no limit), ``obstacle_noise`` / ``pose_noise`` [m, rad] (the sensors'
+            noise stds). The bench sets it from each level's conditions; on the command line
+            ``--policy.safety_world.action_delay=1``. Default: nothing known (``KnownWorld()``).
+            The layer's other settings are wired (``core.safety.layer``: ``CBF_RATE``,
+            ``FOLLOWER_MARGIN``, ``ROUTE_PROPOSAL``, ``PROPOSAL_BLEND``, ``COHERENCE``,
+            ``ESCAPE_SPEEDS``, ...).
         warm_start_step: j >= 0. j > 0: a replan starts at the sampler's j-th timestep from the
             unexecuted rest of the episode's previous chunk, noised to that level (SDEdit; the module
             docstring of ``modeling_formation_diffusion``), every best-of-K candidate with its own
@@ -217,8 +188,8 @@ class FormationDiffusionConfig(DiffusionConfig):
             time, entered from the command being executed (``core.safety.replan_blend.smooth_chunks``), before
             best-of-K scores the candidates (so it judges what will run); with K = 1 too. A diffusion
             sample's step-to-step noise is most of the jerk where a chunk runs on. Route pursuit's
-            proposal is smoothed too where it is blended in (``safety_proposal_blend``). Default 2;
-            0: the samples as drawn.
+            proposal is smoothed too where it is blended in (``core.safety.layer.PROPOSAL_BLEND``).
+            Default 2; 0: the samples as drawn.
         sampling_guidance: eta >= 0. With eta > 0 every denoising step moves the sampler's estimate
             of the clean chunk down the gradient of a clearance barrier on the whole formation's
             footprint against the observed obstacles (movers at their velocities; from the actuator's
@@ -278,20 +249,9 @@ class FormationDiffusionConfig(DiffusionConfig):
     num_candidates: int = 10
     safety_filter: str = "cbf"
     safety_margin: float = 0.05
-    safety_follower_margin: float = 0.03
-    cbf_rate: float = 4.0
-    safety_moving_obstacles: bool = False
+    safety_horizon: int = 20
     safety_mover_uncertainty: float = 0.1
-    safety_action_delay: int = 0
-    safety_max_linear_accel: float | None = None
-    safety_max_angular_accel: float | None = None
-    safety_obstacle_noise: float = 0.0
-    safety_pose_noise: float = 0.0
-    safety_route_proposal: bool = True
-    safety_route_lookahead: int = 20
-    safety_halt_lookahead: int = 20
-    safety_proposal_blend: int = 4
-    safety_coherence: float = 1.0
+    safety_world: KnownWorld = field(default_factory=KnownWorld)
     warm_start_step: int = 1
     chunk_smoothing: int = 2
     sampling_guidance: float = 1.0
@@ -409,45 +369,19 @@ class FormationDiffusionConfig(DiffusionConfig):
             raise config_error(f"num_candidates must be >= 1, got {self.num_candidates}")
         if self.safety_filter not in SAFETY_FILTERS:
             raise config_error(f"safety_filter must be one of {SAFETY_FILTERS}, got {self.safety_filter!r}")
-        if self.safety_margin < 0 or self.cbf_rate <= 0:
-            raise config_error(
-                f"need safety_margin >= 0 and cbf_rate > 0, got {self.safety_margin} and {self.cbf_rate}"
-            )
-        if not _is_finite_nonnegative(self.safety_follower_margin):
-            raise config_error(
-                f"safety_follower_margin must be a number >= 0 [m], got {self.safety_follower_margin!r}"
-            )
+        if not _is_finite_nonnegative(self.safety_margin):
+            raise config_error(f"safety_margin must be a number >= 0 [m], got {self.safety_margin!r}")
+        if isinstance(self.safety_horizon, bool) or not (
+            isinstance(self.safety_horizon, int) and self.safety_horizon >= 0
+        ):
+            raise config_error(f"safety_horizon must be an integer >= 0 [steps], got {self.safety_horizon!r}")
         if not _is_finite_nonnegative(self.safety_mover_uncertainty):
             raise config_error(
                 f"safety_mover_uncertainty must be a number >= 0 [m/s], got {self.safety_mover_uncertainty!r}"
             )
-        if isinstance(self.safety_action_delay, bool) or not (
-            isinstance(self.safety_action_delay, int) and self.safety_action_delay >= 0
-        ):
+        if not isinstance(self.safety_world, KnownWorld):  # its fields are checked where it is made
             raise config_error(
-                f"safety_action_delay must be an integer >= 0 [control steps], got {self.safety_action_delay!r}"
-            )
-        for name in ("safety_max_linear_accel", "safety_max_angular_accel"):
-            value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise config_error(f"{name} must be null (no limit) or > 0, got {value}")
-        for name in ("safety_obstacle_noise", "safety_pose_noise"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (
-                isinstance(value, int | float) and math.isfinite(value) and value >= 0
-            ):
-                raise config_error(f"{name} must be a finite std >= 0 [m], got {value!r}")
-        for name in ("safety_route_lookahead", "safety_halt_lookahead"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, int) and value >= 0):
-                raise config_error(f"{name} must be an integer >= 0 [steps], got {value!r}")
-        if isinstance(self.safety_proposal_blend, bool) or not (
-            isinstance(self.safety_proposal_blend, int)
-            and 0 <= self.safety_proposal_blend <= max_action_steps
-        ):
-            raise config_error(
-                f"safety_proposal_blend must be an integer in [0, {max_action_steps}] (the chunk's length) "
-                f"[steps], got {self.safety_proposal_blend!r}"
+                f"safety_world must be a KnownWorld (core.safety.layer), got {self.safety_world!r}"
             )
         if isinstance(self.chunk_smoothing, bool) or not (
             isinstance(self.chunk_smoothing, int) and self.chunk_smoothing >= 0
@@ -470,10 +404,6 @@ class FormationDiffusionConfig(DiffusionConfig):
                 f"{self.noise_scheduler_type!r} (pass --policy.noise_scheduler_type=DDIM, or "
                 "--policy.sampling_guidance=0)"
             )
-        if not _is_finite_nonnegative(self.safety_coherence):
-            raise config_error(
-                f"safety_coherence must be a finite weight >= 0 [m], got {self.safety_coherence!r}"
-            )
         if self.safety_layer and not (
             get_encoding(self.obstacle_encoding).egocentric and self.fixed_action_bounds
         ):  # the layer reads body-frame obstacles and scores physical actions
@@ -484,18 +414,6 @@ class FormationDiffusionConfig(DiffusionConfig):
                 "fixed_action_bounds=true; this policy "
                 f"has obstacle_encoding={self.obstacle_encoding!r}, fixed_action_bounds={self.fixed_action_bounds} "
                 f"(the standard policy, the layer off: {' '.join(f'--policy.{k}={v}' for k, v in LAYER_OFF.items())})"
-            )
-        route = {
-            "safety_route_proposal": self.safety_route_proposal,
-            "safety_route_lookahead": self.safety_route_lookahead,
-        }
-        # best-of-K's (K > 1) route pursuit; with K = 1 they are not used
-        if any(route.values()) and self.num_candidates > 1 and not get_encoding(self.obstacle_encoding).map:
-            given = ", ".join(f"{k}={str(v).lower()}" for k, v in route.items())
-            raise config_error(
-                f"{given} with num_candidates={self.num_candidates} need a route hint, an obstacle_encoding "
-                f"of {route_encodings()}, got obstacle_encoding={self.obstacle_encoding!r} (or pass "
-                "--policy.safety_route_proposal=false --policy.safety_route_lookahead=0)"
             )
         super().__post_init__()
 

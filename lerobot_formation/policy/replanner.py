@@ -19,9 +19,9 @@ first:
    the new window and padded with its last action (``warm_start_guess``), is the guess every
    candidate starts from at the sampler's j-th timestep, each with its own noise; an episode's first
    replan samples from pure noise;
-2. K = ``num_candidates`` candidates in one batched sampler call; with the layer's ``guidance`` every
-   denoising step moves them away from the view's obstacles (``SafetyLayer.clearance_step``,
-   ``_guide``); ``chunk_smoothing`` smooths them;
+2. K = ``num_candidates`` candidates in one batched sampler call; with ``guidance`` every denoising
+   step moves them away from the view's obstacles (``SafetyLayer.clearance_step``, ``_guide``);
+   ``chunk_smoothing`` smooths them;
 3. blending (``ReplanExperiment.blend_steps``, experiments only): the new chunks' first actions are
    blended from the last executed one (``core.safety.replan_blend``);
 4. choice: with K > 1 the layer's best-of-K (``SafetyLayer.choose``: footprint check, cost-to-go
@@ -37,8 +37,9 @@ first:
 What the layer sees of an episode at a step is a ``core.safety.layer.SafetyView``, built once per
 step from the raw observation (``view``). All of it starts afresh with each episode (``start``).
 
-The replanner's own settings are a ``PlanSettings`` and the layer's a ``core.safety.layer.SafetySettings``;
-``Replanner.from_config`` reads both from a policy config (the policy's own, or a copy made with
+The replanner's own settings are a ``PlanSettings`` (the sampler's too: chunk smoothing and the
+guidance step, used with K = 1 as well, and the observation's layout the layer decodes) and the
+layer's a ``core.safety.layer.SafetySettings``; ``Replanner.from_config`` reads both from a policy config (the policy's own, or a copy made with
 ``dataclasses.replace`` for a bench controller or an ablation row, which runs the config's checks).
 The settings of the ablation study that the shipped policy does not use are a ``ReplanExperiment``.
 """
@@ -47,7 +48,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -89,7 +90,7 @@ class ReplanExperiment:
         sampled: False: nothing is sampled; best-of-K's candidates are route pursuit's proposal and
             the escapes, under the same check, filter and recheck. The safety layer without the
             learned planner: the baseline the layer's rows are measured against (needs a route
-            encoding with ``route_proposal``). With K = 1 and the layer's ``guidance``, the plan is
+            encoding). With K = 1 and ``PlanSettings.guidance``, the plan is
             route pursuit's chunk moved by the clearance guidance ``PlanSettings.denoising_steps``
             times: the baseline of guided sampling.
     """
@@ -112,8 +113,9 @@ class ReplanExperiment:
 
 @dataclass(frozen=True)
 class PlanSettings:
-    """The replanner's own settings (plan bookkeeping and sampling): a policy config's fields of the
-    same names (``from_config``). The defaults are the shipped checkpoint's.
+    """The replanner's own settings (plan bookkeeping, sampling and the observation's layout): a policy
+    config's fields of the same names (``from_config``; ``guidance`` is ``sampling_guidance``). The
+    defaults are the shipped checkpoint's.
 
     Attributes:
         horizon: the sampled window's length (steps).
@@ -126,6 +128,12 @@ class PlanSettings:
         denoising_steps: the sampler's steps from noise (``num_inference_steps``, else
             ``num_train_timesteps``): how often a guided proposal is moved
             (``ReplanExperiment.sampled``).
+        chunk_smoothing: [passes] of the [1, 2, 1] / 4 kernel over every sampled chunk, and over
+            route pursuit's blended proposal (``chunk_smoothing``).
+        guidance: eta, the step of the sampler's clearance guidance (``SafetyLayer.clearance_step``);
+            0: none (``sampling_guidance``).
+        obstacle_encoding: the observation's layout the layer decodes (``obstacle_encoding``).
+        max_obstacles: its obstacle slots, None: the encoding's default (``max_obstacles``).
     """
 
     horizon: int = 16
@@ -134,6 +142,10 @@ class PlanSettings:
     num_candidates: int = 10
     warm_start_step: int = 1
     denoising_steps: int = 4
+    chunk_smoothing: int = 2
+    guidance: float = 1.0
+    obstacle_encoding: str = "nearest+route"
+    max_obstacles: int | None = None
 
     @classmethod
     def from_config(cls, config) -> PlanSettings:
@@ -144,7 +156,21 @@ class PlanSettings:
             num_candidates=config.num_candidates,
             warm_start_step=config.warm_start_step,
             denoising_steps=config.num_inference_steps or config.num_train_timesteps,
+            chunk_smoothing=config.chunk_smoothing,
+            guidance=config.sampling_guidance,
+            obstacle_encoding=config.obstacle_encoding,
+            max_obstacles=config.max_obstacles,
         )
+
+    @staticmethod
+    def from_config_fields(values: dict) -> dict:
+        """The settings (name -> value) of the policy config fields among ``values`` that are read
+        as they are (``from_config``; the others are left out)."""
+        names = {f.name for f in fields(PlanSettings)} - {"guidance", "denoising_steps"}
+        out = {name: values[name] for name in names if name in values}
+        if "sampling_guidance" in values:
+            out["guidance"] = values["sampling_guidance"]
+        return out
 
     @property
     def chunk_length(self) -> int:
@@ -263,20 +289,23 @@ class Replanner:
             raise ValueError(
                 f"blend_steps must be in [0, {self.chunk_length}] (the chunk's length), got {ex.blend_steps}"
             )
+        ps = self.settings
         self.layer = SafetyLayer(
             safety,
+            encoding=ps.obstacle_encoding,
+            max_obstacles=ps.max_obstacles,
             blend_steps=ex.blend_steps,
             escape_advantage=ex.escape_advantage,
             blocked_fallback=ex.blocked_fallback,
         )
         s = self.layer.settings
-        if not ex.sampled and not (self.uses_layer and s.route_proposal and self.layer.encoding.map):
+        if not ex.sampled and not (self.uses_layer and self.layer.encoding.map):
             raise ValueError(
                 "a replanner that samples nothing (ReplanExperiment.sampled=False) needs route pursuit's "
-                "proposal and a safety layer: a route-encoding config with safety_route_proposal and "
-                f"num_candidates > 1, a filter or guidance, got obstacle_encoding={s.obstacle_encoding!r}, "
-                f"safety_route_proposal={s.route_proposal}, num_candidates={self.settings.num_candidates}, "
-                f"safety_filter={s.filter!r}, sampling_guidance={s.guidance}"
+                "proposal and a safety layer: a route-encoding config with num_candidates > 1, a filter "
+                f"or guidance, got obstacle_encoding={ps.obstacle_encoding!r}, "
+                f"num_candidates={ps.num_candidates}, safety_filter={s.filter!r}, "
+                f"sampling_guidance={ps.guidance}"
             )
         self._counts = {"replans": 0, "steps": 0}
         self.plan: Tensor | None = None
@@ -306,16 +335,14 @@ class Replanner:
     def uses_layer(self) -> bool:
         """Whether anything reads the observed obstacles: best-of-K, the filter or the guidance (a
         policy config's ``safety_layer``)."""
-        s = self.layer.settings
-        return self.settings.num_candidates > 1 or s.filter != "none" or s.guidance > 0
+        ps = self.settings
+        return ps.num_candidates > 1 or self.layer.settings.filter != "none" or ps.guidance > 0
 
     @property
     def best_of(self) -> bool:
         """Whether replans choose among candidates (K > 1, or no samples: the proposal and escapes,
-        except the guided proposal alone of K = 1 with the layer's ``guidance``)."""
-        return self.settings.num_candidates > 1 or not (
-            self.experiment.sampled or self.layer.settings.guidance
-        )
+        except the guided proposal alone of K = 1 with ``guidance``)."""
+        return self.settings.num_candidates > 1 or not (self.experiment.sampled or self.settings.guidance)
 
     def reset(self, batch_size: int | None = None, device: torch.device | str = "cpu") -> None:
         """Forget every episode's plan (and with ``batch_size``, start ``batch_size`` episodes); the stats
@@ -414,7 +441,7 @@ class Replanner:
         x0 (n, horizon, 2) normalised of the rows ``rows`` (a mask over the B * K samples; None: all)
         -> x0 with its commands from the current step on moved by ``SafetyLayer.clearance_step``; the
         past step is left as sampled."""
-        step = self.layer.clearance_step(view)
+        step = self.layer.clearance_step(view, self.settings.guidance)
         sample_of = np.repeat(np.arange(len(view.goal)), K)  # the episode of each of the B * K samples
         first = self.settings.n_obs_steps - 1  # the sample's window starts at the step before the current one
 
@@ -430,10 +457,10 @@ class Replanner:
     def _guided_proposal(self, view: SafetyView) -> Tensor:
         """Route pursuit's chunk (``SafetyLayer.route_proposal``) moved by the clearance guidance
         ``denoising_steps`` times (as the sampler from noise): the plan of
-        ``ReplanExperiment(sampled=False)`` at K = 1 with the layer's ``guidance``, normalised
+        ``ReplanExperiment(sampled=False)`` at K = 1 with ``guidance``, normalised
         (B, 1, chunk_length, 2)."""
         proposal = self.layer.route_proposal(view, self.chunk_length)
-        step, at = self.layer.clearance_step(view), np.arange(len(view.goal))
+        step, at = self.layer.clearance_step(view, self.settings.guidance), np.arange(len(view.goal))
         for _ in range(self.settings.denoising_steps):
             proposal = step(proposal, at)
         return normalize_action(torch.from_numpy(proposal).to(self.plan))[:, None]
@@ -452,11 +479,11 @@ class Replanner:
             warm_start=warm,
             warm_start_step=ps.warm_start_step,
             warm_all=True,
-            guide=self._guide(view, K) if self.layer.settings.guidance else None,
+            guide=self._guide(view, K) if ps.guidance else None,
         ).to(self.plan.device)  # the plan lives where the observations do (the model may be elsewhere)
 
     def _replan(self, need: Tensor, view: SafetyView | None, stacked: dict[str, Tensor], noise) -> None:
-        ps, ex, s = self.settings, self.experiment, self.layer.settings
+        ps, ex = self.settings, self.experiment
         K = ps.num_candidates
         if not ex.sampled and not self.best_of:  # route pursuit's chunk, guided
             chunks = self._guided_proposal(view)
@@ -484,14 +511,13 @@ class Replanner:
             else:
                 chunks = self._sample(stacked, noise, warm, view)
         last, has_last = self.last_action[need].to(chunks.dtype), self.has_last[need]
-        chunks = smooth_chunks(chunks, last, has_last, s.chunk_smoothing)  # before best-of-K scores them
+        chunks = smooth_chunks(chunks, last, has_last, ps.chunk_smoothing)  # before best-of-K scores them
         chunks = blend_replan(chunks, last, has_last, ex.blend_steps)
         if self.best_of:
-            previous, keep_to = None, None
-            if s.coherence:  # the plan being replaced, from now on (normalised)
-                previous = warm_start_guess(self.plan[need], self.executed[need], 1, ps.n_action_steps)
-                # a plan the filter cut short met a barrier: nothing to keep to
-                keep_to = has_last & (self.executed[need] >= ps.n_action_steps)
+            # the plan being replaced, from now on (normalised), for the layer's coherence preference
+            previous = warm_start_guess(self.plan[need], self.executed[need], 1, ps.n_action_steps)
+            # a plan the filter cut short met a barrier: nothing to keep to
+            keep_to = has_last & (self.executed[need] >= ps.n_action_steps)
             chosen, _ = self.choose(view, chunks, last, has_last, previous, keep_to)
         else:
             chosen = chunks[:, 0]
@@ -521,7 +547,9 @@ class Replanner:
             previous = unnormalize_action(previous).numpy().astype(np.float64)
         if keep_to is not None:
             keep_to = keep_to.cpu().numpy()
-        chosen, info = self.layer.choose(view, raw, last_action, has_last, previous, keep_to)
+        chosen, info = self.layer.choose(
+            view, raw, last_action, has_last, previous, keep_to, chunk_smoothing=self.settings.chunk_smoothing
+        )
         return normalize_action(torch.from_numpy(chosen)).to(chunks.device, chunks.dtype), info
 
     def filter(self, view: SafetyView, action: Tensor) -> tuple[Tensor, np.ndarray]:

@@ -41,7 +41,7 @@ def test_route_pursuit_safe_without_a_checkpoint_acts_as_the_checkpoints_layer()
     assert free.stats == with_checkpoint.stats and free.stats["replans"] > 0
     # the shipped default's settings, told the level's world
     settings = free.replanner.layer.settings
-    assert (settings.filter, settings.action_delay, settings.moving_obstacles) == ("cbf", 1, True)
+    assert (settings.filter, settings.world.action_delay, settings.world.moving_obstacles) == ("cbf", 1, True)
     assert free.replanner.settings.num_candidates == 10
 
 
@@ -54,4 +54,4 @@ def test_the_layers_overrides_reach_the_checkpoint_free_controller():
     assert ctrl.replanner.settings.num_candidates == 4
     guided = make_controller("route-pursuit-guided", FormationParams(), ControllerOptions())
     assert guided.replanner.settings.num_candidates == 1 and not guided.replanner.best_of
-    assert guided.replanner.layer.settings.filter == "none" and guided.replanner.layer.settings.guidance > 0
+    assert guided.replanner.layer.settings.filter == "none" and guided.replanner.settings.guidance > 0

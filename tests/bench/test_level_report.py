@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import pytest
 
 from lerobot_formation.bench import level_report
+from lerobot_formation.core.episodes.levels import get_level
+from lerobot_formation.core.safety.layer import KnownWorld, known_world
 
 
 def _parse(*flags: str) -> argparse.Namespace:
@@ -19,37 +22,31 @@ def _overrides(args: argparse.Namespace) -> dict:
     return level_report.safety_overrides(**{k: getattr(args, k) for k in level_report.SAFETY_FLAGS})
 
 
-def test_a_bad_route_proposal_value_is_refused(capsys):
-    with pytest.raises(SystemExit):
-        _parse("--route-proposal", "maybe")
-    assert "maybe" in capsys.readouterr().err
-
-
 def test_no_flag_keeps_the_checkpoints_settings():
     assert _overrides(_parse()) == {}
 
 
 def test_each_flag_names_its_config_field():
     args = _parse(
-        "--safety-margin", "0.11", "--follower-margin", "0.03", "--layer-ignores-noise", "--layer-ignores-motion", "--route-proposal", "off",
-        "--route-lookahead", "0", "--coherence", "0", "--proposal-blend", "0", "--chunk-smoothing", "0",
-        "--mover-uncertainty", "0", "--halt-lookahead", "20",
+        "--safety-margin", "0.11", "--layer-ignores-noise", "--layer-ignores-motion", "--horizon", "0",
+        "--chunk-smoothing", "0", "--mover-uncertainty", "0",
     )  # fmt: skip
     assert _overrides(args) == {
         "safety_margin": 0.11,
-        "safety_follower_margin": 0.03,
-        "safety_obstacle_noise": 0.0,
-        "safety_pose_noise": 0.0,
-        "safety_moving_obstacles": False,
-        "safety_route_proposal": False,
-        "safety_route_lookahead": 0,
-        "safety_coherence": 0.0,
-        "safety_proposal_blend": 0,
+        "safety_horizon": 0,
+        "safety_world": KnownWorld(),  # told nothing: the world given (None) without noise and motion
         "chunk_smoothing": 0,
         "safety_mover_uncertainty": 0.0,
-        "safety_halt_lookahead": 20,
     }
-    assert _overrides(_parse("--route-proposal", "on")) == {"safety_route_proposal": True}
+    level5 = known_world(get_level("level5").conditions)
+    assert level5.moving_obstacles and level5.action_delay and level5.obstacle_noise
+    ignores = level_report.safety_overrides(layer_ignores_noise=True, world=level5)
+    assert ignores == {"safety_world": replace(level5, obstacle_noise=0.0, pose_noise=0.0)}
+    ignores = level_report.safety_overrides(layer_ignores_motion=True, world=level5)
+    assert ignores == {"safety_world": replace(level5, moving_obstacles=False)}
+    for retired in ("--route-proposal", "--route-lookahead", "--coherence", "--halt-lookahead"):
+        with pytest.raises(SystemExit):
+            _parse(retired, "0")
 
 
 def test_bad_inputs_name_the_value():

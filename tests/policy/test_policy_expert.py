@@ -34,8 +34,7 @@ def checkpoint(tmp_path_factory) -> Path:
         input_features=inputs,
         output_features=outputs,
         obstacle_encoding="nearest+route",
-        safety_route_proposal=True,
-        safety_route_lookahead=5,
+        safety_horizon=5,
         num_inference_steps=2,
     )
 

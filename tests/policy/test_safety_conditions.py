@@ -1,5 +1,6 @@
 """The safety layer under realistic conditions: moving obstacles, a known actuator delay and rate
-limits (config fields ``safety_*``), their defaults, and the bench's wiring and reports."""
+limits, sensing noise (the config's ``safety_world``, a ``KnownWorld``), their defaults, and the
+bench's wiring and reports."""
 
 import dataclasses
 import importlib.util
@@ -11,6 +12,7 @@ import torch
 from plugin_helpers import formation_features, nearest_config, save_nearest_checkpoint
 
 from lerobot_formation.core.encodings.obstacle_grid import environment_state, environment_state_dim
+from lerobot_formation.core.safety.layer import KnownWorld
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
 from lerobot_formation.policy.replanner import Replanner
 
@@ -24,6 +26,11 @@ def _reference_module():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _told(**world) -> dict:
+    """The config field of a layer told ``world`` (``KnownWorld``'s fields)."""
+    return {"safety_world": KnownWorld(**world)}
 
 
 def _policy(**overrides):
@@ -43,50 +50,37 @@ def test_with_the_new_settings_off_the_replanner_acts_as_before():
     assert want["stats"][ref.STAT_NAMES.index("filter_interventions")] > 0
     assert want["stats"][ref.STAT_NAMES.index("escapes")] > 0
     # the settings change what happens (so the comparison above can fail)
-    late = ref.closed_loop(_policy(safety_action_delay=2, safety_max_linear_accel=0.5))
+    late = ref.closed_loop(_policy(**_told(action_delay=2, max_linear_accel=0.5)))
     assert not np.array_equal(late["actions"], want["actions"])
 
 
 def test_safety_settings_are_checked_with_their_value():
+    """The config's own fields here; ``safety_world``'s where a ``KnownWorld`` is made
+    (``tests/core/safety/test_layer.py``)."""
     for bad, message in (
-        (
-            dict(safety_action_delay=-1),
-            r"safety_action_delay must be an integer >= 0 \[control steps\], got -1",
-        ),
-        (
-            dict(safety_action_delay=1.5),
-            r"safety_action_delay must be an integer >= 0 \[control steps\], got 1.5",
-        ),
-        (
-            dict(safety_max_linear_accel=0.0),
-            r"safety_max_linear_accel must be null \(no limit\) or > 0, got 0.0",
-        ),
-        (
-            dict(safety_max_angular_accel=-2.0),
-            r"safety_max_angular_accel must be null \(no limit\) or > 0, got -2.0",
-        ),
-        (
-            dict(safety_obstacle_noise=-0.02),
-            r"safety_obstacle_noise must be a finite std >= 0 \[m\], got -0.02",
-        ),
-        (
-            dict(safety_pose_noise=float("nan")),
-            r"config values must be finite numbers, got safety_pose_noise=nan",
-        ),
+        (dict(safety_horizon=-1), r"safety_horizon must be an integer >= 0 \[steps\], got -1"),
+        (dict(safety_horizon=1.5), r"safety_horizon must be an integer >= 0 \[steps\], got 1.5"),
+        (dict(safety_margin=-0.1), r"safety_margin must be a number >= 0 \[m\], got -0.1"),
         (
             dict(safety_mover_uncertainty=-0.05),
             r"safety_mover_uncertainty must be a number >= 0 \[m/s\], got -0.05",
         ),
+        (
+            dict(safety_world={"action_delay": 1}),
+            r"safety_world must be a KnownWorld \(core.safety.layer\), got \{'action_delay': 1\}",
+        ),
     ):
         with pytest.raises(ValueError, match=message):
             nearest_config(**bad)
+    with pytest.raises(ValueError, match=r"safety_world.action_delay must be an integer >= 0"):
+        nearest_config(**_told(action_delay=-1))
 
 
 def test_the_layer_smooths_its_view_when_it_knows_the_sensing_noise():
     """With a noise std in the config the replanner's view of the obstacles is smoothed over the
     steps (``core.perception.obstacle_filter``); with exact sensing it is the observation itself."""
     exact = _policy(safety_margin=0.05).replanner
-    noisy = _policy(safety_margin=0.05, safety_obstacle_noise=0.02, safety_pose_noise=0.02).replanner
+    noisy = _policy(safety_margin=0.05, **_told(obstacle_noise=0.02, pose_noise=0.02)).replanner
     exact.start(1), noisy.start(1)
     assert exact.layer.smoother is None and noisy.layer.smoother is not None
 
@@ -112,7 +106,7 @@ def test_the_layer_smooths_its_view_when_it_knows_the_sensing_noise():
 def test_the_replanner_keeps_the_commands_in_flight_and_predicts_the_start():
     """With a delay of 2 the replanner remembers its last two commands (physical, oldest first), and
     the start of the next command is the pose after them, as the actuator model runs them."""
-    policy = _policy(safety_action_delay=2, safety_max_linear_accel=0.5, safety_max_angular_accel=2.0)
+    policy = _policy(**_told(action_delay=2, max_linear_accel=0.5, max_angular_accel=2.0))
     replanner = Replanner.from_config(policy.config, _reference_module().stand_in_sampler(policy))
     replanner.start(1)
     env = torch.from_numpy(
@@ -151,14 +145,14 @@ def _velocity_layer(encoding: str):
         output_features=outputs,
         obstacle_encoding=encoding,
         num_candidates=4,
-        safety_moving_obstacles=True,
+        **_told(moving_obstacles=True),
     )
     return FormationDiffusionPolicy(config).replanner.layer
 
 
 def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     """A "nearest+velocity" policy reads the obstacles' velocities from its observation; a "nearest"
-    one gets them from its tracker (new per episode); without ``safety_moving_obstacles`` neither."""
+    one gets them from its tracker (new per episode); without ``moving_obstacles`` neither."""
     obstacles = np.array([[[1.0, 2.0, 0.3], [-2.0, 4.0, 0.5], [2.0, 5.0, 0.4], [-1.0, 6.5, 0.6]]])
     velocity = np.zeros((1, 4, 2))
     velocity[0, 0] = [0.3, 0.0]
@@ -181,7 +175,7 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
     np.testing.assert_allclose(both.velocity, view.velocity)
     np.testing.assert_allclose(both.route, route)
 
-    tracking = _policy(safety_moving_obstacles=True).replanner
+    tracking = _policy(**_told(moving_obstacles=True)).replanner
     tracking.start(1)
     assert tracking.layer.tracker is not None
     for t in range(12):
@@ -200,8 +194,8 @@ def test_moving_obstacle_velocities_from_the_encoding_or_the_tracker():
 
 
 def test_mover_settings_reach_best_of_k(monkeypatch):
-    """``safety_mover_uncertainty`` and (with ``safety_moving_obstacles`` only)
-    ``safety_halt_lookahead`` are what ``select_chunk`` gets, beside the shipped layer's wired
+    """``safety_mover_uncertainty`` and (with the world's ``moving_obstacles`` only)
+    ``safety_horizon`` as the halt lookahead are what ``select_chunk`` gets, beside the shipped layer's wired
     settings: the escape lattice of ``ESCAPE_SPEEDS`` and the widest of every candidate scored as the
     fallback."""
     from lerobot_formation.core.safety import filters as safety
@@ -225,10 +219,10 @@ def test_mover_settings_reach_best_of_k(monkeypatch):
     assert seen["fallback_all"] is True
     _policy(safety_mover_uncertainty=0.05).replanner.layer.choose(env, chunks)
     assert seen["mover_uncertainty"] == 0.05 and seen["halt_lookahead"] == 0
-    # the halt lookahead reaches the scorer only where the layer predicts movers
-    _policy(safety_halt_lookahead=20).replanner.layer.choose(env, chunks)
-    assert seen["halt_lookahead"] == 0
-    _policy(safety_halt_lookahead=20, safety_moving_obstacles=True).replanner.layer.choose(env, chunks)
+    # the horizon reaches the scorer as the halt lookahead only where the layer predicts movers
+    _policy(safety_horizon=20).replanner.layer.choose(env, chunks)
+    assert seen["halt_lookahead"] == 0 and seen["continuation"] is None  # no route hint to pursue
+    _policy(safety_horizon=20, **_told(moving_obstacles=True)).replanner.layer.choose(env, chunks)
     assert seen["halt_lookahead"] == 20
 
 
@@ -283,14 +277,15 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
     from lerobot_formation.policy.checkpoint import load_policy
 
     conditions = get_level("level5").conditions
-    assert safety_settings(conditions) == {
-        "safety_action_delay": 1,
-        "safety_max_linear_accel": 0.5,
-        "safety_max_angular_accel": 2.0,
-        "safety_obstacle_noise": 0.05,
-        "safety_pose_noise": 0.05,
-        "safety_moving_obstacles": True,
-    }
+    level5 = KnownWorld(
+        moving_obstacles=True,
+        action_delay=1,
+        max_linear_accel=0.5,
+        max_angular_accel=2.0,
+        obstacle_noise=0.05,
+        pose_noise=0.05,
+    )
+    assert safety_settings(conditions) == {"safety_world": level5}
     assert safety_settings(get_level("level3").conditions) == {}
     bundle = load_policy(save_nearest_checkpoint(tmp_path))
     options = ControllerOptions(candidates=3, conditions=conditions)
@@ -301,17 +296,16 @@ def test_bench_safety_controllers_know_the_level_conditions(tmp_path):
         ("diffusion-policy", False),
     ):
         cfg = make_controller(name, FormationParams(), options, bundle).config
-        assert (cfg.safety_action_delay, cfg.safety_moving_obstacles) == (
-            (1, True) if knows else (0, False)
-        ), name
+        assert cfg.safety_world == (level5 if knows else KnownWorld()), name
     plain = make_controller(
         "diffusion-safe", FormationParams(), ControllerOptions(candidates=3), bundle
     ).config
-    assert dataclasses.asdict(plain)["safety_max_linear_accel"] is None
+    assert dataclasses.asdict(plain)["safety_world"]["max_linear_accel"] is None
     # a scenes file's own velocities: the obstacles move without moving_obstacles, so it predicts them
-    assert safety_settings(None, scenes_move=True) == {"safety_moving_obstacles": True}
+    assert safety_settings(None, scenes_move=True) == {"safety_world": KnownWorld(moving_obstacles=True)}
     moving = ControllerOptions(candidates=3, scenes_move=True)
-    assert make_controller("diffusion-safe", FormationParams(), moving, bundle).config.safety_moving_obstacles
+    config = make_controller("diffusion-safe", FormationParams(), moving, bundle).config
+    assert config.safety_world.moving_obstacles
 
 
 def test_bench_guided_controller_guides_and_standard_sampling_is_never_guided(tmp_path):
@@ -337,5 +331,5 @@ def test_bench_guided_controller_guides_and_standard_sampling_is_never_guided(tm
     )
     cfg = make_controller("diffusion-guided", FormationParams(), options, guided).config
     assert (cfg.num_candidates, cfg.safety_filter, cfg.sampling_guidance) == (1, "none", 2.0)
-    assert (cfg.safety_action_delay, cfg.safety_moving_obstacles) == (1, True)
+    assert (cfg.safety_world.action_delay, cfg.safety_world.moving_obstacles) == (1, True)
     assert make_controller("diffusion", FormationParams(), options, guided).config.sampling_guidance == 0

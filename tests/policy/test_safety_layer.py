@@ -17,6 +17,8 @@ from plugin_helpers import (
 
 from lerobot_formation.core.encodings.obstacle_grid import environment_state
 from lerobot_formation.core.perception.conditions import Perception
+from lerobot_formation.core.safety import layer as safety_layer
+from lerobot_formation.core.safety.layer import KnownWorld
 from lerobot_formation.core.safety.replan_blend import smooth_chunks
 from lerobot_formation.core.world.scenes import FAR
 from lerobot_formation.policy.modeling_formation_diffusion import FormationDiffusionPolicy
@@ -78,7 +80,8 @@ def test_one_candidate_without_filter_equals_standard_sampling():
     assert b.safety_stats["filter_interventions"] == 0 and b.safety_stats["steps"] == 3
 
 
-def test_select_action_with_candidates_and_filter_counts_its_interventions():
+def test_select_action_with_candidates_and_filter_counts_its_interventions(monkeypatch):
+    monkeypatch.setattr(safety_layer, "CBF_RATE", 2.0)  # the barrier numbers below are alpha = 2's
     torch.manual_seed(0)
     # K = 1: best-of-K would pick a safe escape manoeuvre here, which the filter then leaves as is
     policy = FormationDiffusionPolicy(nearest_config(num_candidates=1, safety_filter="cbf")).eval()
@@ -217,9 +220,11 @@ def test_replan_blending_starts_a_new_chunk_at_the_executed_action():
     assert replanner.stats["replans"] == 2
 
 
-def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
+def test_route_encoding_policy_scores_chunks_on_its_nearest_part(monkeypatch):
     """A 'nearest+route' policy decodes the same obstacles as a 'nearest' one (the route values after
-    the rows are not obstacles), so best-of-K keeps the same chunk."""
+    the rows are not obstacles), so best-of-K keeps the same chunk (route pursuit's proposal, which
+    only the route hint gives, left out)."""
+    monkeypatch.setattr(safety_layer, "ROUTE_PROPOSAL", False)
     inputs, outputs = formation_features(env_dim=55)
     route = FormationDiffusionPolicy(
         nearest_config(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
@@ -240,10 +245,12 @@ def test_route_encoding_policy_scores_chunks_on_its_nearest_part():
     assert not info55["safe"][0, 0]  # the straight chunk hits the obstacle ahead
 
 
-def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
-    """With ``safety_route_proposal`` best-of-K scores route pursuit's chunk beside the sampled ones:
-    obstacles ahead of both leaders, every sampled chunk drives straight into them, the hint's route
-    turns left, so the proposal (index K) is kept; it needs the route hint."""
+def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe(monkeypatch):
+    """With a route hint best-of-K scores route pursuit's chunk beside the sampled ones
+    (``ROUTE_PROPOSAL``): obstacles ahead of both leaders, every sampled chunk drives straight into
+    them, the hint's route turns left, so the proposal (index K) is kept. Without a route hint there
+    is no proposal, and nothing to refuse."""
+    monkeypatch.setattr(safety_layer, "FOLLOWER_MARGIN", 0.0)  # the proposal grazes with the allowance
     inputs, outputs = formation_features(env_dim=55)
     kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
     obs = np.array([[[0.5, 1.2, 0.3], [-0.5, 1.2, 0.3]]])
@@ -252,35 +259,32 @@ def test_route_proposal_is_kept_when_no_sampled_chunk_is_safe():
     chunks = np.tile([0.6, 0.0], (1, 3, HORIZON, 1))
     kept = {}
     for proposal in (False, True):
-        policy = FormationDiffusionPolicy(nearest_config(safety_route_proposal=proposal, **kw)).eval()
+        monkeypatch.setattr(safety_layer, "ROUTE_PROPOSAL", proposal)
+        policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
         kept[proposal], info = policy.replanner.layer.choose(env, chunks)
-        assert not info["safe"][0, :3].any()
+        assert not info["safe"][0, :3].any() and info["safe"].shape[1] == 3 + proposal
         assert info["proposal_kept"][0] == proposal
     assert kept[True][0, 0, 1] > 0  # it turns left, down the route
-    with pytest.raises(
-        ValueError, match="safety_route_proposal=true, .* with num_candidates=2 need a route hint"
-    ):
-        nearest_config(num_candidates=2, safety_route_proposal=True)
-    assert not nearest_config(safety_route_proposal=True).safety_layer  # K = 1: not used, not refused
+    plain = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_horizon=20)).eval()
+    nearest = environment_state(obs, obs[..., 2] > 0, goal, "nearest", pose=pose)
+    _, info = plain.replanner.layer.choose(nearest, chunks)
+    assert info["safe"].shape[1] == 3 and not info["proposal_kept"].any()
 
 
 def _route_proposal_config(**fields) -> dict:
-    """Config keywords of a ``nearest+route`` policy with route pursuit's proposal, and ``fields``."""
+    """Config keywords of a ``nearest+route`` policy (route pursuit's proposal joins best-of-K's
+    candidates), and ``fields``."""
     inputs, outputs = formation_features(env_dim=55)
-    return dict(
-        input_features=inputs,
-        output_features=outputs,
-        obstacle_encoding="nearest+route",
-        safety_route_proposal=True,
-        **fields,
-    )
+    return dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route", **fields)
 
 
-def test_route_proposal_blending_enters_from_the_executed_action():
-    """With ``safety_proposal_blend`` m route pursuit's proposal starts from the last executed action
+def test_route_proposal_blending_enters_from_the_executed_action(monkeypatch):
+    """With ``PROPOSAL_BLEND`` m route pursuit's proposal starts from the last executed action
     (``core.safety.replan_blend``): its first action lies 1 / (m + 1) of the step from it, its actions from the
     m-th on are unchanged; without a last action (an episode's first chunk), or with a rate-limited
     actuator, it is left as computed."""
+    assert safety_layer.PROPOSAL_BLEND == 4  # the shipped layer's
+    monkeypatch.setattr(safety_layer, "FOLLOWER_MARGIN", 0.0)  # the proposal grazes with the allowance
     kw = _route_proposal_config()
     obs = np.array([[[0.5, 1.2, 0.3], [-0.5, 1.2, 0.3]]])
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
@@ -288,7 +292,8 @@ def test_route_proposal_blending_enters_from_the_executed_action():
     chunks = np.tile([0.6, 0.0], (1, 3, HORIZON, 1))  # every sample drives into the obstacles
     last = np.array([[0.1, 0.0]])
     plain, _ = FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.layer.choose(env, chunks)
-    policy = FormationDiffusionPolicy(nearest_config(safety_proposal_blend=3, **kw)).eval()
+    monkeypatch.setattr(safety_layer, "PROPOSAL_BLEND", 3)
+    policy = FormationDiffusionPolicy(nearest_config(**kw)).eval()
     kept, info = policy.replanner.layer.choose(env, chunks, last, np.array([True]))
     assert info["proposal_kept"][0]
     np.testing.assert_allclose(kept[0, 0], plain[0, 0] + 0.75 * (last[0] - plain[0, 0]))
@@ -297,76 +302,51 @@ def test_route_proposal_blending_enters_from_the_executed_action():
     np.testing.assert_allclose(first, plain)
     # a rate-limited actuator ramps the step itself: the proposal is left as computed
     limited = FormationDiffusionPolicy(
-        nearest_config(safety_proposal_blend=3, safety_max_linear_accel=0.5, **kw)
+        nearest_config(safety_world=KnownWorld(max_linear_accel=0.5), **kw)
     ).eval()
     as_computed, _ = limited.replanner.layer.choose(env, chunks, last, np.array([True]))
     np.testing.assert_allclose(as_computed, plain)
 
 
-def test_proposal_blend_is_checked_with_its_value():
-    inputs, outputs = formation_features(env_dim=55)
-    kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
-    length = HORIZON - N_OBS + 1
-    for bad in (-1, length + 1, 2.5, True):
-        with pytest.raises(ValueError, match=rf"safety_proposal_blend must be an integer in \[0, {length}\]"):
-            nearest_config(safety_route_proposal=True, safety_proposal_blend=bad, **kw)
-    # without the proposal there is nothing to blend: the shipped config with the proposal off loads
-    assert nearest_config(safety_proposal_blend=4, **kw).safety_route_proposal is False
-    assert (
-        nearest_config(safety_route_proposal=True, safety_proposal_blend=8, **kw).safety_proposal_blend == 8
-    )
-
-
-def test_follower_margin_is_checked_and_widens_only_the_followers():
-    for bad in (-0.01, "0.03", True):
-        with pytest.raises(ValueError, match="safety_follower_margin must be a number >= 0"):
-            nearest_config(safety_follower_margin=bad)
-    with pytest.raises(ValueError, match="finite.*safety_follower_margin=inf"):
-        nearest_config(safety_follower_margin=float("inf"))
-    policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_follower_margin=0.03))
+def test_the_follower_margin_widens_only_the_followers(monkeypatch):
+    """``FOLLOWER_MARGIN``: the followers' discs are checked that much larger, not where the layer
+    predicts moving obstacles; the filter's barrier sees the allowance."""
     from lerobot_formation.core.safety.layer import SafetyLayer, SafetySettings, safety_geometry
 
     def layer(config) -> SafetyLayer:
-        return SafetyLayer(SafetySettings.from_config(config))
+        return SafetyLayer(SafetySettings.from_config(config), encoding=config.obstacle_encoding)
 
     _, _, radius = safety_geometry()
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=2))
     np.testing.assert_allclose(
         policy.replanner.layer.agent_radii, [radius, radius, radius + 0.03, radius + 0.03]
     )
-    assert layer(nearest_config(num_candidates=2)).agent_radii == radius
-    movers = nearest_config(num_candidates=2, safety_follower_margin=0.03, safety_moving_obstacles=True)
+    movers = nearest_config(num_candidates=2, safety_world=KnownWorld(moving_obstacles=True))
     assert layer(movers).agent_radii == radius  # room to dodge a mover
     # a turn that swings the right follower (template (0.5, -1)) at an obstacle h = 0.53 m from its
     # disc: the barrier (alpha = 2) lets it approach at up to 2 h, which 1 rad/s keeps to without the
     # allowance; with a 5 cm allowance h is 0.48 m and the filter slows the turn
+    monkeypatch.setattr(safety_layer, "CBF_RATE", 2.0)
     beside_follower = _env_state([[0.5 + radius + 0.3 + 0.53, -1.0, 0.3]])
     turn = np.array([[0.0, 1.0]])
-    plain = layer(nearest_config(safety_filter="cbf", safety_margin=0.0))
-    wide = layer(nearest_config(safety_filter="cbf", safety_margin=0.0, safety_follower_margin=0.05))
+    config = nearest_config(safety_filter="cbf", safety_margin=0.0)
+    monkeypatch.setattr(safety_layer, "FOLLOWER_MARGIN", 0.0)
+    plain = layer(config)
+    monkeypatch.setattr(safety_layer, "FOLLOWER_MARGIN", 0.05)
+    wide = layer(config)
     assert not plain.filter(beside_follower.numpy(), turn)[1][0]
     slowed, changed = wide.filter(beside_follower.numpy(), turn)
     assert changed[0] and 0.0 < slowed[0, 1] < 1.0
 
 
-def test_route_lookahead_is_checked_with_its_value():
-    inputs, outputs = formation_features(env_dim=55)
-    kw = dict(input_features=inputs, output_features=outputs, obstacle_encoding="nearest+route")
-    with pytest.raises(ValueError, match="safety_route_lookahead must be an integer >= 0.*-3"):
-        nearest_config(safety_route_lookahead=-3, **kw)
-    with pytest.raises(ValueError, match="safety_route_lookahead=20 with num_candidates=2 need a route hint"):
-        nearest_config(num_candidates=2, safety_route_lookahead=20)
-    for bad in (-1, 2.5, True):
-        with pytest.raises(ValueError, match=f"safety_halt_lookahead must be an integer >= 0.*{bad!r}"):
-            nearest_config(safety_halt_lookahead=bad)
-    assert nearest_config(safety_route_lookahead=20, **kw).safety_route_lookahead == 20
-
-
-def test_coherence_is_checked_with_its_value():
-    with pytest.raises(ValueError, match="safety_coherence must be a finite weight >= 0.*-1"):
-        nearest_config(safety_coherence=-1.0)
-    with pytest.raises(ValueError, match="finite.*safety_coherence=inf"):
-        nearest_config(safety_coherence=float("inf"))
-    assert nearest_config(safety_coherence=1.0).safety_coherence == 1.0
+def test_the_horizon_is_checked_with_its_value():
+    for bad in (-3, 2.5, True):
+        with pytest.raises(
+            ValueError, match=rf"safety_horizon must be an integer >= 0 \[steps\], got {bad!r}"
+        ):
+            nearest_config(safety_horizon=bad)
+    # without a route hint there is no route pursuit to follow a chunk: the horizon is the halt's alone
+    assert nearest_config(num_candidates=2, safety_horizon=20).safety_horizon == 20
 
 
 def test_progress_grid_reaches_the_scorer(monkeypatch):
@@ -390,7 +370,7 @@ def test_progress_grid_reaches_the_scorer(monkeypatch):
 
 
 def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypatch):
-    """``SafetyLayer.choose`` with the rest of the previous plan: a large weight keeps the left arc it
+    """``SafetyLayer.choose`` with the rest of the previous plan: a large weight (``COHERENCE``) keeps the left arc it
     continues over the straight chunk that makes more progress; without a previous plan, progress
     decides. Through ``select_action`` every replan after the first hands the scorer the plan it
     replaces, from the current step on (here n_action_steps = 8 of them)."""
@@ -400,7 +380,8 @@ def test_coherence_keeps_the_sample_closest_to_the_plan_being_replaced(monkeypat
     straight = np.tile([0.5, 0.0], (1, 1, HORIZON - N_OBS + 1, 1))
     arc = np.tile([0.5, 0.3], (1, 1, HORIZON - N_OBS + 1, 1))
     chunks = np.concatenate([straight, arc], axis=1)
-    policy = FormationDiffusionPolicy(nearest_config(num_candidates=2, safety_coherence=10.0)).eval()
+    monkeypatch.setattr(safety_layer, "COHERENCE", 10.0)
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=2)).eval()
     previous = np.tile([0.5, 0.3], (1, 8, 1))
     kept, info = policy.replanner.layer.choose(env, chunks, np.zeros((1, 2)), np.array([True]), previous)
     assert info["choice"][0] == 1
@@ -443,7 +424,7 @@ def test_coherence_does_not_keep_to_a_plan_the_filter_cut_short(monkeypatch):
 
     monkeypatch.setattr(safety, "select_chunk", spy)
     torch.manual_seed(0)
-    policy = FormationDiffusionPolicy(nearest_config(num_candidates=4, safety_coherence=1.0)).eval()
+    policy = FormationDiffusionPolicy(nearest_config(num_candidates=4)).eval()  # COHERENCE 1
     for _ in range(3):
         policy.select_action(_batch(env))
     policy.replanner.plan_pos[:] = policy.config.n_action_steps  # what an intervention does
@@ -514,11 +495,12 @@ def test_chunk_smoothing_is_checked_with_its_value():
     assert nearest_config(chunk_smoothing=3).chunk_smoothing == 3
 
 
-def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
-    """Where route pursuit's proposal is blended in (``safety_proposal_blend``), ``chunk_smoothing``
-    smooths it after the blend, as it does the sampled chunks; under a rate-limited actuator (no blend)
-    it is left as computed."""
-    kw = _route_proposal_config(safety_proposal_blend=3)
+def test_chunk_smoothing_smooths_the_blended_route_proposal_too(monkeypatch):
+    """Where route pursuit's proposal is blended in (``PROPOSAL_BLEND``), the replanner's
+    ``chunk_smoothing`` smooths it after the blend, as it does the sampled chunks; under a
+    rate-limited actuator (no blend) it is left as computed."""
+    monkeypatch.setattr(safety_layer, "PROPOSAL_BLEND", 3)
+    kw = _route_proposal_config()
     obs = np.array([[[5.0, -5.0, 0.3]]])  # far off the way to the goal
     pose, goal = np.array([[0.0, 0.0, np.pi / 2]]), np.array([[-6.0, 6.0]])
     env = environment_state(obs, obs[..., 2] > 0, goal, "nearest+route", pose=pose)
@@ -527,12 +509,13 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
     blended, _ = (
         FormationDiffusionPolicy(nearest_config(**kw)).eval().replanner.layer.choose(env, chunks, last, had)
     )
-    policy = FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **kw)).eval()
-    kept, info = policy.replanner.layer.choose(env, chunks, last, had)
+    replanner = FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **kw)).eval().replanner
+    n = replanner.settings.chunk_smoothing
+    kept, info = replanner.layer.choose(env, chunks, last, had, chunk_smoothing=n)
     assert info["proposal_kept"][0]
     np.testing.assert_allclose(kept, smooth_chunks(blended, last, had, 2))
     assert not np.allclose(kept, blended)
-    limited = dict(kw, safety_max_linear_accel=0.5)
+    limited = dict(kw, safety_world=KnownWorld(max_linear_accel=0.5))
     plain, _ = (
         FormationDiffusionPolicy(nearest_config(**limited))
         .eval()
@@ -541,7 +524,7 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
     as_computed, _ = (
         FormationDiffusionPolicy(nearest_config(chunk_smoothing=2, **limited))
         .eval()
-        .replanner.layer.choose(env, chunks, last, had)
+        .replanner.layer.choose(env, chunks, last, had, chunk_smoothing=2)
     )
     np.testing.assert_allclose(as_computed, plain)
 
@@ -549,7 +532,8 @@ def test_chunk_smoothing_smooths_the_blended_route_proposal_too():
 def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_calls_the_network(monkeypatch):
     """``ReplanExperiment(sampled=False)`` (the "route-pursuit-safe" baseline): the network samples
     nothing; on an open field the kept chunk is route pursuit's proposal (every replan keeps it), and
-    with obstacles across the route an escape or the proposal, never a sample. It needs the proposal."""
+    with obstacles across the route an escape or the proposal, never a sample. It needs the proposal
+    (a route hint) and a layer."""
     from lerobot_formation.core.controllers.route_pursuit import pursuit_chunk
     from lerobot_formation.core.safety.layer import safety_geometry
     from lerobot_formation.policy.replanner import ReplanExperiment, Replanner, policy_sampler
@@ -587,17 +571,12 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
     assert stats["proposals"] + stats["escapes"] + stats["stops"] == stats["replans"]
 
     alone = ReplanExperiment(sampled=False)
-    with pytest.raises(ValueError, match=r"samples nothing.*num_candidates=4, safety_filter='none'"):
-        Replanner.from_config(  # a layer needs K > 1 or a filter: here K = 4 is fine, the proposal is off
-            nearest_config(**{**kw, "safety_route_proposal": False, "safety_filter": "none"}),
-            experiment=alone,
+    with pytest.raises(ValueError, match=r"samples nothing.*obstacle_encoding='nearest', num_candidates=4"):
+        Replanner.from_config(  # a layer (K = 4), but no route hint: no proposal
+            nearest_config(num_candidates=4, safety_filter="none"), experiment=alone
         )
     with pytest.raises(ValueError, match=r"samples nothing.*num_candidates=1, safety_filter='none'"):
         Replanner.from_config(nearest_config(**_route_proposal_config()), experiment=alone)
-    with pytest.raises(ValueError, match=r"samples nothing.*safety_route_proposal=False"):
-        Replanner.from_config(
-            nearest_config(**{**_route_proposal_config(), "safety_route_proposal": False}), experiment=alone
-        )
 
 
 def test_route_pursuit_safe_is_a_controller_that_needs_no_checkpoint():

@@ -66,9 +66,14 @@ def test_eval_speed_stock_command_plays_a_level_with_its_conditions(tmp_path):
     )
     assert "--env.level=level5" in cmd and f"--seed={level.seed}" in cmd
     assert not any(c.startswith("--env.scenes_file") for c in cmd)
-    assert "--policy.safety_action_delay=1" in cmd and "--policy.safety_moving_obstacles=true" in cmd
+    assert (
+        "--policy.safety_world.action_delay=1" in cmd and "--policy.safety_world.moving_obstacles=true" in cmd
+    )
+    assert "--policy.safety_world.max_linear_accel=0.5" in cmd
     names = {f.name for f in dataclasses.fields(FormationDiffusionConfig)}
-    policy_fields = [c[len("--policy.") :].split("=")[0] for c in cmd if c.startswith("--policy.")]
+    policy_fields = [
+        c[len("--policy.") :].split("=")[0].split(".")[0] for c in cmd if c.startswith("--policy.")
+    ]
     assert set(policy_fields) - {"path", "device"} <= names
 
 
@@ -115,7 +120,8 @@ def test_replan_latency_under_a_level_runs_its_scenes_with_the_safety_layer_told
     real = bench.episode_replans_ms
 
     def spy(policy, *args, **kwargs):
-        seen.append((policy.config.safety_action_delay, policy.config.safety_moving_obstacles, args[5]))
+        world = policy.config.safety_world
+        seen.append((world.action_delay, world.moving_obstacles, args[5]))
         plain.append(args[6])
         guided.append((policy.config.num_candidates, policy.config.sampling_guidance))
         return real(policy, *args, **kwargs)

@@ -54,7 +54,7 @@ def test_the_report_prints_one_line_per_class_and_the_summary(capsys):
     module = _script()
     policy = str(ROOT / "pretrained" / "formation_diffusion_route_v1")
     args = ["--policy.path", policy, "--level", "level0", "--scenes", "2", "--max-steps", "40"]
-    assert module.main([*args, "--candidates", "3", "--proposal-blend", "0", "--threads", "1"]) == 0
+    assert module.main([*args, "--candidates", "3", "--chunk-smoothing", "0", "--threads", "1"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()[-7:]  # after the loader's own line
     assert [line.split(" ")[0] for line in lines[:6]] == [
         "filter",

@@ -140,7 +140,7 @@ def pursuit_chunk(
     lookahead starts it at each candidate's end); at each step it pursues (``pursuit_command``) the
     near carrot until within half its starting distance of it, then the far one, and the goal within
     ``r_goal`` of it: pure pursuit of the polyline the hint gives, which the safety layer's best-of-K
-    scores beside the sampled chunks (``safety_route_proposal``).
+    scores beside the sampled chunks (``core.safety.layer.ROUTE_PROPOSAL``).
     """
     config = config or RoutePursuitConfig()
     route_body = np.asarray(route_body, dtype=np.float64)

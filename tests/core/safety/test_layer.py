@@ -1,5 +1,6 @@
-"""``core.safety.layer``: the settings object (defaults, checks, the one mapping to config fields) and
-the layer's own per-episode state and counts, on numpy arrays alone."""
+"""``core.safety.layer``: the settings object (defaults, checks, the one mapping to config fields), what
+the layer is told of the world (``KnownWorld``) and the layer's own per-episode state and counts, on
+numpy arrays alone."""
 
 import dataclasses
 
@@ -7,11 +8,14 @@ import numpy as np
 import pytest
 
 from lerobot_formation.core.encodings.obstacle_grid import environment_state
+from lerobot_formation.core.perception.conditions import Conditions
 from lerobot_formation.core.safety.layer import (
     CONFIG_FIELDS,
     LAYER_STAT_KEYS,
+    KnownWorld,
     SafetyLayer,
     SafetySettings,
+    WorldError,
     known_world,
 )
 
@@ -24,11 +28,9 @@ def _env(obstacles, goal=(0.0, 8.0), encoding="nearest+route"):
 
 def test_each_setting_maps_to_one_config_field_and_back():
     assert set(CONFIG_FIELDS) == {f.name for f in dataclasses.fields(SafetySettings)}
+    assert list(CONFIG_FIELDS) == ["filter", "margin", "horizon", "mover_uncertainty", "world"]
     assert len(set(CONFIG_FIELDS.values())) == len(CONFIG_FIELDS)
-    assert SafetySettings.config_fields(margin=0.1, guidance=0.0) == {
-        "safety_margin": 0.1,
-        "sampling_guidance": 0.0,
-    }
+    assert SafetySettings.config_fields(margin=0.1, horizon=0) == {"safety_margin": 0.1, "safety_horizon": 0}
     assert SafetySettings.from_config_fields({"safety_margin": 0.1, "horizon": 16}) == {"margin": 0.1}
     with pytest.raises(ValueError, match="unknown safety settings"):
         SafetySettings.config_fields(safety_margin=0.1)
@@ -48,11 +50,10 @@ def test_each_setting_maps_to_one_config_field_and_back():
     [
         {"filter": "qp"},
         {"margin": -0.1},
-        {"cbf_rate": 0.0},
-        {"action_delay": 1.5},
-        {"route_lookahead": True},
-        {"max_linear_accel": 0.0},
-        {"guidance": float("nan")},
+        {"horizon": True},
+        {"horizon": 1.5},
+        {"mover_uncertainty": float("nan")},
+        {"world": {"action_delay": 1}},
     ],
 )
 def test_a_bad_setting_is_refused_by_name(bad):
@@ -61,12 +62,39 @@ def test_a_bad_setting_is_refused_by_name(bad):
         SafetySettings(**bad)
 
 
+@pytest.mark.parametrize(
+    ("bad", "want"),
+    [
+        ({"moving_obstacles": 1}, "true or false"),
+        ({"action_delay": 1.5}, r"an integer >= 0 \[control steps\]"),
+        ({"action_delay": -1}, r"an integer >= 0 \[control steps\]"),
+        ({"max_linear_accel": 0.0}, r"null \(no limit\) or a finite number > 0"),
+        ({"max_angular_accel": float("inf")}, r"null \(no limit\) or a finite number > 0"),
+        ({"obstacle_noise": -0.02}, "a finite std >= 0"),
+        ({"pose_noise": float("nan")}, "a finite std >= 0"),
+    ],
+)
+def test_a_bad_known_world_is_refused_naming_field_and_value(bad, want):
+    ((name, value),) = bad.items()
+    with pytest.raises(WorldError, match=rf"^safety_world\.{name} must be {want}, got {value!r}$"):
+        KnownWorld(**bad)
+    assert WorldError.config_error and issubclass(WorldError, ValueError)  # one line on the CLI
+
+
 def test_the_known_world_of_conditions():
-    assert known_world(None) == {} and known_world(None, scenes_move=True) == {"moving_obstacles": True}
+    assert known_world(None) is None and known_world(Conditions()) is None  # nothing to tell
+    assert known_world(None, scenes_move=True) == KnownWorld(moving_obstacles=True)
+    told = known_world(
+        Conditions(
+            action_delay=1, max_linear_accel=0.5, pose_noise=0.02, moving_obstacles=2, obstacle_speed=0.3
+        )
+    )
+    assert told == KnownWorld(moving_obstacles=True, action_delay=1, max_linear_accel=0.5, pose_noise=0.02)
 
 
 def test_the_layer_owns_its_episodes_state_and_counts():
-    layer = SafetyLayer(SafetySettings(action_delay=2, moving_obstacles=True, obstacle_noise=0.05))
+    world = KnownWorld(action_delay=2, moving_obstacles=True, obstacle_noise=0.05)
+    layer = SafetyLayer(SafetySettings(world=world))
     layer.reset(3)
     assert layer.in_flight.shape == (3, 2, 2) and layer.executed_velocity.shape == (3, 2)
     assert layer.tracker is not None and layer.smoother is not None
