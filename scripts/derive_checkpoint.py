@@ -10,8 +10,9 @@ both processors with ``make_formation_diffusion_pre_post_processors`` from the c
 normalisation statistics; every other file of the folder (model card, ``dataset_scenes.json``, ...) is
 copied as it is. Written to a temporary folder, then renamed into place, so ``dest`` may be the
 checkpoint itself: ``--set safety_margin=0.1 --set inference_backend=trace`` on an exported
-policy changes those two fields in place. The fields are applied with ``dataclasses.replace``, so the
-config's checks run.
+policy changes those two fields in place; a field of a nested one is ``--set
+safety_world.action_delay=1``. The fields are applied with ``dataclasses.replace``, so the config's
+checks run.
 
 ``--set obstacle_encoding=E`` also widens the network to the new encoding's input (for an encoding
 that carries every feature of the old one, e.g. ``nearest+route`` -> ``nearest+route+velocity``;
@@ -112,9 +113,20 @@ def main(argv: list[str] | None = None) -> int:
     changes = {}
     for item in args.set:
         key, sep, value = item.partition("=")
-        if not sep or key not in names:
+        head, dot, part = key.partition(".")  # FIELD.PART: a field of a nested settings dataclass
+        nested = dot and head in names and dataclasses.is_dataclass(getattr(cfg, head))
+        if not sep or (key not in names and not nested):
             raise SystemExit(f"error: --set {item!r}: expected FIELD=VALUE with a {cfg.type} config field")
-        changes[key] = raw[key] = parse_value(value)
+        if nested:
+            try:
+                changes[head] = dataclasses.replace(
+                    changes.get(head, getattr(cfg, head)), **{part: parse_value(value)}
+                )
+            except (TypeError, ValueError) as e:
+                raise SystemExit(f"error: --set {item!r}: {e}") from None
+            raw[head] = dataclasses.asdict(changes[head])
+        else:
+            changes[key] = raw[key] = parse_value(value)
     weights, stats = None, norm.stats
     if "obstacle_encoding" in changes and changes["obstacle_encoding"] != cfg.obstacle_encoding:
         changes["input_features"], weights = _widened(src, cfg, changes["obstacle_encoding"])

@@ -42,6 +42,21 @@ def test_set_changes_config_fields_in_place_and_keeps_the_other_files(tmp_path):
     assert not list(tmp_path.glob(".ckpt.tmp*"))
 
 
+def test_set_changes_a_field_of_the_known_world(tmp_path):
+    from lerobot_formation.core.safety.layer import KnownWorld
+    from lerobot_formation.policy.checkpoint import load_policy
+
+    ckpt = save_nearest_checkpoint(tmp_path / "ckpt")
+    argv = ["--set", "safety_world.action_delay=1", "--set", "safety_world.moving_obstacles=true"]
+    assert _derive(str(ckpt), str(ckpt), *argv) == 0
+    assert json.loads((ckpt / "config.json").read_text())["safety_world"]["action_delay"] == 1
+    policy, _, _ = load_policy(ckpt)
+    assert policy.config.safety_world == KnownWorld(moving_obstacles=True, action_delay=1)
+    with pytest.raises(SystemExit, match=r"safety_world.action_delay must be an integer >= 0"):
+        _derive(str(ckpt), str(tmp_path / "new"), "--set", "safety_world.action_delay=-1")
+    assert not (tmp_path / "new").exists()
+
+
 def test_set_with_an_unknown_field_is_refused_and_writes_nothing(tmp_path):
     ckpt = save_nearest_checkpoint(tmp_path / "ckpt")
     with pytest.raises(SystemExit, match="expected FIELD=VALUE with a formation_diffusion config field"):
