@@ -375,6 +375,7 @@ FIELDS_BEFORE = {
     "safety_margin": 0.1,
     "safety_horizon": 0,
     "safety_mover_uncertainty": 0.0,
+    "safety_search": 0,
     "warm_start_step": 0,
     "chunk_smoothing": 0,
     "sampling_guidance": 0.0,

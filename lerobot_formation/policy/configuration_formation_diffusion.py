@@ -175,6 +175,12 @@ class FormationDiffusionConfig(DiffusionConfig):
             [rad/s^2] (None: no limit), ``obstacle_noise`` / ``pose_noise`` [m, rad] (the sensors'
             noise stds). The bench sets it from each level's conditions; on the command line
             ``--policy.safety_world.action_delay=1``. Default: nothing known (``KnownWorld()``).
+        safety_search: n >= 0. Best-of-K's candidates also hold n paths of a lattice search in space
+            and time (``core.safety.lattice_search``): a beam search over held [v, omega] primitives
+            of 0.5 s, 3 s deep, that keeps only paths whose footprint clears every obstacle where it
+            is predicted at that time; the best path of each of its n best first manoeuvres, checked
+            and scored like every candidate. They give the team composite ways out (turn away, then
+            run) that no sample holds where a mover comes towards it. Default 3; 0: no search.
             The layer's other settings are wired (``core.safety.layer``: ``CBF_RATE``,
             ``FOLLOWER_MARGIN``, ``ROUTE_PROPOSAL``, ``PROPOSAL_BLEND``, ``COHERENCE``,
             ``ESCAPE_SPEEDS``, ...).
@@ -252,6 +258,7 @@ class FormationDiffusionConfig(DiffusionConfig):
     safety_horizon: int = 20
     safety_mover_uncertainty: float = 0.1
     safety_world: KnownWorld = field(default_factory=KnownWorld)
+    safety_search: int = 3
     warm_start_step: int = 1
     chunk_smoothing: int = 2
     sampling_guidance: float = 1.0
@@ -375,6 +382,10 @@ class FormationDiffusionConfig(DiffusionConfig):
             isinstance(self.safety_horizon, int) and self.safety_horizon >= 0
         ):
             raise config_error(f"safety_horizon must be an integer >= 0 [steps], got {self.safety_horizon!r}")
+        if isinstance(self.safety_search, bool) or not (
+            isinstance(self.safety_search, int) and self.safety_search >= 0
+        ):
+            raise config_error(f"safety_search must be an integer >= 0 [paths], got {self.safety_search!r}")
         if not _is_finite_nonnegative(self.safety_mover_uncertainty):
             raise config_error(
                 f"safety_mover_uncertainty must be a number >= 0 [m/s], got {self.safety_mover_uncertainty!r}"

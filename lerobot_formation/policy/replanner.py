@@ -68,6 +68,7 @@ STAT_KEYS = (
     "filter_interventions",
     "proposals",
     "rechecks_failed",
+    "searched",
 )
 # a sampler: (normalised observation histories, K, noise=, warm_start=, warm_start_step=, warm_all=,
 # guide=) -> (B, K, chunk_length, 2) normalised chunks (``FormationDiffusionPolicy.sample_action_chunks``)

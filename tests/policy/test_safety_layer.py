@@ -568,7 +568,7 @@ def test_layer_without_samples_runs_route_pursuit_under_the_check_and_never_call
         replanner.act(torch.from_numpy(env).float(), lambda rows: None)
     stats = replanner.stats
     assert stats["escapes"] > 0
-    assert stats["proposals"] + stats["escapes"] + stats["stops"] == stats["replans"]
+    assert stats["proposals"] + stats["escapes"] + stats["stops"] + stats["searched"] == stats["replans"]
 
     alone = ReplanExperiment(sampled=False)
     with pytest.raises(ValueError, match=r"samples nothing.*obstacle_encoding='nearest', num_candidates=4"):
@@ -611,7 +611,8 @@ def test_bench_runs_route_pursuit_safe_without_a_checkpoint(tmp_path, monkeypatc
     safety = res["safety"]
     assert (
         safety["replans"] > 0
-        and safety["proposals"] + safety["escapes"] + safety["stops"] == safety["replans"]
+        and safety["proposals"] + safety["escapes"] + safety["stops"] + safety["searched"]
+        == safety["replans"]
     )
 
 

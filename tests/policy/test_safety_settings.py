@@ -49,7 +49,7 @@ def test_the_report_overrides_name_config_fields_through_the_settings():
     assert SafetySettings(**SafetySettings.from_config_fields(overrides)).margin == 0.1
 
 
-def test_the_config_keeps_five_safety_layer_fields():
+def test_the_config_keeps_six_safety_layer_fields():
     layer = [f.name for f in fields(FormationDiffusionConfig) if f.name.startswith("safety_")]
     assert layer == [
         "safety_filter",
@@ -57,6 +57,7 @@ def test_the_config_keeps_five_safety_layer_fields():
         "safety_horizon",
         "safety_mover_uncertainty",
         "safety_world",
+        "safety_search",
     ]
     assert sorted(CONFIG_FIELDS.values()) == sorted(layer)
 

@@ -20,7 +20,14 @@ from lerobot_formation.core.perception.obstacle_tracker import predict_obstacles
 from lerobot_formation.core.world.dynamics import FormationParams, body_to_world, rollout_poses
 from lerobot_formation.core.world.geometry import xy_clearance
 
-__all__ = ["TeamBody", "obstacles_along", "rollout_poses", "sequence_clearance", "template_clearance"]
+__all__ = [
+    "TeamBody",
+    "obstacles_along",
+    "rollout_poses",
+    "sequence_clearance",
+    "step_clearances",
+    "template_clearance",
+]
 
 
 @dataclass(frozen=True)
@@ -96,7 +103,7 @@ def obstacles_along(
     return predict_obstacles(obstacles, velocity, times, uncertainty)
 
 
-def sequence_clearance(
+def step_clearances(
     pose: np.ndarray,
     actions: np.ndarray,
     obstacles: np.ndarray,
@@ -105,9 +112,9 @@ def sequence_clearance(
     start_step: int = 0,
     mover_uncertainty: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of the team's ``body`` moved
-    by candidate sequences ``actions`` (B, C, T, 2) [v, omega] from ``pose`` (B, 3), among
-    ``obstacles`` (B, M, 3).
+    """Predicted agent clearance after every action (B, C, T) and the poses (B, C, T, 3) of the team's
+    ``body`` moved by candidate sequences ``actions`` (B, C, T, 2) [v, omega] from ``pose`` (B, 3),
+    among ``obstacles`` (B, M, 3).
 
     ``obstacle_velocity`` (B, M, 2): the obstacles move at constant velocity, and the pose after
     action k is checked against them at time (``start_step`` + k + 1) dt (``start_step``: the steps
@@ -124,4 +131,20 @@ def sequence_clearance(
         at = np.ascontiguousarray(poses.transpose(0, 2, 1, 3)).reshape(B * T, C, 3)
         clear = template_clearance(at, moved.reshape(B * T, -1, 3), body.template, body.agent_radius)
         clear = clear.reshape(B, T, C).transpose(0, 2, 1)
+    return clear, poses
+
+
+def sequence_clearance(
+    pose: np.ndarray,
+    actions: np.ndarray,
+    obstacles: np.ndarray,
+    body: TeamBody,
+    obstacle_velocity: np.ndarray | None = None,
+    start_step: int = 0,
+    mover_uncertainty: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest predicted agent clearance (B, C) and end poses (B, C, 3) of ``step_clearances``."""
+    clear, poses = step_clearances(
+        pose, actions, obstacles, body, obstacle_velocity, start_step, mover_uncertainty
+    )
     return clear.min(axis=-1), poses[:, :, -1]

@@ -53,6 +53,7 @@ from lerobot_formation.core.perception.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.perception.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.safety import filters as safety
 from lerobot_formation.core.safety import guidance
+from lerobot_formation.core.safety.lattice_search import search_proposals
 from lerobot_formation.core.safety.replan_blend import blend_replan, smooth_chunks
 from lerobot_formation.core.world.dynamics import FormationParams, rate_limit
 
@@ -75,6 +76,7 @@ LAYER_STAT_KEYS = (
     "filter_interventions",
     "proposals",
     "rechecks_failed",
+    "searched",
 )
 
 
@@ -167,6 +169,9 @@ class SafetySettings:
         mover_uncertainty: [m/s] the growth of a moving obstacle's predicted radius per second ahead
             (``safety_mover_uncertainty``).
         world: what the layer is told of the robot and its world (``safety_world``, ``KnownWorld``).
+        search: the lattice search's paths that join the candidates, the best of each of its
+            ``search`` best first manoeuvres (``core.safety.lattice_search``); 0: no search
+            (``safety_search``).
     """
 
     filter: str = field(default="cbf", metadata=_config("safety_filter"))
@@ -174,6 +179,7 @@ class SafetySettings:
     horizon: int = field(default=20, metadata=_config("safety_horizon"))
     mover_uncertainty: float = field(default=0.1, metadata=_config("safety_mover_uncertainty"))
     world: KnownWorld = field(default_factory=KnownWorld, metadata=_config("safety_world"))
+    search: int = field(default=3, metadata=_config("safety_search"))
 
     def __post_init__(self):
         def refuse(name: str, want: str) -> None:
@@ -187,6 +193,8 @@ class SafetySettings:
                 refuse(name, "a finite number >= 0")
         if not _count(self.horizon):
             refuse("horizon", "an integer >= 0")
+        if not _count(self.search):
+            refuse("search", "an integer >= 0")
         if not isinstance(self.world, KnownWorld):
             refuse("world", "a KnownWorld")
 
@@ -515,6 +523,12 @@ class SafetyLayer:
                 proposal = blend_replan(proposal, last, had, PROPOSAL_BLEND)
                 proposal = smooth_chunks(proposal, last, had, chunk_smoothing)
             chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
+        searched_from = chunks.shape[1]
+        if s.search:  # the lattice search's ways ahead compete too
+            found = search_proposals(
+                self.footprint_check(view), view.goal, s.margin, chunks.shape[2], s.search
+            )
+            chunks = np.concatenate([chunks, found], axis=1)
         coherence = None
         if previous is not None and COHERENCE:
             coherence = safety.PlanCoherence(
@@ -546,6 +560,8 @@ class SafetyLayer:
             fallback_all=True,
         )
         info["proposal_kept"] = info["choice"] == K if proposes else np.zeros(len(chosen), bool)
+        info["search_kept"] = (info["choice"] >= searched_from) & (info["choice"] < chunks.shape[1])
+        self.stats["searched"] += int(info["search_kept"].sum())
         self.stats["replans_none_safe"] += int((~info["any_safe"]).sum())
         self.stats["escapes"] += int(info["escaped"].sum())
         self.stats["stops"] += int(info["stopped"].sum())

@@ -28,7 +28,7 @@ def _env(obstacles, goal=(0.0, 8.0), encoding="nearest+route"):
 
 def test_each_setting_maps_to_one_config_field_and_back():
     assert set(CONFIG_FIELDS) == {f.name for f in dataclasses.fields(SafetySettings)}
-    assert list(CONFIG_FIELDS) == ["filter", "margin", "horizon", "mover_uncertainty", "world"]
+    assert list(CONFIG_FIELDS) == ["filter", "margin", "horizon", "mover_uncertainty", "world", "search"]
     assert len(set(CONFIG_FIELDS.values())) == len(CONFIG_FIELDS)
     assert SafetySettings.config_fields(margin=0.1, horizon=0) == {"safety_margin": 0.1, "safety_horizon": 0}
     assert SafetySettings.from_config_fields({"safety_margin": 0.1, "horizon": 16}) == {"margin": 0.1}
@@ -108,7 +108,7 @@ def test_the_layer_owns_its_episodes_state_and_counts():
 
 
 def test_choose_recheck_and_filter_count_what_the_layer_did():
-    layer = SafetyLayer()
+    layer = SafetyLayer(SafetySettings(search=0))  # the search would find a way round the wall
     layer.reset(1)
     wall = _env([[x, 0.9, 0.3] for x in np.linspace(-1.5, 1.5, 7)])
     straight = np.tile([0.5, 0.0], (1, 2, 15, 1))  # both samples drive into the wall
