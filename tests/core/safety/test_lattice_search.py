@@ -6,7 +6,7 @@ import pytest
 
 from lerobot_formation.core.controllers.footprint import TeamBody, step_clearances
 from lerobot_formation.core.safety.filters import FootprintCheck
-from lerobot_formation.core.safety.lattice_search import PRIMITIVE_STEPS, best_per_key, search_proposals
+from lerobot_formation.core.safety.lattice_search import best_per_key, search_proposals
 from lerobot_formation.core.safety.layer import safety_geometry
 from lerobot_formation.core.world.scenes import FAR
 
