@@ -529,7 +529,7 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
 
     runs = {}
     plain = f"K={k}, plain trace"
-    shipped = {"sampling_guidance": cfg.sampling_guidance}
+    shipped = {"sampling_guidance": cfg.sampling_guidance, "safety_search": cfg.safety_search}
     # every variant sets these fields: reconfigure keeps what an earlier variant changed
     guided = {**shipped, "sampling_guidance": cfg.sampling_guidance or TUNED_SAMPLING_GUIDANCE}
     unguided = {**shipped, "sampling_guidance": 0.0}
@@ -543,6 +543,9 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         (other_guidance, k, None, unguided if cfg.sampling_guidance else guided, False),
         (f"K={k}, recorded", k, recording, shipped, False),  # its calls for the scorer's replay
     ]
+    unsearched = f"K={k}, no lattice search"  # the previous default (safety_search 0)
+    if cfg.safety_search:
+        variants.append((unsearched, k, None, {**shipped, "safety_search": 0}, False))
     variants.append((plain, k, None, shipped, True))  # last: it traces again on its first call
     for label, kk, scorer, fields, plain_trace in variants:
         policy.reconfigure(num_candidates=kk, **fields)  # a new config: a fresh replanner (reset)
@@ -571,6 +574,8 @@ def safety_part(path: str, k: int, scenes: int, level: str | None = None) -> str
         f"whole field {ctg_base:.3f} ms ({ctg_base / ctg_ours:.2f}x); the same values: {same_values}"
     )
     extra = f", {other_setting} {med[other_guidance]:.1f} ms, K=1 guided {med['K=1, guided']:.1f} ms"
+    if unsearched in med:
+        extra = f", without the lattice search {med[unsearched]:.1f} ms (ratio {ours / med[unsearched]:.2f}x){extra}"
     return (
         f"replan latency B=1 via select_action over whole episodes: K={k} with the safety layer {ours:.1f} ms"
         f"{extra} (its cost-to-go {ctg_ours:.2f} ms a call, the whole field {ctg_base:.2f} ms, ratio "
