@@ -32,7 +32,7 @@ the nearest moving obstacle (its gap, where it is in the team's frame, its speed
 comes towards the team) and, for a controller with a safety layer, what the layer did at that step
 (``bench.level_report.recording_replanner``): a replan (cut: the recheck or the filter ended the
 plan early), how many of the scored chunks were safe, and what it kept (a sample, route pursuit's
-proposal, an escape manoeuvre, or the fallback where nothing was safe), and whether the filter
+proposal, a path of the lattice search, an escape manoeuvre, or the fallback where nothing was safe), and whether the filter
 changed the command. An episode's outcome depends on the batch it ran in (the noise is drawn for
 the whole batch), so a trace is of this run's episode: the same flags give it again.
 """
@@ -108,7 +108,12 @@ def agent_obstacle_gaps(positions, obstacles, mask, agent_radius) -> np.ndarray:
 
 # what a replan kept, other than one of the samples, the first that applies (``bench.level_report.EVENTS``;
 # the fallback keeps the widest candidate, which may be a manoeuvre or the proposal)
-KEPT = (("fallback", "the fallback"), ("escape", "an escape"), ("proposal", "the proposal"))
+KEPT = (
+    ("fallback", "the fallback"),
+    ("escape", "an escape"),
+    ("proposal", "the proposal"),
+    ("search", "a search path"),
+)
 
 
 def trace_lines(rec, scenes, params, b: int, steps: int = 30, recorder=None) -> list[str]:

@@ -97,14 +97,14 @@ def run_level(
 # filter or the recheck caused (the plan cut short), and what the replan kept: an escape manoeuvre (as
 # the replanner counts them), route pursuit's proposal, and whether it was the fallback, nothing
 # scored being safe (the widest chunk or manoeuvre, or a stop); the filter's change.
-EVENTS = ("replan", "replan_cut", "escape", "proposal", "fallback", "filter")
+EVENTS = ("replan", "replan_cut", "escape", "proposal", "search", "fallback", "filter")
 
 
 def recording_replanner(base, max_steps: int):
     """An instance of a ``Replanner`` subclass built like ``base`` (the bench controller's) that runs
     as it does and records, per episode and step, the events of ``EVENTS`` in ``.events`` (name -> (B,
-    max_steps + 2) bool) and, at each replan, how many of the scored chunks (the samples and the
-    proposal) were safe and how many were scored, in ``.safe_count`` and ``.scored`` ((B, max_steps + 2)
+    max_steps + 2) bool) and, at each replan, how many of the scored chunks (the samples, the
+    proposal and the lattice search's paths) were safe and how many were scored, in ``.safe_count`` and ``.scored`` ((B, max_steps + 2)
     int, -1 where no replan); B from its first ``act``."""
     import torch
 
@@ -137,6 +137,7 @@ def recording_replanner(base, max_steps: int):
             chosen, info = super().choose(*args, **kwargs)
             self.events["escape"][self._need, self.step] = info["escaped"]
             self.events["proposal"][self._need, self.step] = info["proposal_kept"]
+            self.events["search"][self._need, self.step] = info["search_kept"]
             self.events["fallback"][self._need, self.step] = info["blocked"]
             self.safe_count[self._need, self.step] = info["safe"].sum(axis=1)
             self.scored[self._need, self.step] = info["safe"].shape[1]

@@ -108,9 +108,11 @@ def test_the_recording_replanner_records_what_the_controller_did():
     replanned = events["replan"] | events["replan_cut"]
     assert replanned.sum() == controller.stats["replans"] > 2
     assert events["proposal"].sum() == controller.stats["proposals"]
+    assert events["search"].sum() == controller.stats["searched"]
     assert events["escape"].sum() == controller.stats["escapes"]
     assert events["filter"].sum() == controller.stats["filter_interventions"]
-    assert np.all(recorder.scored[replanned] == 4) and np.all(recorder.scored[~replanned] == -1)
-    assert np.all((recorder.safe_count[replanned] >= 0) & (recorder.safe_count[replanned] <= 4))
+    scored = 3 + 1 + recorder.layer.settings.search  # the samples, route pursuit's proposal, the search's
+    assert np.all(recorder.scored[replanned] == scored) and np.all(recorder.scored[~replanned] == -1)
+    assert np.all((recorder.safe_count[replanned] >= 0) & (recorder.safe_count[replanned] <= scored))
     # a fallback is a replan where nothing scored was safe
     assert np.all(recorder.safe_count[events["fallback"]] == 0)

@@ -170,6 +170,7 @@ def test_the_trace_of_the_safety_layer_says_what_each_replan_kept(capsys):
     out = capsys.readouterr().out
     lines = out[out.index("episode 1 (timeout after 12 steps):") :].strip().splitlines()[1:-1]
     assert len(lines) == 13 and lines[0].startswith("step    0 pose")
-    assert lines[0].endswith("safe, kept a sample") or lines[0].endswith("safe, kept the proposal")
-    assert "replan: " in lines[0] and " of 4 safe" in lines[0]
+    kept = ("safe, kept a sample", "safe, kept the proposal", "safe, kept a search path")
+    assert lines[0].endswith(kept)
+    assert "replan: " in lines[0] and " of 7 safe" in lines[0]  # 3 samples, the proposal, 3 search paths
     assert any(line.endswith("running on") for line in lines)
