@@ -175,12 +175,15 @@ class FormationDiffusionConfig(DiffusionConfig):
             [rad/s^2] (None: no limit), ``obstacle_noise`` / ``pose_noise`` [m, rad] (the sensors'
             noise stds). The bench sets it from each level's conditions; on the command line
             ``--policy.safety_world.action_delay=1``. Default: nothing known (``KnownWorld()``).
-        safety_search: n >= 0. Best-of-K's candidates also hold n paths of a lattice search in space
-            and time (``core.safety.lattice_search``): a beam search over held [v, omega] primitives
-            of 0.5 s, 3 s deep, that keeps only paths whose footprint clears every obstacle where it
-            is predicted at that time; the best path of each of its n best first manoeuvres, checked
-            and scored like every candidate. They give the team composite ways out (turn away, then
-            run) that no sample holds where a mover comes towards it. Default 3; 0: no search.
+        safety_search: n >= 0. Where the layer predicts moving obstacles
+            (``safety_world.moving_obstacles``), best-of-K's candidates also hold n paths of a lattice
+            search in space and time (``core.safety.lattice_search``): a beam search over held
+            [v, omega] primitives of 0.5 s, 3 s deep, that keeps only paths whose footprint clears
+            every obstacle where it is predicted at that time; the best path of each of its n best
+            first manoeuvres, checked and scored like every candidate. They give the team composite
+            ways out (turn away, then run) that no sample holds where a mover comes towards it; among
+            standing obstacles the route hint already follows the cost-to-go the search ranks by
+            (there it cost level3's tuning scenes 4 of 200 in timeouts). Default 3; 0: no search.
             The layer's other settings are wired (``core.safety.layer``: ``CBF_RATE``,
             ``FOLLOWER_MARGIN``, ``ROUTE_PROPOSAL``, ``PROPOSAL_BLEND``, ``COHERENCE``,
             ``ESCAPE_SPEEDS``, ...).

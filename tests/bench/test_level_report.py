@@ -111,7 +111,7 @@ def test_the_recording_replanner_records_what_the_controller_did():
     assert events["search"].sum() == controller.stats["searched"]
     assert events["escape"].sum() == controller.stats["escapes"]
     assert events["filter"].sum() == controller.stats["filter_interventions"]
-    scored = 3 + 1 + recorder.layer.settings.search  # the samples, route pursuit's proposal, the search's
+    scored = 3 + 1  # the samples and route pursuit's proposal (no movers: no search)
     assert np.all(recorder.scored[replanned] == scored) and np.all(recorder.scored[~replanned] == -1)
     assert np.all((recorder.safe_count[replanned] >= 0) & (recorder.safe_count[replanned] <= scored))
     # a fallback is a replan where nothing scored was safe

@@ -169,9 +169,9 @@ class SafetySettings:
         mover_uncertainty: [m/s] the growth of a moving obstacle's predicted radius per second ahead
             (``safety_mover_uncertainty``).
         world: what the layer is told of the robot and its world (``safety_world``, ``KnownWorld``).
-        search: the lattice search's paths that join the candidates, the best of each of its
-            ``search`` best first manoeuvres (``core.safety.lattice_search``); 0: no search
-            (``safety_search``).
+        search: where the layer predicts moving obstacles, the lattice search's paths that join the
+            candidates, the best of each of its ``search`` best first manoeuvres
+            (``core.safety.lattice_search``); 0: no search (``safety_search``).
     """
 
     filter: str = field(default="cbf", metadata=_config("safety_filter"))
@@ -524,7 +524,7 @@ class SafetyLayer:
                 proposal = smooth_chunks(proposal, last, had, chunk_smoothing)
             chunks = np.concatenate([chunks, proposal[:, None]], axis=1)
         searched_from = chunks.shape[1]
-        if s.search:  # the lattice search's ways ahead compete too
+        if s.search and s.world.moving_obstacles:  # the lattice search's ways past the movers compete too
             found = search_proposals(
                 self.footprint_check(view), view.goal, s.margin, chunks.shape[2], s.search
             )

@@ -126,3 +126,17 @@ def test_choose_recheck_and_filter_count_what_the_layer_did():
     assert not changed[0] and same[0, 0] == 0.6 and off.stats["filter_interventions"] == 0
     layer.reset()
     assert layer.stats == dict.fromkeys(LAYER_STAT_KEYS, 0)
+
+
+def test_the_search_joins_the_candidates_only_where_obstacles_move():
+    wall = _env([[x, 0.9, 0.3] for x in np.linspace(-1.5, 1.5, 7)])
+    straight = np.tile([0.5, 0.0], (1, 2, 15, 1))  # both samples drive into the wall
+    static, moving = SafetyLayer(), SafetyLayer(SafetySettings(world=KnownWorld(moving_obstacles=True)))
+    static.reset(1)
+    moving.reset(1)
+    _, alone = static.choose(wall, straight)
+    _, searched = moving.choose(wall, straight)
+    assert searched["safe"].shape[1] == alone["safe"].shape[1] + SafetySettings().search
+    assert not alone["search_kept"].any() and static.stats["searched"] == 0
+    assert searched["safe"][0, alone["safe"].shape[1] :].any()  # a search path goes round the wall
+    assert moving.stats["searched"] == int(searched["search_kept"].sum())
