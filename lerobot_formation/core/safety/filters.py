@@ -209,6 +209,9 @@ SLIDE_TOLERANCE = 0.02  # [m] how much closer than now a chunk may come when alr
 BLOCKED_FALLBACKS = ("widest", "stop")
 ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3)  # [m/s] the default lattice: turns in place and slow arcs
 PROGRESS_WINDOW = 6.0  # [m] best-of-K's cost-to-go grid reaches +-(window + 2) m (``cost_to_go_progress``)
+PROGRESS_INFLATE = 0.9  # [m] cells this near an obstacle cost ``PROGRESS_WALL_COST`` times more (as MPPI's)
+PROGRESS_WALL_COST = 3.0
+PROGRESS_RESOLUTION = 0.4  # [m] the cell of the grid the shipped layer reads (bilinearly) progress on
 ESCAPE_TURN_RATES = (-1.5, -1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0, 1.5)  # [rad/s]
 
 
@@ -471,6 +474,13 @@ def select_chunk(
     return chosen, info
 
 
+def progress_goal(goal: np.ndarray, window: float = PROGRESS_WINDOW) -> np.ndarray:
+    """The goal (B, 2) the progress grid is built around: beyond +-``window`` m, that square's point in
+    the goal's direction (``cost_to_go_progress``)."""
+    reach = np.abs(goal).max(axis=-1)
+    return goal * np.minimum(1.0, window / np.maximum(reach, 1e-9))[:, None]
+
+
 def cost_to_go_progress(
     obstacles: np.ndarray,
     goal: np.ndarray,
@@ -498,17 +508,16 @@ def cost_to_go_progress(
     0.666 with bilinear reads on 0.3 and 0.4 m).
     """
     B, K = end.shape[:2]
-    reach = np.abs(goal).max(axis=-1)
-    g = goal * np.minimum(1.0, window / np.maximum(reach, 1e-9))[:, None]
+    g = progress_goal(goal, window)
     points = np.concatenate([np.zeros((B, 1, 2)), end], axis=1).reshape(B * (K + 1), 2)
     ctg = cost_to_go_at(
         obstacles,
         g,
         points,
         rows=np.repeat(np.arange(B), K + 1),
-        inflate=0.9,
+        inflate=PROGRESS_INFLATE,
         resolution=resolution,
-        wall_cost=3.0,
+        wall_cost=PROGRESS_WALL_COST,
         bounds=(-window - 2.0, window + 2.0),
         bilinear=bilinear,
     ).reshape(B, K + 1)

@@ -33,7 +33,14 @@ from __future__ import annotations
 import numpy as np
 
 from lerobot_formation.core.controllers.footprint import step_clearances
-from lerobot_formation.core.safety.filters import PROGRESS_WINDOW, FootprintCheck
+from lerobot_formation.core.safety.filters import (
+    PROGRESS_INFLATE,
+    PROGRESS_RESOLUTION,
+    PROGRESS_WALL_COST,
+    PROGRESS_WINDOW,
+    FootprintCheck,
+    progress_goal,
+)
 from lerobot_formation.core.world.navigation import cost_to_go
 
 PRIMITIVES = np.array(
@@ -44,8 +51,6 @@ PRIMITIVE_STEPS = 5  # control steps a primitive is held (0.5 s)
 DEPTH = 6  # primitives per path (3 s)
 BEAM = 16  # paths kept per depth
 CELL = (0.25, np.pi / 4)  # [m, rad] the cells that tell paths apart
-# the cost-to-go the layer's progress reads (filters.cost_to_go_progress)
-FIELD = {"inflate": 0.9, "resolution": 0.4, "wall_cost": 3.0}
 
 
 def search_proposals(
@@ -61,10 +66,13 @@ def search_proposals(
     pose0, delay = check._origin()
     B = len(pose0)
     floor = check.floor(margin)  # (B, 1)
-    reach = np.abs(goal).max(axis=-1)
-    clipped = goal * np.minimum(1.0, PROGRESS_WINDOW / np.maximum(reach, 1e-9))[:, None]
-    field = cost_to_go(
-        check.obstacles, clipped, bounds=(-PROGRESS_WINDOW - 2.0, PROGRESS_WINDOW + 2.0), **FIELD
+    field = cost_to_go(  # the grid the layer reads its progress on (``filters.cost_to_go_progress``)
+        check.obstacles,
+        progress_goal(goal),
+        inflate=PROGRESS_INFLATE,
+        resolution=PROGRESS_RESOLUTION,
+        wall_cost=PROGRESS_WALL_COST,
+        bounds=(-PROGRESS_WINDOW - 2.0, PROGRESS_WINDOW + 2.0),
     )
     P, n, length = len(PRIMITIVES), PRIMITIVE_STEPS, DEPTH * PRIMITIVE_STEPS
     velocity = check.obstacle_velocity

@@ -53,13 +53,13 @@ from lerobot_formation.core.perception.obstacle_filter import ObstacleFilter
 from lerobot_formation.core.perception.obstacle_tracker import ObstacleTracker
 from lerobot_formation.core.safety import filters as safety
 from lerobot_formation.core.safety import guidance
+from lerobot_formation.core.safety.filters import PROGRESS_RESOLUTION
 from lerobot_formation.core.safety.lattice_search import search_proposals
 from lerobot_formation.core.safety.replan_blend import blend_replan, smooth_chunks
 from lerobot_formation.core.world.dynamics import FormationParams, rate_limit
 
 # The shipped layer's settings that are no settings field:
 ESCAPE_SPEEDS = (0.0, 0.1, 0.2, 0.3, 0.45, 0.6)  # [m/s] best-of-K's escape manoeuvres, each turn rate
-PROGRESS_RESOLUTION = 0.4  # [m] the cell of the cost-to-go grid best-of-K reads (bilinearly) progress on
 GUIDANCE_DISTANCE = 0.3  # [m] the clearance below which the sampling guidance's cost grows
 CBF_RATE = 4.0  # [1/s] the filter's barrier decay rate alpha: dh/dt >= -alpha h
 FOLLOWER_MARGIN = 0.03  # [m] the followers' clearance on top of the margin (not where obstacles move)
